@@ -1,0 +1,5 @@
+"""Data layer: sessions (NCLT, SimCampus), the place grid, caches and grain pipelines."""
+
+from placejax.data.session import Session
+
+__all__ = ["Session"]
