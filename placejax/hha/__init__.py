@@ -1,0 +1,23 @@
+"""HHA encoding of depth images: horizontal disparity, height above ground, angle with gravity.
+
+Public surface:
+    encode: depth (metres) + intrinsics → ``uint8`` HHA images, jitted and batched.
+    encode_full: the same plus the intermediates (:class:`HHAResult`).
+    encode_stream: bounded-memory encoding of a stream of images in fixed-size batches.
+    encode_reference: plain NumPy float64 implementation, one image at a time (test oracle, baseline).
+    inverse_depth_to_metric: relative inverse depth (MiDaS) → metric depth for HHA.
+"""
+
+from placejax.hha._api import encode, encode_full, encode_stream
+from placejax.hha._encode import HHAResult
+from placejax.hha._metric import inverse_depth_to_metric
+from placejax.hha._reference import encode_reference
+
+__all__ = [
+    "HHAResult",
+    "encode",
+    "encode_full",
+    "encode_reference",
+    "encode_stream",
+    "inverse_depth_to_metric",
+]

@@ -1,0 +1,13 @@
+"""Constants of the HHA encoding (Gupta et al., ECCV 2014; values of the original code, ``shared/specs/hha.md``)."""
+
+RADIUS_ANGLE = 3  # 7×7 normals feed the angle channel
+RADIUS_GRAVITY = 10  # 21×21 normals feed only the gravity estimate
+GRAVITY_THRESHOLDS_DEG = (45.0, 15.0)  # floor/wall thresholds of the two passes
+GRAVITY_ITERATIONS = (5, 5)
+ROTATION_SKIP_DEG = 0.1  # no rotation when gravity is this close to the image's down axis
+FLOOR_RULE_CM = -90.0  # if the lowest point is less than 0.9 m below the camera ...
+FLOOR_FALLBACK_CM = -130.0  # ... assume the floor 1.3 m below it
+DISPARITY_NUMERATOR = 31000.0  # disparity = 31000 / max(Z_cm, 100)
+DISPARITY_MIN_CM = 100.0
+ANGLE_OFFSET = 38.0  # angle channel = θ + 38 (floor ≈ 38, wall ≈ 128)
+ANGLE_NAN_DEG = 180.0  # angle where the normal is undefined

@@ -1,0 +1,262 @@
+"""Jitted, batched HHA encoder (float32, centred least squares, fixed-trip-count gravity loop).
+
+The algorithm is the reference one (``shared/specs/hha.md``, Gupta et al. ECCV 2014); what differs is how it is
+computed so that float32 is enough and XLA can compile it once for a whole batch:
+
+* Normals are fitted with moments taken relative to each window's centre pixel, in pixel offsets (s = column
+  offset, t = row offset). The raw moments of a = X/Z and b = Y/Z are nearly singular (a and b change by ~0.01
+  across a window) and their adjugate cancels catastrophically in float32; the centred 3×3 systems are well
+  conditioned. The fit w = 1/Z ≈ y1·s + y2·t + y3 is mapped back to the reference plane x1·a + x2·b + x3 = 1/Z
+  exactly (x1 = fx·y1, x2 = fy·y2, x3 = y3 − x1·a_c − x2·b_c).
+* Window sums are separable correlations with the kernels 1, s, s² along columns and 1, t, t² along rows,
+  written as shifted slices so that XLA fuses them into a few loops. The 21×21 windows are assembled from three
+  7-wide blocks of the 7×7 sums (Σ over a shifted block of (k + c)^p expands into the block's own moments), which
+  costs a fraction of a direct 21-tap pass.
+* The gravity estimate is a ``lax.fori_loop`` over 5 + 5 iterations with fixed-shape floor/wall masks, so one
+  compiled function serves every image of a batch under ``vmap``.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from placejax.hha._constants import (
+    ANGLE_NAN_DEG,
+    ANGLE_OFFSET,
+    DISPARITY_MIN_CM,
+    DISPARITY_NUMERATOR,
+    FLOOR_FALLBACK_CM,
+    FLOOR_RULE_CM,
+    GRAVITY_ITERATIONS,
+    GRAVITY_THRESHOLDS_DEG,
+    RADIUS_ANGLE,
+    RADIUS_GRAVITY,
+    ROTATION_SKIP_DEG,
+)
+
+# The 21×21 gravity windows are built from three 7×7 blocks: this relies on the two radii being 10 and 3.
+assert RADIUS_GRAVITY == 3 * RADIUS_ANGLE + 1 and 2 * RADIUS_ANGLE + 1 == 7
+
+
+class HHAResult(NamedTuple):
+    """HHA image and the intermediates it was computed from (leading batch axes as in the input).
+
+    Attributes:
+        hha: ``uint8 (..., H, W, 3)`` channels (disparity, height, angle). Pixels whose depth is invalid
+            (non-finite or ≤ 0) are 0 in all three channels.
+        normals: ``float32 (..., H, W, 3)`` unit surface normals from 7×7 windows, camera frame (x right, y down,
+            z forward), pointing away from the camera; 0 where undefined (see ``normal_valid``).
+        normal_valid: ``bool (..., H, W)``: the 7×7 window held at least one valid pixel.
+        gravity: ``float32 (..., 3)`` unit gravity direction in the camera frame (pointing down).
+        height_cm: ``float32 (..., H, W)`` height above the estimated floor in centimetres (before rounding).
+        angle_deg: ``float32 (..., H, W)`` angle between normal and gravity in degrees; 180 where undefined.
+        valid: ``bool (..., H, W)`` pixels whose depth is finite and > 0.
+    """
+
+    hha: jax.Array
+    normals: jax.Array
+    normal_valid: jax.Array
+    gravity: jax.Array
+    height_cm: jax.Array
+    angle_deg: jax.Array
+    valid: jax.Array
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Window moments.
+
+
+def _shift_correlate(x: jax.Array, r: int, powers: tuple[int, ...], axis: int) -> list[jax.Array]:
+    """Σ_{k=-r..r} k^p · x[i + k] along ``axis`` for every p in ``powers``, zero-padded, same size."""
+    n = x.shape[axis]
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (r, r)
+    xp = jnp.pad(x, pad)
+    taps = [jax.lax.slice_in_dim(xp, r + k, r + k + n, axis=axis) for k in range(-r, r + 1)]
+    outs = []
+    for p in powers:
+        acc = taps[r] if p == 0 else None  # k = 0 contributes only to p = 0
+        for k in range(1, r + 1):
+            if p == 0:
+                term = taps[r + k] + taps[r - k]
+            elif p % 2:
+                term = float(k**p) * (taps[r + k] - taps[r - k])
+            else:
+                term = float(k**p) * (taps[r + k] + taps[r - k])
+            acc = term if acc is None else acc + term
+        outs.append(acc)
+    return outs
+
+
+def _widen(m: dict[int, jax.Array], powers: tuple[int, ...], axis: int) -> dict[int, jax.Array]:
+    """Moments over 21 taps from moments over 7 taps: blocks centred at offsets −7, 0, +7.
+
+    Σ_{k in block c} k^p x = Σ_{k'=-3..3} (k' + c)^p x[i + c + k'], expanded binomially in the block's own
+    moments M_q (q ≤ p) evaluated at i + c.
+    """
+    w = 2 * RADIUS_ANGLE + 1
+    n = next(iter(m.values())).shape[axis]
+
+    def shifted(x, c):  # x[i + c], zero outside
+        pad = [(0, 0)] * x.ndim
+        pad[axis] = (w, w)
+        return jax.lax.slice_in_dim(jnp.pad(x, pad), w + c, w + c + n, axis=axis)
+
+    binom = {0: (1,), 1: (1, 1), 2: (1, 2, 1)}
+    out = {}
+    for p in powers:
+        total = m[p]
+        for c in (-w, w):
+            block = sum(binom[p][q] * float(c ** (p - q)) * m[q] for q in range(p + 1))
+            total = total + shifted(block, c)
+        out[p] = total
+    return out
+
+
+def _moments(x: jax.Array, spec: dict[int, tuple[int, ...]], wide: bool) -> dict[tuple[int, int], jax.Array]:
+    """Window sums Σ s^p t^q x over 7×7 (or 21×21 if ``wide``) windows of an ``(H, W)`` map, zero-padded.
+
+    ``spec`` maps a column power p to the row powers q needed with it. s = column offset, t = row offset.
+    """
+    r = RADIUS_ANGLE
+    if wide:
+        # The 7-wide blocks of a border window are centred up to 7 pixels outside the image, where their own sums
+        # still see image pixels: compute them on a domain extended by 7 and crop at the end.
+        e = 2 * r + 1
+        x = jnp.pad(x, e)
+    col_powers = tuple(sorted(spec))
+    cols = dict(zip(col_powers, _shift_correlate(x, r, col_powers, axis=1), strict=True))
+    if wide:
+        cols = _widen(cols, col_powers, axis=1)
+    out = {}
+    for p, row_powers in spec.items():
+        rows = dict(zip(row_powers, _shift_correlate(cols[p], r, row_powers, axis=0), strict=True))
+        if wide:
+            rows = {q: v[e:-e, e:-e] for q, v in _widen(rows, row_powers, axis=0).items()}
+        out.update({(p, q): v for q, v in rows.items()})
+    return out
+
+
+_SINGULAR_RTOL = 1e-5
+_MASK_SPEC = {0: (0, 1, 2), 1: (0, 1), 2: (0,)}  # moments of the valid mask: 1, t, t², s, st, s²
+_WEIGHT_SPEC = {0: (0, 1), 1: (0,)}  # moments of 1/Z: 1, t, s
+
+
+def _fit_normals(w, fit_mask, a_c, b_c, points, fx, fy, wide):
+    """Unit normals of the least-squares plane in each window, oriented away from the camera."""
+    mm = _moments(fit_mask, _MASK_SPEC, wide)
+    mw = _moments(w, _WEIGHT_SPEC, wide)
+    s_ss, s_st, s_s = mm[(2, 0)], mm[(1, 1)], mm[(1, 0)]
+    s_tt, s_t, s_1 = mm[(0, 2)], mm[(0, 1)], mm[(0, 0)]
+    r_s, r_t, r_1 = mw[(1, 0)], mw[(0, 1)], mw[(0, 0)]
+    # Adjugate of the symmetric [[ss, st, s], [st, tt, t], [s, t, 1]] applied to the right-hand side.
+    c00 = s_tt * s_1 - s_t * s_t
+    c01 = s_s * s_t - s_st * s_1
+    c02 = s_st * s_t - s_s * s_tt
+    c11 = s_ss * s_1 - s_s * s_s
+    c12 = s_st * s_s - s_ss * s_t
+    c22 = s_ss * s_tt - s_st * s_st
+    y1 = c00 * r_s + c01 * r_t + c02 * r_1
+    y2 = c01 * r_s + c11 * r_t + c12 * r_1
+    y3 = c02 * r_s + c12 * r_t + c22 * r_1
+    x1 = y1 * fx
+    x2 = y2 * fy
+    x3 = y3 - x1 * a_c - x2 * b_c
+    n = jnp.stack([x1, x2, x3], axis=-1)
+    norm = jnp.linalg.norm(n, axis=-1, keepdims=True)
+    # A window defines a plane only if its valid pixels are not collinear (≥ 3 of them, spanning 2-D): otherwise
+    # the moment matrix is singular and the reference's normal there is rounding noise. The pixel-offset moments
+    # are small integers, so the singular case is an exact (relative) zero; well-posed windows sit far above.
+    det = s_ss * c00 + s_st * c01 + s_s * c02
+    ok = (det > _SINGULAR_RTOL * s_ss * s_tt * s_1) & (norm[..., 0] > 0)
+    n = jnp.where(ok[..., None], n / jnp.where(norm > 0, norm, 1.0), 0.0)
+    n = n * jnp.where(n[..., 2:] < 0, -1.0, 1.0)
+    n = n * jnp.where(jnp.sum(n * points, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+    return n, ok
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Gravity.
+
+
+def _gravity(normals: jax.Array, ok: jax.Array) -> jax.Array:
+    """Iterative floor/wall estimate of the down direction (reference ``getYDir``) as a fixed-trip-count loop."""
+    n = normals.reshape(-1, 3)
+    ok = ok.reshape(-1)
+    thresholds = np.repeat(np.deg2rad(GRAVITY_THRESHOLDS_DEG), GRAVITY_ITERATIONS)
+    cos_t = jnp.asarray(np.cos(thresholds), n.dtype)
+    sin_t = jnp.asarray(np.sin(thresholds), n.dtype)
+
+    def step(i, y):
+        c = jnp.abs(n @ y)
+        floor = ok & (c > cos_t[i])
+        wall = ok & (c < sin_t[i])
+        weight = wall.astype(n.dtype) - floor.astype(n.dtype)
+        a = (n * weight[:, None]).T @ n  # Σ_W n nᵀ − Σ_F n nᵀ
+        _, vecs = jnp.linalg.eigh(a)
+        new = vecs[:, 0]  # eigenvalues ascend: the smallest one's eigenvector
+        new = new * jnp.where(new @ y < 0, -1.0, 1.0)
+        # Nothing selected: A = 0 has no preferred direction, so keep the current estimate.
+        return jnp.where(jnp.any(floor | wall), new, y)
+
+    return jax.lax.fori_loop(0, len(thresholds), step, jnp.array([0.0, 1.0, 0.0], n.dtype))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# One image.
+
+
+def _encode_one(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array) -> HHAResult:
+    """One ``(H, W)`` image; ``fit_mask`` (float 0/1) marks the pixels the normal fits may use."""
+    h, w = depth_m.shape
+    dtype = depth_m.dtype
+    valid = jnp.isfinite(depth_m) & (depth_m > 0)
+    z = jnp.where(valid, depth_m, 0.0) * 100.0  # cm, as the reference
+    inv_z = fit_mask / jnp.where(fit_mask > 0, z, 1.0)
+
+    fx, fy = intrinsics[0, 0], intrinsics[1, 1]
+    cx, cy = intrinsics[0, 2], intrinsics[1, 2]
+    a_c = (jnp.arange(w, dtype=dtype)[None, :] - cx) / fx  # (1, W)
+    b_c = (jnp.arange(h, dtype=dtype)[:, None] - cy) / fy  # (H, 1)
+    a_c, b_c = jnp.broadcast_to(a_c, (h, w)), jnp.broadcast_to(b_c, (h, w))
+    points = jnp.stack([a_c * z, b_c * z, z], axis=-1)
+
+    fit = functools.partial(_fit_normals, inv_z, fit_mask, a_c, b_c, points, fx, fy)
+    n_angle, ok_angle = fit(wide=False)
+    n_grav, ok_grav = fit(wide=True)
+    g = _gravity(n_grav, ok_grav)
+
+    y0 = jnp.array([0.0, 1.0, 0.0], dtype)
+    rotate = jnp.arccos(jnp.clip(g[1], -1.0, 1.0)) > np.deg2rad(ROTATION_SKIP_DEG)
+    up = jnp.where(rotate, g, y0)  # (Rᵀ p)_y = (R y0)·p = g·p for the Rodrigues R taking y0 to g
+    height = -(points @ up)
+    y_min = jnp.min(jnp.where(valid, height, jnp.inf))
+    y_min = jnp.where(y_min > FLOOR_RULE_CM, FLOOR_FALLBACK_CM, y_min)
+    height = height - y_min
+
+    angle = jnp.degrees(jnp.arccos(jnp.clip(n_angle @ g, -1.0, 1.0)))
+    angle = jnp.where(ok_angle, angle, ANGLE_NAN_DEG)
+    disparity = DISPARITY_NUMERATOR / jnp.maximum(z, DISPARITY_MIN_CM)
+    channels = jnp.stack([disparity, height, angle + ANGLE_OFFSET], axis=-1)
+    channels = jnp.clip(jnp.round(channels), 0, 255)  # round half to even, as np.rint
+    hha = jnp.where(valid[..., None], channels, 0).astype(jnp.uint8)
+    return HHAResult(hha, n_angle, ok_angle, g, height, angle, valid)
+
+
+@jax.jit
+def _encode_batch(depth_m: jax.Array, intrinsics: jax.Array, raw_depth_m: jax.Array | None) -> HHAResult:
+    """``depth_m (B, H, W)``, ``intrinsics (B, 3, 3)``, ``raw_depth_m (B, H, W)``, or ``None`` when the caller has
+    checked that every depth is valid and nothing is missing."""
+    if raw_depth_m is None:
+        # The fit mask is then shared by the whole batch: vmap leaves an unbatched input unbatched, so its window
+        # moments (half of the normal-fitting work) are computed once per call instead of once per image.
+        fit_mask = jnp.ones(depth_m.shape[1:], depth_m.dtype)
+        return jax.vmap(_encode_one, in_axes=(0, 0, None))(depth_m, intrinsics, fit_mask)
+    valid = jnp.isfinite(depth_m) & (depth_m > 0)
+    fit_mask = (valid & (raw_depth_m != 0)).astype(depth_m.dtype)
+    return jax.vmap(_encode_one)(depth_m, intrinsics, fit_mask)
