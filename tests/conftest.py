@@ -19,5 +19,5 @@ SHARED = Path(__file__).resolve().parents[2] / "shared"
 def shared_dir() -> Path:
     """`../shared` beside the project root (reference fixtures and specs); a missing one is an error, not a skip."""
     if not (SHARED / "fixtures").is_dir():
-        raise FileNotFoundError(f"reference fixtures not found at {SHARED}/fixtures (expected ../shared beside the repo)")
+        raise FileNotFoundError(f"reference fixtures not found at {SHARED}/fixtures (../shared beside the repo)")
     return SHARED
