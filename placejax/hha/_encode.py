@@ -67,7 +67,7 @@ class HHAResult(NamedTuple):
     valid: jax.Array
 
 
-# --------------------------------------------------------------------------------------------------------------
+# ----------------------------------------------------------------------------------------------------------------------
 # Window moments.
 
 
@@ -147,8 +147,13 @@ _MASK_SPEC = {0: (0, 1, 2), 1: (0, 1), 2: (0,)}  # moments of the valid mask: 1,
 _WEIGHT_SPEC = {0: (0, 1), 1: (0,)}  # moments of 1/Z: 1, t, s
 
 
-def _fit_normals(w, fit_mask, a_c, b_c, points, fx, fy, wide):
-    """Unit normals of the least-squares plane in each window, oriented away from the camera."""
+def _fit_normals(w, fit_mask, a_c, b_c, z, fx, fy, wide):
+    """Unit normals (nx, ny, nz maps) of the least-squares plane in each window, oriented away from the camera.
+
+    Returns the three component maps and the mask of windows that define a plane. Components are kept as separate
+    ``(H, W)`` maps rather than a stacked ``(H, W, 3)`` array: every step is then a plain elementwise loop that
+    XLA fuses, with no strided channel access.
+    """
     mm = _moments(fit_mask, _MASK_SPEC, wide)
     mw = _moments(w, _WEIGHT_SPEC, wide)
     s_ss, s_st, s_s = mm[(2, 0)], mm[(1, 1)], mm[(1, 0)]
@@ -167,47 +172,55 @@ def _fit_normals(w, fit_mask, a_c, b_c, points, fx, fy, wide):
     x1 = y1 * fx
     x2 = y2 * fy
     x3 = y3 - x1 * a_c - x2 * b_c
-    n = jnp.stack([x1, x2, x3], axis=-1)
-    norm = jnp.linalg.norm(n, axis=-1, keepdims=True)
+    norm2 = x1 * x1 + x2 * x2 + x3 * x3
     # A window defines a plane only if its valid pixels are not collinear (≥ 3 of them, spanning 2-D): otherwise
     # the moment matrix is singular and the reference's normal there is rounding noise. The pixel-offset moments
     # are small integers, so the singular case is an exact (relative) zero; well-posed windows sit far above.
     det = s_ss * c00 + s_st * c01 + s_s * c02
-    ok = (det > _SINGULAR_RTOL * s_ss * s_tt * s_1) & (norm[..., 0] > 0)
-    n = jnp.where(ok[..., None], n / jnp.where(norm > 0, norm, 1.0), 0.0)
-    n = n * jnp.where(n[..., 2:] < 0, -1.0, 1.0)
-    n = n * jnp.where(jnp.sum(n * points, axis=-1, keepdims=True) < 0, -1.0, 1.0)
-    return n, ok
+    ok = (det > _SINGULAR_RTOL * s_ss * s_tt * s_1) & (norm2 > 0)
+    inv_norm = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, norm2, 1.0)), 0.0)
+    # Orientation as the reference: first n_z >= 0, then n·p >= 0 with the unmasked point p = z·(a_c, b_c, 1).
+    # Both signs combine into one factor; z > 0 drops out of the second test (z = 0 counts as +).
+    s1 = jnp.where(x3 < 0, -1.0, 1.0)
+    s2 = jnp.where(s1 * (x1 * a_c + x2 * b_c + x3) * z < 0, -1.0, 1.0)
+    f = inv_norm * s1 * s2
+    return (x1 * f, x2 * f, x3 * f), ok
 
 
-# --------------------------------------------------------------------------------------------------------------
+# ----------------------------------------------------------------------------------------------------------------------
 # Gravity.
 
 
-def _gravity(normals: jax.Array, ok: jax.Array) -> jax.Array:
+def _gravity(normals: tuple[jax.Array, jax.Array, jax.Array], ok: jax.Array) -> jax.Array:
     """Iterative floor/wall estimate of the down direction (reference ``getYDir``) as a fixed-trip-count loop."""
-    n = normals.reshape(-1, 3)
+    nx, ny, nz = (c.reshape(-1) for c in normals)
     ok = ok.reshape(-1)
+    dtype = nx.dtype
     thresholds = np.repeat(np.deg2rad(GRAVITY_THRESHOLDS_DEG), GRAVITY_ITERATIONS)
-    cos_t = jnp.asarray(np.cos(thresholds), n.dtype)
-    sin_t = jnp.asarray(np.sin(thresholds), n.dtype)
+    cos_t = jnp.asarray(np.cos(thresholds), dtype)
+    sin_t = jnp.asarray(np.sin(thresholds), dtype)
 
     def step(i, y):
-        c = jnp.abs(n @ y)
+        c = jnp.abs(nx * y[0] + ny * y[1] + nz * y[2])
         floor = ok & (c > cos_t[i])
         wall = ok & (c < sin_t[i])
-        weight = wall.astype(n.dtype) - floor.astype(n.dtype)
-        a = (n * weight[:, None]).T @ n  # Σ_W n nᵀ − Σ_F n nᵀ
+        weight = wall.astype(dtype) - floor.astype(dtype)
+        # A = Σ_W n nᵀ − Σ_F n nᵀ as six elementwise reductions (a dot here would let XLA fuse the whole normal
+        # computation into its operand and redo it for every output element).
+        wx, wy, wz = weight * nx, weight * ny, weight * nz
+        axx, axy, axz = jnp.sum(wx * nx), jnp.sum(wx * ny), jnp.sum(wx * nz)
+        ayy, ayz, azz = jnp.sum(wy * ny), jnp.sum(wy * nz), jnp.sum(wz * nz)
+        a = jnp.stack([jnp.stack([axx, axy, axz]), jnp.stack([axy, ayy, ayz]), jnp.stack([axz, ayz, azz])])
         _, vecs = jnp.linalg.eigh(a)
         new = vecs[:, 0]  # eigenvalues ascend: the smallest one's eigenvector
         new = new * jnp.where(new @ y < 0, -1.0, 1.0)
         # Nothing selected: A = 0 has no preferred direction, so keep the current estimate.
         return jnp.where(jnp.any(floor | wall), new, y)
 
-    return jax.lax.fori_loop(0, len(thresholds), step, jnp.array([0.0, 1.0, 0.0], n.dtype))
+    return jax.lax.fori_loop(0, len(thresholds), step, jnp.array([0.0, 1.0, 0.0], dtype))
 
 
-# --------------------------------------------------------------------------------------------------------------
+# ----------------------------------------------------------------------------------------------------------------------
 # One image.
 
 
@@ -221,31 +234,30 @@ def _encode_one(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array) 
 
     fx, fy = intrinsics[0, 0], intrinsics[1, 1]
     cx, cy = intrinsics[0, 2], intrinsics[1, 2]
-    a_c = (jnp.arange(w, dtype=dtype)[None, :] - cx) / fx  # (1, W)
-    b_c = (jnp.arange(h, dtype=dtype)[:, None] - cy) / fy  # (H, 1)
-    a_c, b_c = jnp.broadcast_to(a_c, (h, w)), jnp.broadcast_to(b_c, (h, w))
-    points = jnp.stack([a_c * z, b_c * z, z], axis=-1)
+    a_c = (jnp.arange(w, dtype=dtype)[None, :] - cx) / fx  # (1, W): X/Z of each column
+    b_c = (jnp.arange(h, dtype=dtype)[:, None] - cy) / fy  # (H, 1): Y/Z of each row
 
-    fit = functools.partial(_fit_normals, inv_z, fit_mask, a_c, b_c, points, fx, fy)
-    n_angle, ok_angle = fit(wide=False)
-    n_grav, ok_grav = fit(wide=True)
-    g = _gravity(n_grav, ok_grav)
+    fit = functools.partial(_fit_normals, inv_z, fit_mask, a_c, b_c, z, fx, fy)
+    (nx, ny, nz), ok_angle = fit(wide=False)
+    g = _gravity(*fit(wide=True))
 
-    y0 = jnp.array([0.0, 1.0, 0.0], dtype)
     rotate = jnp.arccos(jnp.clip(g[1], -1.0, 1.0)) > np.deg2rad(ROTATION_SKIP_DEG)
-    up = jnp.where(rotate, g, y0)  # (Rᵀ p)_y = (R y0)·p = g·p for the Rodrigues R taking y0 to g
-    height = -(points @ up)
+    up = jnp.where(rotate, g, jnp.array([0.0, 1.0, 0.0], dtype))  # (Rᵀp)_y = (R y0)·p = g·p, R y0 = g (Rodrigues)
+    height = -z * (a_c * up[0] + b_c * up[1] + up[2])
     y_min = jnp.min(jnp.where(valid, height, jnp.inf))
     y_min = jnp.where(y_min > FLOOR_RULE_CM, FLOOR_FALLBACK_CM, y_min)
     height = height - y_min
 
-    angle = jnp.degrees(jnp.arccos(jnp.clip(n_angle @ g, -1.0, 1.0)))
-    angle = jnp.where(ok_angle, angle, ANGLE_NAN_DEG)
+    cos_angle = jnp.clip(nx * g[0] + ny * g[1] + nz * g[2], -1.0, 1.0)
+    angle = jnp.where(ok_angle, jnp.degrees(jnp.arccos(cos_angle)), ANGLE_NAN_DEG)
     disparity = DISPARITY_NUMERATOR / jnp.maximum(z, DISPARITY_MIN_CM)
-    channels = jnp.stack([disparity, height, angle + ANGLE_OFFSET], axis=-1)
-    channels = jnp.clip(jnp.round(channels), 0, 255)  # round half to even, as np.rint
-    hha = jnp.where(valid[..., None], channels, 0).astype(jnp.uint8)
-    return HHAResult(hha, n_angle, ok_angle, g, height, angle, valid)
+
+    def quantise(x):  # round half to even (as np.rint), cap at 255; invalid depth → 0
+        return jnp.where(valid, jnp.clip(jnp.round(x), 0, 255), 0).astype(jnp.uint8)
+
+    hha = jnp.stack([quantise(disparity), quantise(height), quantise(angle + ANGLE_OFFSET)], axis=-1)
+    normals = jnp.stack([nx, ny, nz], axis=-1)
+    return HHAResult(hha, normals, ok_angle, g, jnp.where(valid, height, 0.0), angle, valid)
 
 
 @jax.jit

@@ -1,0 +1,222 @@
+"""HHA encoder: parity with the original implementation's outputs, analytic scenes, invariants, bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from placejax import hha
+from placejax.hha import _encode
+from placejax.hha._reference import box_sum
+from scenes import ground_and_wall
+
+
+def load_fixture(shared_dir, name):
+    d = np.load(shared_dir / "fixtures" / "hha_reference" / f"{name}.npz")
+    k = d["camera_1based"].copy()
+    k[0, 2] -= 1.0  # the references count pixels from 1; our convention is 0-based
+    k[1, 2] -= 1.0
+    return d, k
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Parity with the original implementation.
+
+
+def test_dense_fixture_parity(shared_dir):
+    d, k = load_fixture(shared_dir, "nyu_480x640_nomask")
+    out = hha.encode_full(d["depth_m"], k)
+    diff = np.abs(np.asarray(out.hha, int) - d["hha_rgb_uint8"])
+    assert diff.max() <= 1
+    assert (diff == 0).mean() >= 0.999
+    np.testing.assert_allclose(np.asarray(out.gravity), d["gravity"], atol=1e-4)
+    # Passing the dense depth as its own raw depth is the same input (nothing missing) through the general path.
+    same = hha.encode(d["depth_m"], k, d["depth_m"])
+    assert (np.asarray(same) == np.asarray(out.hha)).mean() > 0.9999
+
+
+def test_fixture_with_holes_parity(shared_dir):
+    d, k = load_fixture(shared_dir, "nyu_480x640_rawmask")
+    out = hha.encode_full(d["depth_m"], k, d["rawdepth_m"])
+    ours, ref = np.asarray(out.hha, int), d["hha_rgb_uint8"].astype(int)
+    diff = np.abs(ours - ref)
+    assert (diff[..., 0] == 0).all(), "disparity must be exact"
+    full_window = box_sum((d["rawdepth_m"] == 0).astype(float), 3) == 0
+    assert diff[full_window][:, 1:].max() <= 1, "height and angle within ±1 where the 7×7 window is fully valid"
+    assert (diff[..., 1] == 0).mean() >= 0.99
+    assert (diff[..., 2] == 0).mean() >= 0.99
+    np.testing.assert_allclose(np.asarray(out.gravity), d["gravity"], atol=1e-3)
+
+
+def test_numpy_reference_reproduces_fixture_exactly(shared_dir):
+    d, k = load_fixture(shared_dir, "nyu_480x640_nomask")
+    ours, g = hha.encode_reference(d["depth_m"], k)
+    np.testing.assert_array_equal(ours, d["hha_rgb_uint8"])
+    np.testing.assert_allclose(g, d["gravity"], atol=1e-12)
+
+
+def test_matches_numpy_oracle_on_random_scenes():
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        pitch, roll = rng.uniform(-20, 20), rng.uniform(-15, 15)
+        depth, k, _, _ = ground_and_wall(40, 56, f=rng.uniform(40, 60), pitch_deg=pitch, roll_deg=roll)
+        depth = depth * np.exp(rng.normal(0, 0.01, depth.shape))  # rough surfaces, not exact planes
+        raw = np.where(rng.random(depth.shape) < 0.05, 0.0, depth)  # scattered holes
+        ref, g_ref = hha.encode_reference(depth, k, raw)
+        out = hha.encode_full(depth, k, raw)
+        diff = np.abs(np.asarray(out.hha, int) - ref.astype(int))
+        assert (diff <= 1).mean() >= 0.99
+        np.testing.assert_allclose(np.asarray(out.gravity), g_ref, atol=1e-3)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Analytic scenes.
+
+
+@pytest.mark.parametrize(("pitch", "roll"), [(-12.0, -8.0), (-5.0, 15.0)])
+def test_ground_and_wall_analytic(pitch, roll):
+    # Big enough that the 21×21 windows straddling the ground/wall crease (blended normals, which bias the
+    # reference's own estimate too) are a small share of the image.
+    depth, k, g_true, is_ground = ground_and_wall(
+        120, 160, f=120.0, pitch_deg=pitch, roll_deg=roll, wall_distance_m=8.0
+    )
+    out = hha.encode_full(depth, k)
+    g = np.asarray(out.gravity, np.float64)
+    assert np.rad2deg(np.arccos(np.clip(g @ g_true, -1, 1))) < 0.5
+    angle = np.asarray(out.hha[..., 2], int)
+    # Away from the ground/wall crease (where the 7×7 windows straddle both planes).
+    crease = box_sum(is_ground.astype(float), 4)
+    pure_ground = crease == 81
+    pure_wall = crease == 0
+    assert abs(np.median(angle[pure_ground]) - 38) <= 1 and np.abs(angle[pure_ground] - 38).max() <= 2
+    assert abs(np.median(angle[pure_wall]) - 128) <= 1 and np.abs(angle[pure_wall] - 128).max() <= 2
+    # Height: the ground is the lowest surface, so it sits at 0 up to the gravity error (≤ 0.5° over its distance).
+    height = np.asarray(out.height_cm)
+    slack = 2 * 100 * 1.2 * depth[pure_ground].max() * np.tan(np.deg2rad(0.5))  # ±0.5° over the farthest ground
+    assert height[pure_ground].min() >= 0 and height[pure_ground].max() <= slack
+    assert np.median(height[pure_wall]) > 100
+    # Disparity: 31000 / max(Z_cm, 100).
+    np.testing.assert_array_equal(np.asarray(out.hha[..., 0]), np.rint(np.minimum(310.0 / np.maximum(depth, 1.0), 255)))
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Invariants.
+
+
+def test_batch_equals_loop_and_per_image_intrinsics():
+    rng = np.random.default_rng(1)
+    scenes = [ground_and_wall(32, 40, f=40.0, pitch_deg=p, roll_deg=r) for p, r in rng.uniform(-10, 10, (3, 2))]
+    depth = np.stack([s[0] for s in scenes])
+    ks = np.stack([s[1] for s in scenes])
+    batch = hha.encode_full(depth, ks)
+    for i in range(3):
+        one = hha.encode_full(depth[i], ks[i])
+        np.testing.assert_array_equal(np.asarray(batch.hha[i]), np.asarray(one.hha))
+        np.testing.assert_allclose(np.asarray(batch.gravity[i]), np.asarray(one.gravity), atol=1e-6)
+    shared = hha.encode(depth, ks[0])
+    np.testing.assert_array_equal(np.asarray(shared), np.asarray(hha.encode(depth, np.broadcast_to(ks[0], (3, 3, 3)))))
+
+
+def test_jit_equals_eager():
+    depth, k, _, _ = ground_and_wall(24, 32, f=30.0, pitch_deg=8.0, roll_deg=-4.0)
+    raw = depth.copy()
+    raw[5:9, 10:20] = 0
+    d, kk, r = (jnp.asarray(x[None], jnp.float32) for x in (depth, k, raw))
+    jitted = _encode._encode_batch(d, kk, r)
+    with jax.disable_jit():
+        eager = _encode._encode_batch(d, kk, r)
+    # Fused (jit) and op-by-op float32 arithmetic round differently: a value on a .5 boundary may move by one level.
+    diff = np.abs(np.asarray(jitted.hha, int) - np.asarray(eager.hha, int))
+    assert diff.max() <= 1 and (diff == 0).mean() > 0.999
+    np.testing.assert_allclose(np.asarray(jitted.height_cm), np.asarray(eager.height_cm), rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(np.asarray(jitted.gravity), np.asarray(eager.gravity), atol=1e-5)
+
+
+def test_no_retracing_for_same_shapes():
+    rng = np.random.default_rng(2)
+    k = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    hha.encode(rng.uniform(1, 5, (2, 24, 32)), k)
+    before = _encode._encode_batch._cache_size()
+    for _ in range(3):
+        hha.encode(rng.uniform(1, 5, (2, 24, 32)), k * rng.uniform(0.9, 1.1))
+    assert _encode._encode_batch._cache_size() == before
+
+
+def test_stream_matches_batch_and_pads_the_last_batch():
+    rng = np.random.default_rng(3)
+    k = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    depths = rng.uniform(1, 5, (5, 24, 32)).astype(np.float32)
+    streamed = list(hha.encode_stream(iter(depths), k, batch_size=2))
+    assert len(streamed) == 5
+    np.testing.assert_array_equal(np.stack(streamed), np.asarray(hha.encode(depths, k)))
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Bad input.
+
+
+def test_invalid_depth_counts_as_missing():
+    depth, k, _, _ = ground_and_wall(32, 40, f=40.0, pitch_deg=5.0, roll_deg=3.0)
+    bad = depth.copy()
+    bad[3, 4], bad[10, 11], bad[20, 21], bad[25, 30] = np.nan, np.inf, 0.0, -2.0
+    out = hha.encode_full(bad, k)
+    for leaf in jax.tree_util.tree_leaves(out):
+        assert np.all(np.isfinite(np.asarray(leaf, np.float64)))
+    bad_px = ~np.isfinite(bad) | (bad <= 0)
+    assert (np.asarray(out.hha)[bad_px] == 0).all()
+    assert not np.asarray(out.valid)[bad_px].any()
+    # The bad pixels are treated exactly like missing raw depth at those pixels.
+    as_missing = hha.encode(np.where(bad_px, depth, bad), k, np.where(bad_px, 0.0, depth))
+    good = ~bad_px
+    np.testing.assert_array_equal(np.asarray(out.hha)[good], np.asarray(as_missing)[good])
+
+
+def test_all_missing_image_is_defined():
+    k = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    out = hha.encode_full(np.full((24, 32), np.nan), k)
+    assert (np.asarray(out.hha) == 0).all()
+    np.testing.assert_array_equal(np.asarray(out.gravity), [0.0, 1.0, 0.0])
+    # Valid depth but every raw pixel missing: no normals, so angle = 180° + 38 everywhere, gravity unchanged.
+    out = hha.encode_full(np.full((24, 32), 3.0), k, np.zeros((24, 32)))
+    assert (np.asarray(out.hha[..., 2]) == 218).all()
+    np.testing.assert_array_equal(np.asarray(out.gravity), [0.0, 1.0, 0.0])
+    assert (np.asarray(out.hha[..., 0]) == 103).all()  # 310 / 3 m
+
+
+@pytest.mark.parametrize(
+    ("depth", "k", "raw", "match"),
+    [
+        (np.ones((2, 3, 4, 5)), np.eye(3), None, r"depth_m must have shape \(H, W\) or \(B, H, W\)"),
+        (np.ones(7), np.eye(3), None, r"depth_m must have shape"),
+        (np.ones((2, 8, 8)), np.ones((3, 3, 3)), None, r"intrinsics must have shape \(3, 3\) or \(2, 3, 3\)"),
+        (np.ones((8, 8)), np.array([[np.nan, 0, 1], [0, 1, 1], [0, 0, 1]]), None, "intrinsics must be finite"),
+        (np.ones((8, 8)), np.diag([0.0, 1.0, 1.0]), None, "positive focal lengths"),
+        (np.ones((8, 8)), np.eye(3), np.ones((8, 9)), r"raw_depth_m must have the same shape as depth_m \(8, 8\)"),
+    ],
+)
+def test_bad_input_raises(depth, k, raw, match):
+    with pytest.raises(ValueError, match=match):
+        hha.encode(depth, k, raw)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Monocular inverse depth → metric depth.
+
+
+def test_inverse_depth_to_metric_is_affine_invariant_and_bounded():
+    rng = np.random.default_rng(4)
+    inv = rng.gamma(2.0, 1.0, (2, 16, 20)).astype(np.float32)
+    metric = np.asarray(hha.inverse_depth_to_metric(inv, near_m=1.0, far_m=40.0))
+    scaled = np.asarray(hha.inverse_depth_to_metric(3.0 * inv + 7.0, near_m=1.0, far_m=40.0))
+    np.testing.assert_allclose(metric, scaled, rtol=1e-4)
+    assert metric.min() >= 1.0 - 1e-5 and metric.max() <= 40.0 + 1e-3
+    # Closer (bigger inverse depth) → smaller metric depth.
+    order = np.argsort(inv[0].ravel())
+    assert np.all(np.diff(metric[0].ravel()[order]) <= 1e-5)
+    # Percentile endpoints land at near and far.
+    hi = np.percentile(inv[1], 98)
+    assert np.allclose(metric[1][inv[1] >= hi], 1.0, atol=1e-5)
+    flat = np.asarray(hha.inverse_depth_to_metric(np.ones((8, 8))))
+    assert np.allclose(flat, 50.0)
+    with pytest.raises(ValueError, match="near_m < far_m"):
+        hha.inverse_depth_to_metric(inv, near_m=5.0, far_m=2.0)
