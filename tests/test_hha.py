@@ -8,6 +8,7 @@ import pytest
 from placejax import hha
 from placejax.hha import _encode
 from placejax.hha._reference import box_sum
+
 from scenes import ground_and_wall
 
 
