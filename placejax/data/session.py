@@ -1,7 +1,7 @@
 """The one session interface shared by every data source (NCLT, SimCampus).
 
-A session is one drive of the robot through the workspace: N frames, each an upright RGB image with the pose it
-was taken from. The grid, caches, pipelines and the experiment only ever see this interface.
+A session is one drive of the robot through the workspace: N frames, each an upright RGB image with the pose
+it was taken from. The grid, caches, pipelines and the experiment only ever see this interface.
 """
 
 from __future__ import annotations
