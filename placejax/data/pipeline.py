@@ -1,0 +1,255 @@
+"""grain pipelines over sessions: seeded shuffling, optional augmentation, batching, sharding by JAX process.
+
+Every element is a dict ``{"image": uint8 (H, W, 3), "label": int32, "index": int64, "valid": bool}``; batches
+stack them along a new leading axis. Images are read frame by frame (from the cache's memmap when the session is
+a :class:`~placejax.data.cache.CachedSession`), so memory stays bounded by the batch, not the session.
+
+Typical use::
+
+    grid = PlaceGrid.fit([s.poses for s in sessions])
+    train = cache_session(sessions[0], cache_root, image_size=(256, 256))
+    ds = train_dataset(train, grid.label(train.poses), batch_size=32, seed=0, num_epochs=10,
+                       augment=Augment(crop_hw=(224, 224), brightness=0.2, contrast=0.2))
+    for batch in ds: ...          # a grain.MapDataset; ds.to_iter_dataset() for prefetching / workers
+
+Multi-host: each JAX process gets a disjoint shard (``grain.sharding.ShardByJaxProcess`` by default). Training
+shards are equally long (the remainder after a global shuffle is dropped, a different one each epoch) so every
+process runs the same number of steps; evaluation pads every shard to whole batches and marks padding with
+``valid = False``, so every frame is evaluated exactly once and batch shapes stay static under ``jax.jit``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+from pathlib import Path
+
+import grain
+import numpy as np
+
+from placejax.data.session import Session
+
+__all__ = ["Augment", "FrameSource", "eval_dataset", "train_dataset"]
+
+
+def _derive_seed(seed: int, *salt: object) -> int:
+    """An independent 32-bit seed (grain's range) for one use of the user's seed (shuffle, augmentation, shard)."""
+    text = repr((int(seed), *salt)).encode()
+    return int.from_bytes(hashlib.sha256(text).digest()[:4], "little")
+
+
+class FrameSource:
+    """grain random-access source of one session's frames with their labels.
+
+    Pickles without the image data (a cached session's memmap is reopened from its file in each worker), so
+    multiprocessing workers never copy a session.
+
+    Args:
+        session: any Session; a CachedSession is read through its memmap.
+        labels: int ``(N,)`` class ids (−1 for "no class"), or ``None`` for all −1.
+    """
+
+    def __init__(self, session: Session, labels: np.ndarray | None = None):
+        n = len(session)
+        if labels is None:
+            labels = np.full(n, -1, np.int32)
+        labels = np.asarray(labels)
+        if labels.shape != (n,) or not np.issubdtype(labels.dtype, np.integer):
+            raise ValueError(
+                f"labels for session {session.name!r} must be integer ({n},), got {labels.dtype} {labels.shape}"
+            )
+        self.name = session.name
+        self.labels = labels.astype(np.int32)
+        self.image_shape = tuple(int(s) for s in session.image_shape)
+        images = getattr(session, "images", None)
+        self._images_path = Path(images.filename) if isinstance(images, np.memmap) else None
+        self._session = None if self._images_path is not None else session
+        self._images = images if self._images_path is not None else None
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_images"] = None
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+
+    def image(self, i: int) -> np.ndarray:
+        if self._images_path is None:
+            return np.asarray(self._session.image(i))
+        if self._images is None:
+            self._images = np.load(self._images_path, mmap_mode="r")
+        return np.array(self._images[i])
+
+    def __getitem__(self, i: int) -> dict[str, np.ndarray]:
+        i = int(i)
+        return {
+            "image": self.image(i),
+            "label": self.labels[i],
+            "index": np.int64(i),
+            "valid": np.bool_(True),
+        }
+
+    def __repr__(self) -> str:
+        return f"FrameSource({self.name!r}, {len(self)} frames, {self.image_shape})"
+
+
+class _Padded:
+    """Frames ``[start, stop)`` of a source followed by invalid padding frames up to ``length``."""
+
+    def __init__(self, source: FrameSource, start: int, stop: int, length: int):
+        self.source, self.start, self.stop, self.length = source, start, stop, length
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, k: int) -> dict[str, np.ndarray]:
+        i = self.start + int(k)
+        if i < self.stop:
+            return self.source[i]
+        return {
+            "image": np.zeros((*self.source.image_shape, 3), np.uint8),
+            "label": np.int32(-1),
+            "index": np.int64(-1),
+            "valid": np.bool_(False),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class Augment:
+    """Training-time augmentation, drawn per example from grain's seeded per-example generator.
+
+    Attributes:
+        crop_hw: ``(h, w)`` random crop (evaluation uses the centre crop, see :func:`eval_dataset`); ``None``
+            keeps the whole image.
+        brightness: add ``U(−b, b) · 255`` to every pixel.
+        contrast: scale the deviation from the image mean by ``U(1 − c, 1 + c)``.
+    """
+
+    crop_hw: tuple[int, int] | None = None
+    brightness: float = 0.0
+    contrast: float = 0.0
+
+    def __call__(self, example: dict, rng: np.random.Generator) -> dict:
+        image = example["image"]
+        if self.crop_hw is not None:
+            h, w = image.shape[:2]
+            ch, cw = self.crop_hw
+            if ch > h or cw > w:
+                raise ValueError(f"Augment.crop_hw {self.crop_hw} larger than the image {(h, w)}")
+            top, left = rng.integers(0, h - ch + 1), rng.integers(0, w - cw + 1)
+            image = image[top : top + ch, left : left + cw]
+        if self.brightness or self.contrast:
+            x = image.astype(np.float32)
+            if self.contrast:
+                mean = x.mean(dtype=np.float32)
+                x = (x - mean) * np.float32(rng.uniform(1 - self.contrast, 1 + self.contrast)) + mean
+            if self.brightness:
+                x = x + np.float32(rng.uniform(-self.brightness, self.brightness) * 255.0)
+            image = np.clip(np.rint(x), 0, 255).astype(np.uint8)
+        return {**example, "image": np.ascontiguousarray(image)}
+
+
+def _center_crop(crop_hw: tuple[int, int]):
+    def crop(example: dict) -> dict:
+        image = example["image"]
+        h, w = image.shape[:2]
+        ch, cw = crop_hw
+        if ch > h or cw > w:
+            raise ValueError(f"crop_hw {crop_hw} larger than the image {(h, w)}")
+        top, left = (h - ch) // 2, (w - cw) // 2
+        return {**example, "image": np.ascontiguousarray(image[top : top + ch, left : left + cw])}
+
+    return crop
+
+
+def _shard(shard: grain.sharding.ShardOptions | None) -> tuple[int, int]:
+    shard = shard if shard is not None else grain.sharding.ShardByJaxProcess()
+    if not 0 <= shard.shard_index < shard.shard_count:
+        raise ValueError(f"bad shard {shard.shard_index} of {shard.shard_count}")
+    return shard.shard_index, shard.shard_count
+
+
+def train_dataset(
+    session: Session | FrameSource,
+    labels: np.ndarray | None = None,
+    *,
+    batch_size: int,
+    seed: int,
+    num_epochs: int | None = 1,
+    augment: Augment | None = None,
+    drop_remainder: bool = True,
+    shard: grain.sharding.ShardOptions | None = None,
+) -> grain.MapDataset:
+    """Shuffled, augmented, batched training frames of this process's shard.
+
+    Each epoch is a fresh seeded permutation of the whole session, cut into equal shards (the
+    ``len % shard_count`` frames at the end of the permutation are skipped that epoch); augmentation draws
+    depend on (seed, shard, epoch, position), so the whole stream is a pure function of the arguments.
+
+    Args:
+        session: the frames (a CachedSession streams from disk) or a ready :class:`FrameSource`.
+        labels: int32 ``(N,)`` class ids (ignored if ``session`` is a FrameSource).
+        batch_size: examples per batch (per process).
+        seed: shuffling and augmentation seed.
+        num_epochs: passes over the data; ``None`` repeats forever.
+        augment: optional per-example augmentation.
+        drop_remainder: drop each epoch's last partial batch (keeps shapes static under jit).
+        shard: which part this process reads; default ``grain.sharding.ShardByJaxProcess()``.
+
+    Returns:
+        A ``grain.MapDataset`` of dict batches: image ``uint8 (B, h, w, 3)``, label ``int32 (B,)``, index
+        ``int64 (B,)`` (frame index in the session), valid ``bool (B,)`` (all True).
+    """
+    source = session if isinstance(session, FrameSource) else FrameSource(session, labels)
+    index, count = _shard(shard)
+    per_shard = len(source) // count
+    if per_shard == 0:
+        raise ValueError(f"{len(source)} frames cannot be split into {count} shards")
+    ds = grain.MapDataset.source(source).shuffle(seed=_derive_seed(seed, "shuffle"))
+    ds = ds[: per_shard * count][index::count]
+    if augment is not None:
+        ds = ds.random_map(augment, seed=_derive_seed(seed, "augment", index))
+    ds = ds.batch(batch_size, drop_remainder=drop_remainder)
+    if len(ds) == 0:
+        raise ValueError(f"batch_size {batch_size} exceeds the {per_shard} frames of this shard with drop_remainder")
+    # repeat() reseeds the shuffle and the augmentation every epoch.
+    return ds.repeat(num_epochs)
+
+
+def eval_dataset(
+    session: Session | FrameSource,
+    labels: np.ndarray | None = None,
+    *,
+    batch_size: int,
+    crop_hw: tuple[int, int] | None = None,
+    shard: grain.sharding.ShardOptions | None = None,
+) -> grain.MapDataset:
+    """Every frame exactly once, in order, in full batches: this process's contiguous block, padded.
+
+    Args:
+        session: the frames, or a ready :class:`FrameSource`.
+        labels: int32 ``(N,)`` class ids (``None``: all −1, e.g. to extract embeddings).
+        batch_size: examples per batch (per process).
+        crop_hw: centre crop (match the training crop).
+        shard: which part this process reads; default ``grain.sharding.ShardByJaxProcess()``.
+
+    Returns:
+        A ``grain.MapDataset`` of dict batches like :func:`train_dataset`; padding examples have
+        ``valid = False``, ``index = -1``, ``label = -1`` and a black image. Every shard has the same number of
+        batches.
+    """
+    source = session if isinstance(session, FrameSource) else FrameSource(session, labels)
+    index, count = _shard(shard)
+    per_shard = math.ceil(len(source) / count)
+    length = math.ceil(per_shard / batch_size) * batch_size
+    start = min(index * per_shard, len(source))
+    stop = min(start + per_shard, len(source))
+    ds = grain.MapDataset.source(_Padded(source, start, stop, length))
+    if crop_hw is not None:
+        ds = ds.map(_center_crop(tuple(crop_hw)))
+    return ds.batch(batch_size)

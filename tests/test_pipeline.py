@@ -1,0 +1,180 @@
+"""grain pipelines: determinism, epochs are permutations, shards disjoint and covering, augmentation, padding."""
+
+import pickle
+
+import grain
+import numpy as np
+import pytest
+
+from placejax.data.cache import cache_session
+from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dataset
+
+
+class ToySession:
+    def __init__(self, n=23, hw=(10, 8), seed=0):
+        rng = np.random.default_rng(seed)
+        self.name = "toy"
+        self.utimes = np.arange(n, dtype=np.int64)
+        self.poses = rng.normal(size=(n, 3))
+        self.intrinsics = np.eye(3)
+        self.image_shape = hw
+        self._images = rng.integers(0, 256, size=(n, *hw, 3), dtype=np.uint8)
+
+    def __len__(self):
+        return len(self.utimes)
+
+    def image(self, i):
+        return self._images[i].copy()
+
+
+@pytest.fixture(scope="module")
+def cached(tmp_path_factory):
+    s = ToySession()
+    c = cache_session(s, tmp_path_factory.mktemp("cache"), progress=False)
+    labels = (np.arange(len(s)) * 7 % 5).astype(np.int32)
+    return s, c, labels
+
+
+def _shard(i, n):
+    return grain.sharding.ShardOptions(shard_index=i, shard_count=n)
+
+
+def _indices(batches):
+    return np.concatenate([b["index"] for b in batches])
+
+
+def test_batches_hold_the_right_frames(cached):
+    s, c, labels = cached
+    batches = list(train_dataset(c, labels, batch_size=4, seed=0, drop_remainder=False))
+    assert [len(b["index"]) for b in batches] == [4, 4, 4, 4, 4, 3]
+    b = batches[0]
+    assert b["image"].dtype == np.uint8 and b["image"].shape == (4, 10, 8, 3)
+    assert b["label"].dtype == np.int32 and b["index"].dtype == np.int64 and b["valid"].all()
+    for batch in batches:  # batch == loop over single frames
+        for k, i in enumerate(batch["index"]):
+            np.testing.assert_array_equal(batch["image"][k], s.image(i))
+            assert batch["label"][k] == labels[i]
+
+
+def test_deterministic_given_seed(cached):
+    _, c, labels = cached
+    aug = Augment(crop_hw=(6, 5), brightness=0.2, contrast=0.3)
+    a = list(train_dataset(c, labels, batch_size=5, seed=7, num_epochs=2, augment=aug))
+    b = list(train_dataset(c, labels, batch_size=5, seed=7, num_epochs=2, augment=aug))
+    assert len(a) == len(b) == 8
+    for x, y in zip(a, b, strict=True):
+        for key in x:
+            np.testing.assert_array_equal(x[key], y[key])
+    other = list(train_dataset(c, labels, batch_size=5, seed=8, num_epochs=2, augment=aug))
+    assert not np.array_equal(_indices(a), _indices(other))
+
+
+def test_each_epoch_is_a_fresh_permutation(cached):
+    _, c, labels = cached
+    idx = _indices(list(train_dataset(c, labels, batch_size=4, seed=1, num_epochs=3, drop_remainder=False)))
+    epochs = idx.reshape(3, 23)
+    for e in epochs:
+        assert sorted(e.tolist()) == list(range(23))
+    assert not np.array_equal(epochs[0], epochs[1]) and not np.array_equal(epochs[1], epochs[2])
+    assert not np.array_equal(epochs[0], np.arange(23))
+
+
+def test_train_shards_disjoint_equal_and_covering(cached):
+    _, c, labels = cached
+    for count in (2, 3):
+        per_shard = [
+            _indices(list(train_dataset(c, labels, batch_size=1, seed=3, num_epochs=2, shard=_shard(i, count))))
+            for i in range(count)
+        ]
+        per = 23 // count
+        assert all(len(p) == 2 * per for p in per_shard)  # same number of steps on every process
+        for e in range(2):
+            parts = [p[e * per : (e + 1) * per] for p in per_shard]
+            union = np.concatenate(parts)
+            assert len(set(union.tolist())) == len(union) == per * count  # disjoint
+            assert set(union.tolist()) <= set(range(23))  # only the remainder of the permutation is skipped
+
+
+def test_shards_come_from_one_global_permutation(cached):
+    _, c, labels = cached
+    whole = _indices(list(train_dataset(c, labels, batch_size=1, seed=3, shard=_shard(0, 1))))
+    s0 = _indices(list(train_dataset(c, labels, batch_size=1, seed=3, shard=_shard(0, 2))))
+    s1 = _indices(list(train_dataset(c, labels, batch_size=1, seed=3, shard=_shard(1, 2))))
+    np.testing.assert_array_equal(s0, whole[:22][0::2])
+    np.testing.assert_array_equal(s1, whole[:22][1::2])
+
+
+def test_drop_remainder(cached):
+    _, c, labels = cached
+    ds = train_dataset(c, labels, batch_size=5, seed=0, num_epochs=2)
+    assert len(ds) == 8 and all(len(b["index"]) == 5 for b in ds)
+    with pytest.raises(ValueError, match="exceeds"):
+        train_dataset(c, labels, batch_size=30, seed=0)
+
+
+def test_augmentation(cached):
+    s, c, labels = cached
+    aug = Augment(crop_hw=(6, 5))
+    batches = list(train_dataset(c, labels, batch_size=23, seed=0, num_epochs=2, augment=aug))
+    for b in batches:
+        assert b["image"].shape == (23, 6, 5, 3)
+        for k, i in enumerate(b["index"]):  # every output is some 6×5 window of its own frame
+            full = s.image(i)
+            windows = np.lib.stride_tricks.sliding_window_view(full, (6, 5, 3))[:, :, 0]
+            assert (windows == b["image"][k]).all(axis=(-1, -2, -3)).any()
+    # Crops differ across epochs for the same frame.
+    e0 = {int(i): img for i, img in zip(batches[0]["index"], batches[0]["image"], strict=True)}
+    e1 = {int(i): img for i, img in zip(batches[1]["index"], batches[1]["image"], strict=True)}
+    assert sum(not np.array_equal(e0[i], e1[i]) for i in e0) > 10
+    jitter = Augment(brightness=0.5)
+    b = next(iter(train_dataset(c, labels, batch_size=23, seed=0, augment=jitter)))
+    ref = np.stack([s.image(i) for i in b["index"]]).astype(np.int32)
+    diff = b["image"].astype(np.int32) - ref
+    assert np.abs(diff).max() <= 128 and np.abs(diff).mean() > 5
+    with pytest.raises(ValueError, match="larger than the image"):
+        Augment(crop_hw=(20, 5))({"image": s.image(0)}, np.random.default_rng(0))
+
+
+def test_eval_covers_every_frame_once_with_padding(cached):
+    s, c, labels = cached
+    for count in (1, 2, 3):
+        seen = []
+        n_batches = set()
+        for i in range(count):
+            batches = list(eval_dataset(c, labels, batch_size=4, crop_hw=(6, 6), shard=_shard(i, count)))
+            n_batches.add(len(batches))
+            for b in batches:
+                assert b["image"].shape == (4, 6, 6, 3)  # static shape, padding included
+                assert (b["index"][~b["valid"]] == -1).all() and (b["label"][~b["valid"]] == -1).all()
+                for k in np.flatnonzero(b["valid"]):
+                    idx = b["index"][k]
+                    np.testing.assert_array_equal(b["image"][k], s.image(idx)[2:8, 1:7])
+                    assert b["label"][k] == labels[idx]
+                seen.extend(b["index"][b["valid"]].tolist())
+        assert len(n_batches) == 1  # same number of steps on every process
+        assert sorted(seen) == list(range(23))
+        if count == 1:
+            assert seen == list(range(23))  # in order
+
+
+def test_any_session_works_and_memory_stays_bounded(cached):
+    s, c, labels = cached
+    plain = [b["index"] for b in train_dataset(s, labels, batch_size=4, seed=2)]
+    from_cache = [b["index"] for b in train_dataset(c, labels, batch_size=4, seed=2)]
+    np.testing.assert_array_equal(np.concatenate(plain), np.concatenate(from_cache))
+    src = FrameSource(c, labels)
+    src[0]  # opens the memmap
+    blob = pickle.dumps(src)
+    assert len(blob) < c.images.nbytes / 4  # workers get a path, not the session's pixels
+    clone = pickle.loads(blob)
+    np.testing.assert_array_equal(clone[5]["image"], s.image(5))
+    eval_all = eval_dataset(s, None, batch_size=8)
+    assert (next(iter(eval_all))["label"] == -1).all()
+
+
+def test_bad_labels_named():
+    s = ToySession(n=5)
+    with pytest.raises(ValueError, match=r"labels for session 'toy' must be integer \(5,\)"):
+        FrameSource(s, np.zeros(4, np.int32))
+    with pytest.raises(ValueError, match="must be integer"):
+        FrameSource(s, np.zeros(5, np.float32))
