@@ -134,14 +134,12 @@ def test_sigkilled_build_resumes_to_identical_cache(tmp_path):
         from placejax.data.cache import cache_session
         s = nclt.load_session({str(fake.root)!r}, "2012-01-22", image_size=(8, 6))
         read = s.image
-        count = [0]
         def image(i):
-            count[0] += 1
-            if count[0] == 7:  # after two committed chunks of 3 and one frame into the third
+            if i == 6:  # two chunks of 3 committed; the third one is being decoded (by 2 threads)
                 os.kill(os.getpid(), signal.SIGKILL)
             return read(i)
         s.image = image
-        cache_session(s, {str(tmp_path / "killed")!r}, image_size=(5, 4), chunk=3, progress=False)
+        cache_session(s, {str(tmp_path / "killed")!r}, image_size=(5, 4), chunk=3, workers=2, progress=False)
         """
     )
     env = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -152,7 +150,7 @@ def test_sigkilled_build_resumes_to_identical_cache(tmp_path):
     (partial,) = [p for p in (tmp_path / "killed").iterdir() if p.name.endswith(".partial")]
     assert json.loads((partial / "progress.json").read_text())["rows_done"] == 6
     resumed = cache_session(s, tmp_path / "killed", image_size=(5, 4), chunk=3, progress=False)
-    fresh = cache_session(s, tmp_path / "fresh", image_size=(5, 4), chunk=3, progress=False)
+    fresh = cache_session(s, tmp_path / "fresh", image_size=(5, 4), chunk=3, workers=1, progress=False)
     assert resumed.path.name == fresh.path.name
     assert _tree_bytes(resumed.path) == _tree_bytes(fresh.path)
     for i in range(len(s)):

@@ -178,3 +178,15 @@ def test_bad_labels_named():
         FrameSource(s, np.zeros(4, np.int32))
     with pytest.raises(ValueError, match="must be integer"):
         FrameSource(s, np.zeros(5, np.float32))
+
+
+def test_photometric_jitter_matches_float_formula():
+    img = np.random.default_rng(4).integers(0, 256, size=(9, 7, 3), dtype=np.uint8)
+    aug = Augment(brightness=0.3, contrast=0.4)
+    out = aug({"image": img, "label": 1}, np.random.default_rng(11))["image"]
+    rng = np.random.default_rng(11)  # the same draws, in the documented order: contrast, then brightness
+    a, b = rng.uniform(0.6, 1.4), rng.uniform(-0.3, 0.3) * 255.0
+    x = img.astype(np.float64)
+    expected = np.clip(np.rint((x - x.mean()) * a + x.mean() + b), 0, 255)
+    assert out.dtype == np.uint8 and out.shape == img.shape
+    assert np.abs(out.astype(np.float64) - expected).max() <= 1.0

@@ -35,6 +35,7 @@ import os
 import re
 import shutil
 from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -350,6 +351,7 @@ def cache_session(
     *,
     image_size: tuple[int, int] | None = None,
     chunk: int = 64,
+    workers: int | None = None,
     progress: bool = True,
 ) -> CachedSession:
     """Caches a session's upright RGB images at ``image_size`` (default: as the session returns them).
@@ -363,6 +365,8 @@ def cache_session(
         root: cache folder.
         image_size: ``(H, W)`` of the cached images.
         chunk: frames per committed write.
+        workers: threads decoding frames in parallel (OpenCV releases the GIL); default ``os.cpu_count()``
+            up to 8. Frame order and the result do not depend on it.
         progress: show a tqdm bar.
 
     Returns:
@@ -378,36 +382,43 @@ def cache_session(
         "resize": "cv2.INTER_AREA when shrinking else INTER_LINEAR",
     }
 
+    def frame(i: int) -> np.ndarray:
+        img = session.image(i)
+        if img.shape != (*src_hw, 3) or img.dtype != np.uint8:
+            raise CacheError(
+                f"session {session.name!r} frame {i}: image is {img.dtype} {img.shape}, expected uint8 {(*src_hw, 3)}"
+            )
+        return _camera.resize_image(img, hw)
+
+    n_workers = workers if workers is not None else min(8, os.cpu_count() or 1)
+    pool = ThreadPoolExecutor(n_workers) if n_workers > 1 else None
+
     def frames(start: int, stop: int) -> np.ndarray:
-        out = np.empty((stop - start, *hw, 3), np.uint8)
-        for j, i in enumerate(range(start, stop)):
-            img = session.image(i)
-            if img.shape != (*src_hw, 3) or img.dtype != np.uint8:
-                raise CacheError(
-                    f"session {session.name!r} frame {i}: image is {img.dtype} {img.shape}, "
-                    f"expected uint8 {(*src_hw, 3)}"
-                )
-            out[j] = _camera.resize_image(img, hw)
-        return out
+        images = pool.map(frame, range(start, stop)) if pool is not None else map(frame, range(start, stop))
+        return np.stack(list(images))
 
     extras = {
         "utimes": np.asarray(session.utimes, dtype=np.int64),
         "poses": np.asarray(session.poses, dtype=np.float64),
         "intrinsics": _camera.resize_intrinsics(session.intrinsics, src_hw, hw),
     }
-    cache = build_array_cache(
-        root,
-        f"{session.name}-rgb{hw[0]}x{hw[1]}",
-        len(session),
-        frames,
-        (*hw, 3),
-        np.uint8,
-        key=key,
-        extras=extras,
-        chunk=chunk,
-        progress=progress,
-        desc=f"cache {session.name} {hw[0]}×{hw[1]}",
-    )
+    try:
+        cache = build_array_cache(
+            root,
+            f"{session.name}-rgb{hw[0]}x{hw[1]}",
+            len(session),
+            frames,
+            (*hw, 3),
+            np.uint8,
+            key=key,
+            extras=extras,
+            chunk=chunk,
+            progress=progress,
+            desc=f"cache {session.name} {hw[0]}×{hw[1]}",
+        )
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
     return CachedSession(cache)
 
 

@@ -25,6 +25,7 @@ import hashlib
 import math
 from pathlib import Path
 
+import cv2
 import grain
 import numpy as np
 
@@ -144,13 +145,12 @@ class Augment:
             top, left = rng.integers(0, h - ch + 1), rng.integers(0, w - cw + 1)
             image = image[top : top + ch, left : left + cw]
         if self.brightness or self.contrast:
-            x = image.astype(np.float32)
-            if self.contrast:
-                mean = x.mean(dtype=np.float32)
-                x = (x - mean) * np.float32(rng.uniform(1 - self.contrast, 1 + self.contrast)) + mean
-            if self.brightness:
-                x = x + np.float32(rng.uniform(-self.brightness, self.brightness) * 255.0)
-            image = np.clip(np.rint(x), 0, 255).astype(np.uint8)
+            # One affine map x·a + b with OpenCV's rounding saturate cast: several times faster than float NumPy.
+            a = float(rng.uniform(1 - self.contrast, 1 + self.contrast)) if self.contrast else 1.0
+            b = float(rng.uniform(-self.brightness, self.brightness) * 255.0) if self.brightness else 0.0
+            mean = float(np.mean(cv2.mean(image)[:3])) if self.contrast else 0.0
+            image = np.ascontiguousarray(image)
+            image = cv2.addWeighted(image, a, image, 0.0, mean * (1.0 - a) + b).reshape(image.shape)
         return {**example, "image": np.ascontiguousarray(image)}
 
 
