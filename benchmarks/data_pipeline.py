@@ -69,19 +69,10 @@ class _MemmapFrames:
         return len(self.images)
 
 
-def _median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=24)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/data_pipeline.json"))
     args = parser.parse_args()
@@ -94,22 +85,8 @@ def main() -> None:
         s = nclt.load_session(root, DATE, image_size=(224, 224))
         su = nclt.load_session(root, DATE, image_size=(224, 224), undistort=True)
         files = [str(f) for f in s.files]
-
-        t_read = _median_time(lambda: [cv2.imread(f, cv2.IMREAD_UNCHANGED) for f in files], reps)
-        t_img = _median_time(lambda: [s.image(i) for i in range(n)], reps)
-        t_und = _median_time(lambda: [su.image(i) for i in range(n)], reps)
-        rows.append(("nclt_image", n / t_img, "cv2.imread only", n / t_read, "frames/s"))
-        rows.append(("nclt_image_undistort", n / t_und, "nclt_image", n / t_img, "frames/s"))
         u2d = next((root / "ladybug3_calib").glob("U2D_*.txt"))
-        t_u2d = _median_time(lambda: nclt.read_u2d_map(u2d), reps)
-        rows.append(("u2d_parse", t_u2d, "-", float("nan"), "s per 1616×1232 map"))
-
-        builds = []
-        for r in range(reps):
-            t = time.perf_counter()
-            cached = cache_session(s, root / f"cache{r}", image_size=(224, 224), chunk=8, progress=False)
-            builds.append(time.perf_counter() - t)
-        rows.append(("cache_build", n / statistics.median(builds), "nclt_image", n / t_img, "frames/s"))
+        cached = cache_session(s, root / "cache", image_size=(224, 224), chunk=8, progress=False)
 
         # A bigger cache for streaming: the built frames tiled to a few hundred.
         big = 512
@@ -121,27 +98,43 @@ def main() -> None:
         images = np.load(root / "big.npy", mmap_mode="r")
         frames = _MemmapFrames(images)
         labels = (np.arange(big) % 100).astype(np.int32)
+        aug = Augment(crop_hw=(200, 200), brightness=0.2, contrast=0.2)
+        builds = iter(range(reps))
 
         def sequential():
             for a in range(0, big - args.batch + 1, args.batch):
                 np.array(images[a : a + args.batch])
 
-        aug = Augment(crop_hw=(200, 200), brightness=0.2, contrast=0.2)
-
-        def pipeline():
-            for _ in train_dataset(frames, labels, batch_size=args.batch, seed=0, augment=aug):
+        def pipeline(augment):
+            for _ in train_dataset(frames, labels, batch_size=args.batch, seed=0, augment=augment):
                 pass
 
-        def pipeline_plain():
-            for _ in train_dataset(frames, labels, batch_size=args.batch, seed=0):
-                pass
-
+        cases = {
+            "imread": lambda: [cv2.imread(f, cv2.IMREAD_UNCHANGED) for f in files],
+            "image": lambda: [s.image(i) for i in range(n)],
+            "undistort": lambda: [su.image(i) for i in range(n)],
+            "u2d": lambda: nclt.read_u2d_map(u2d),
+            "build": lambda: cache_session(s, root / f"c{next(builds)}", image_size=(224, 224), progress=False),
+            "sequential": sequential,
+            "shuffled": lambda: pipeline(None),
+            "augmented": lambda: pipeline(aug),
+        }
+        # Interleaved repeats: every case and its baseline see the same (shared, noisy) machine state.
+        times = {name: [] for name in cases}
+        for _ in range(reps):
+            for name, fn in cases.items():
+                t = time.perf_counter()
+                fn()
+                times[name].append(time.perf_counter() - t)
+        t = {name: statistics.median(v) for name, v in times.items()}
         n_stream = (big // args.batch) * args.batch
-        t_seq = _median_time(sequential, reps)
-        t_pipe = _median_time(pipeline, reps)
-        t_plain = _median_time(pipeline_plain, reps)
-        rows.append(("train_batches_shuffled", n_stream / t_plain, "memmap slices", n_stream / t_seq, "frames/s"))
-        rows.append(("train_batches_augmented", n_stream / t_pipe, "memmap slices", n_stream / t_seq, "frames/s"))
+        rows.append(("nclt_image", n / t["image"], "cv2.imread only", n / t["imread"], "frames/s"))
+        rows.append(("nclt_image_undistort", n / t["undistort"], "nclt_image", n / t["image"], "frames/s"))
+        rows.append(("u2d_parse", t["u2d"], "-", float("nan"), "s per 1616×1232 map"))
+        rows.append(("cache_build", n / t["build"], "nclt_image", n / t["image"], "frames/s"))
+        seq = n_stream / t["sequential"]
+        rows.append(("train_batches_shuffled", n_stream / t["shuffled"], "memmap slices", seq, "frames/s"))
+        rows.append(("train_batches_augmented", n_stream / t["augmented"], "memmap slices", seq, "frames/s"))
 
     print(f"data pipeline, {n} full-size NCLT frames, median of {reps} runs, {os.cpu_count()} CPUs")
     print(f"{'case':<26}{'value':>12}  {'baseline':<18}{'baseline value':>15}{'ratio':>8}  unit")

@@ -250,3 +250,10 @@ def test_rotation_formula_doctest():
     k = rotate_intrinsics_cw(nclt.CAM5_INTRINSICS, 1232)
     np.testing.assert_allclose(k[0, 2], 1231 - 621.668624)
     np.testing.assert_allclose(k[1, 2], 826.361952)
+
+
+def test_image_deleted_after_load_named(fake):
+    s = nclt.load_session(fake.root, DATE)
+    s.files[2].unlink()
+    with pytest.raises(nclt.NcltFormatError, match=rf"{s.files[2].name}: image file missing"):
+        s.image(2)

@@ -6,7 +6,7 @@ import grain
 import numpy as np
 import pytest
 
-from placejax.data.cache import cache_session
+from placejax.data.cache import build_array_cache, cache_session
 from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dataset
 
 
@@ -174,7 +174,7 @@ def test_any_session_works_and_memory_stays_bounded(cached):
 
 def test_bad_labels_named():
     s = ToySession(n=5)
-    with pytest.raises(ValueError, match=r"labels for session 'toy' must be integer \(5,\)"):
+    with pytest.raises(ValueError, match=r"labels for 'toy' must be integer \(5,\)"):
         FrameSource(s, np.zeros(4, np.int32))
     with pytest.raises(ValueError, match="must be integer"):
         FrameSource(s, np.zeros(5, np.float32))
@@ -190,3 +190,40 @@ def test_photometric_jitter_matches_float_formula():
     expected = np.clip(np.rint((x - x.mean()) * a + x.mean() + b), 0, 255)
     assert out.dtype == np.uint8 and out.shape == img.shape
     assert np.abs(out.astype(np.float64) - expected).max() <= 1.0
+
+
+def test_array_caches_and_paired_extras(cached, tmp_path):
+    s, c, labels = cached
+    n = len(s)
+    # A derived per-frame cache (say, a 1-channel float "depth" map) paired with the RGB frames.
+    depth = build_array_cache(
+        tmp_path,
+        "toy-depth",
+        n,
+        lambda a, b: np.arange(a, b, dtype=np.float32)[:, None, None] * np.ones((1, 3, 2)),
+        (3, 2),
+        np.float32,
+        key={"kind": "depth"},
+        progress=False,
+    )
+    src = FrameSource(c, labels, extras={"depth": depth, "feat": np.arange(n * 4, dtype=np.float32).reshape(n, 4)})
+    clone = pickle.loads(pickle.dumps(src))
+    for batch in eval_dataset(clone, batch_size=4, shard=_shard(1, 2)):
+        assert batch["depth"].shape == (4, 3, 2) and batch["feat"].shape == (4, 4)
+        for k, i in enumerate(batch["index"]):
+            if batch["valid"][k]:
+                assert (batch["depth"][k] == i).all() and (batch["feat"][k] == np.arange(4 * i, 4 * i + 4)).all()
+                np.testing.assert_array_equal(batch["image"][k], s.image(i))
+            else:
+                assert (batch["depth"][k] == 0).all() and (batch["image"][k] == 0).all()
+    # An ArrayCache as the image column (e.g. HHA-Net training on cached HHA images).
+    b = next(iter(train_dataset(depth, labels, batch_size=5, seed=0)))
+    assert b["image"].dtype == np.float32 and (b["image"][:, 0, 0] == b["index"]).all()
+    # A memmap *slice* is not mistaken for its whole file.
+    part = FrameSource(c.images[3:9])
+    assert len(part) == 6
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(part))[0]["image"], s.image(3))
+    with pytest.raises(ValueError, match="'feat' has 2 frames, 'image' has 23"):
+        FrameSource(c, extras={"feat": np.zeros((2, 1))})
+    with pytest.raises(ValueError, match="reserved"):
+        FrameSource(c, extras={"label": np.zeros((n, 1))})

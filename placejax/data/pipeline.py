@@ -23,12 +23,14 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
+from collections.abc import Mapping
 from pathlib import Path
 
 import cv2
 import grain
 import numpy as np
 
+from placejax.data.cache import ArrayCache
 from placejax.data.session import Session
 
 __all__ = ["Augment", "FrameSource", "eval_dataset", "train_dataset"]
@@ -40,63 +42,120 @@ def _derive_seed(seed: int, *salt: object) -> int:
     return int.from_bytes(hashlib.sha256(text).digest()[:4], "little")
 
 
-class FrameSource:
-    """grain random-access source of one session's frames with their labels.
+def _whole_npy_memmap(a) -> bool:
+    """Whether ``a`` is a whole ``.npy`` file mapped in order (so reopening the file gives the same array)."""
+    if not isinstance(a, np.memmap) or not a.filename or Path(a.filename).suffix != ".npy":
+        return False
+    try:
+        whole = np.load(a.filename, mmap_mode="r")
+    except (OSError, ValueError):
+        return False
+    return whole.shape == a.shape and whole.dtype == a.dtype and a.flags.c_contiguous
 
-    Pickles without the image data (a cached session's memmap is reopened from its file in each worker), so
-    multiprocessing workers never copy a session.
 
-    Args:
-        session: any Session; a CachedSession is read through its memmap.
-        labels: int ``(N,)`` class ids (−1 for "no class"), or ``None`` for all −1.
-    """
+class _Column:
+    """Per-frame reads from one array: a memmap (reopened lazily from its file after pickling), an in-memory
+    array, or a Session's ``image(i)``."""
 
-    def __init__(self, session: Session, labels: np.ndarray | None = None):
-        n = len(session)
-        if labels is None:
-            labels = np.full(n, -1, np.int32)
-        labels = np.asarray(labels)
-        if labels.shape != (n,) or not np.issubdtype(labels.dtype, np.integer):
-            raise ValueError(
-                f"labels for session {session.name!r} must be integer ({n},), got {labels.dtype} {labels.shape}"
-            )
-        self.name = session.name
-        self.labels = labels.astype(np.int32)
-        self.image_shape = tuple(int(s) for s in session.image_shape)
-        images = getattr(session, "images", None)
-        self._images_path = Path(images.filename) if isinstance(images, np.memmap) else None
-        self._session = None if self._images_path is not None else session
-        self._images = images if self._images_path is not None else None
-
-    def __len__(self) -> int:
-        return len(self.labels)
+    def __init__(self, frames: Session | ArrayCache | np.ndarray):
+        if isinstance(frames, ArrayCache):
+            frames = frames.data
+        images = frames if isinstance(frames, np.ndarray) else getattr(frames, "images", None)
+        self._session = None
+        self._array = None
+        self._path = None
+        if _whole_npy_memmap(images):
+            self._path = Path(images.filename)
+            self._array = images
+            self.shape, self.dtype = tuple(images.shape[1:]), images.dtype
+        elif isinstance(images, np.ndarray):
+            self._array = images
+            self.shape, self.dtype = tuple(images.shape[1:]), images.dtype
+        else:
+            self._session = frames
+            self.shape, self.dtype = (*(int(s) for s in frames.image_shape), 3), np.dtype(np.uint8)
+        self.length = len(images) if isinstance(images, np.ndarray) else len(frames)
 
     def __getstate__(self):
         state = dict(self.__dict__)
-        state["_images"] = None
+        if self._path is not None:
+            state["_array"] = None  # workers reopen the file instead of receiving a copy of its content
         return state
 
     def __setstate__(self, state):
         self.__dict__.update(state)
 
-    def image(self, i: int) -> np.ndarray:
-        if self._images_path is None:
+    def __getitem__(self, i: int) -> np.ndarray:
+        if self._session is not None:
             return np.asarray(self._session.image(i))
-        if self._images is None:
-            self._images = np.load(self._images_path, mmap_mode="r")
-        return np.array(self._images[i])
+        if self._array is None:
+            self._array = np.load(self._path, mmap_mode="r")
+        return np.array(self._array[i])
+
+    def zeros(self) -> np.ndarray:
+        return np.zeros(self.shape, self.dtype)
+
+
+class FrameSource:
+    """grain random-access source of one session's frames with their labels (and optional paired arrays).
+
+    Reads one frame at a time; pickles without pixel data (memmaps are reopened from their files in each
+    worker), so multiprocessing workers never copy a session.
+
+    Example: HHA-Net training reads ``FrameSource(hha_cache, labels)``; RGB + HHA pairs for embedding
+    extraction read ``FrameSource(rgb_session, labels, extras={"hha": hha_cache})``.
+
+    Args:
+        frames: the ``"image"`` of each element: a Session (a CachedSession is read through its memmap), an
+            :class:`~placejax.data.cache.ArrayCache`, or an array ``(N, ...)``.
+        labels: int ``(N,)`` class ids (−1 for "no class"), or ``None`` for all −1.
+        extras: more per-frame arrays (same kinds as ``frames``) added to each element under their names.
+        name: for error messages; default the session's name.
+    """
+
+    def __init__(
+        self,
+        frames: Session | ArrayCache | np.ndarray,
+        labels: np.ndarray | None = None,
+        *,
+        extras: Mapping[str, Session | ArrayCache | np.ndarray] | None = None,
+        name: str | None = None,
+    ):
+        self.name = name if name is not None else getattr(frames, "name", "frames")
+        self._columns = {"image": _Column(frames)}
+        for key, value in (extras or {}).items():
+            if key in ("image", "label", "index", "valid"):
+                raise ValueError(f"extras name {key!r} is reserved")
+            self._columns[key] = _Column(value)
+        n = self._columns["image"].length
+        for key, column in self._columns.items():
+            if column.length != n:
+                raise ValueError(f"{self.name!r}: {key!r} has {column.length} frames, 'image' has {n}")
+        if labels is None:
+            labels = np.full(n, -1, np.int32)
+        labels = np.asarray(labels)
+        if labels.shape != (n,) or not np.issubdtype(labels.dtype, np.integer):
+            raise ValueError(f"labels for {self.name!r} must be integer ({n},), got {labels.dtype} {labels.shape}")
+        self.labels = labels.astype(np.int32)
+
+    def __len__(self) -> int:
+        return len(self.labels)
 
     def __getitem__(self, i: int) -> dict[str, np.ndarray]:
         i = int(i)
-        return {
-            "image": self.image(i),
-            "label": self.labels[i],
-            "index": np.int64(i),
-            "valid": np.bool_(True),
-        }
+        example = {key: column[i] for key, column in self._columns.items()}
+        example.update(label=self.labels[i], index=np.int64(i), valid=np.bool_(True))
+        return example
+
+    def padding(self) -> dict[str, np.ndarray]:
+        """An element that stands for no frame: zeros, ``label = index = −1``, ``valid = False``."""
+        example = {key: column.zeros() for key, column in self._columns.items()}
+        example.update(label=np.int32(-1), index=np.int64(-1), valid=np.bool_(False))
+        return example
 
     def __repr__(self) -> str:
-        return f"FrameSource({self.name!r}, {len(self)} frames, {self.image_shape})"
+        shapes = {key: column.shape for key, column in self._columns.items()}
+        return f"FrameSource({self.name!r}, {len(self)} frames, {shapes})"
 
 
 class _Padded:
@@ -110,14 +169,7 @@ class _Padded:
 
     def __getitem__(self, k: int) -> dict[str, np.ndarray]:
         i = self.start + int(k)
-        if i < self.stop:
-            return self.source[i]
-        return {
-            "image": np.zeros((*self.source.image_shape, 3), np.uint8),
-            "label": np.int32(-1),
-            "index": np.int64(-1),
-            "valid": np.bool_(False),
-        }
+        return self.source[i] if i < self.stop else self.source.padding()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,7 +227,7 @@ def _shard(shard: grain.sharding.ShardOptions | None) -> tuple[int, int]:
 
 
 def train_dataset(
-    session: Session | FrameSource,
+    frames: Session | ArrayCache | np.ndarray | FrameSource,
     labels: np.ndarray | None = None,
     *,
     batch_size: int,
@@ -192,8 +244,9 @@ def train_dataset(
     depend on (seed, shard, epoch, position), so the whole stream is a pure function of the arguments.
 
     Args:
-        session: the frames (a CachedSession streams from disk) or a ready :class:`FrameSource`.
-        labels: int32 ``(N,)`` class ids (ignored if ``session`` is a FrameSource).
+        frames: a Session (a CachedSession streams from disk), an ArrayCache or array ``(N, ...)``, or a
+            ready :class:`FrameSource` (e.g. with paired ``extras``).
+        labels: int32 ``(N,)`` class ids (ignored if ``frames`` is a FrameSource).
         batch_size: examples per batch (per process).
         seed: shuffling and augmentation seed.
         num_epochs: passes over the data; ``None`` repeats forever.
@@ -205,7 +258,7 @@ def train_dataset(
         A ``grain.MapDataset`` of dict batches: image ``uint8 (B, h, w, 3)``, label ``int32 (B,)``, index
         ``int64 (B,)`` (frame index in the session), valid ``bool (B,)`` (all True).
     """
-    source = session if isinstance(session, FrameSource) else FrameSource(session, labels)
+    source = frames if isinstance(frames, FrameSource) else FrameSource(frames, labels)
     index, count = _shard(shard)
     per_shard = len(source) // count
     if per_shard == 0:
@@ -222,7 +275,7 @@ def train_dataset(
 
 
 def eval_dataset(
-    session: Session | FrameSource,
+    frames: Session | ArrayCache | np.ndarray | FrameSource,
     labels: np.ndarray | None = None,
     *,
     batch_size: int,
@@ -232,7 +285,7 @@ def eval_dataset(
     """Every frame exactly once, in order, in full batches: this process's contiguous block, padded.
 
     Args:
-        session: the frames, or a ready :class:`FrameSource`.
+        frames: as in :func:`train_dataset`.
         labels: int32 ``(N,)`` class ids (``None``: all −1, e.g. to extract embeddings).
         batch_size: examples per batch (per process).
         crop_hw: centre crop (match the training crop).
@@ -243,7 +296,7 @@ def eval_dataset(
         ``valid = False``, ``index = -1``, ``label = -1`` and a black image. Every shard has the same number of
         batches.
     """
-    source = session if isinstance(session, FrameSource) else FrameSource(session, labels)
+    source = frames if isinstance(frames, FrameSource) else FrameSource(frames, labels)
     index, count = _shard(shard)
     per_shard = math.ceil(len(source) / count)
     length = math.ceil(per_shard / batch_size) * batch_size
