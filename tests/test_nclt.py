@@ -9,7 +9,7 @@ import pytest
 from fake_nclt import make_fake_nclt, write_identity_u2d
 
 import placejax.data.camera as camera_module
-from placejax.data import Session, nclt
+from placejax.data import PlaceGrid, Session, nclt
 from placejax.data.camera import project, resize_image, resize_intrinsics, rotate_intrinsics_cw
 
 DATE = "2012-01-22"
@@ -257,3 +257,18 @@ def test_image_deleted_after_load_named(fake):
     s.files[2].unlink()
     with pytest.raises(nclt.NcltFormatError, match=rf"{s.files[2].name}: image file missing"):
         s.image(2)
+
+
+def test_command_line_report_grid_and_cache(fake, tmp_path, capsys):
+    from placejax.data.__main__ import main
+    from placejax.data.cache import open_session_cache
+
+    grid_path = tmp_path / "grid.json"
+    argv = ["--root", str(fake.root), "--dates", DATE, "2012-03-31", "--cache", str(tmp_path / "c")]
+    assert main([*argv, "--image-size", "8", "6", "--grid", str(grid_path)]) == 0
+    out = capsys.readouterr().out
+    assert "2012-01-22         9       6        2        1     0" in out
+    grid = PlaceGrid.load(grid_path)
+    assert grid == PlaceGrid.fit([fake.sessions[d].poses for d in (DATE, "2012-03-31")])
+    caches = sorted(p for p in (tmp_path / "c").iterdir() if p.is_dir())
+    assert len(caches) == 2 and open_session_cache(caches[0]).image_shape == (8, 6)
