@@ -23,6 +23,10 @@ class Session(Protocol):
         intrinsics: ``float64 (3, 3)`` pinhole matrix of the images ``image(i)`` returns, 0-based (OpenCV)
             pixel convention (pixel (row i, col j) has u = j, v = i).
         image_shape: ``(H, W)`` of the images ``image(i)`` returns.
+
+    Optional: a ``fingerprint() -> dict`` method (JSON-serialisable: source, settings, a content hash) names
+    what the session's images are made from; on-disk caches use it as the source identity
+    (:func:`placejax.data.session_identity`). Without it, caches hash the metadata and three sample images.
     """
 
     name: str
