@@ -206,17 +206,20 @@ class Augment:
         return {**example, "image": np.ascontiguousarray(image)}
 
 
-def _center_crop(crop_hw: tuple[int, int]):
-    def crop(example: dict) -> dict:
+@dataclasses.dataclass(frozen=True)
+class _CenterCrop:
+    """The evaluation counterpart of ``Augment.crop_hw`` (a class, not a closure, so workers can unpickle it)."""
+
+    crop_hw: tuple[int, int]
+
+    def __call__(self, example: dict) -> dict:
         image = example["image"]
         h, w = image.shape[:2]
-        ch, cw = crop_hw
+        ch, cw = self.crop_hw
         if ch > h or cw > w:
-            raise ValueError(f"crop_hw {crop_hw} larger than the image {(h, w)}")
+            raise ValueError(f"crop_hw {self.crop_hw} larger than the image {(h, w)}")
         top, left = (h - ch) // 2, (w - cw) // 2
         return {**example, "image": np.ascontiguousarray(image[top : top + ch, left : left + cw])}
-
-    return crop
 
 
 def _shard(shard: grain.sharding.ShardOptions | None) -> tuple[int, int]:
@@ -304,5 +307,5 @@ def eval_dataset(
     stop = min(start + per_shard, len(source))
     ds = grain.MapDataset.source(_Padded(source, start, stop, length))
     if crop_hw is not None:
-        ds = ds.map(_center_crop(tuple(crop_hw)))
+        ds = ds.map(_CenterCrop(tuple(crop_hw)))
     return ds.batch(batch_size)
