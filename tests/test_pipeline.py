@@ -227,3 +227,16 @@ def test_array_caches_and_paired_extras(cached, tmp_path):
         FrameSource(c, extras={"feat": np.zeros((2, 1))})
     with pytest.raises(ValueError, match="reserved"):
         FrameSource(c, extras={"label": np.zeros((n, 1))})
+
+
+def test_datasets_pickle_for_worker_processes(cached):
+    """grain's multiprocessing workers receive the pipeline pickled: it must survive that unchanged."""
+    _, c, labels = cached
+    for ds in (
+        eval_dataset(c, labels, batch_size=4, crop_hw=(6, 6)),
+        train_dataset(c, labels, batch_size=4, seed=5, augment=Augment(crop_hw=(6, 6), brightness=0.1)),
+    ):
+        clone = pickle.loads(pickle.dumps(ds))
+        for a, b in zip(ds, clone, strict=True):
+            for key in a:
+                np.testing.assert_array_equal(a[key], b[key])
