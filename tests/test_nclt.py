@@ -147,6 +147,8 @@ def test_tolerance_and_matching():
     assert outside.tolist() == [True, False, False, False, False, False, True]
     assert too_far.tolist() == [False, False, False, False, True, False, False]
     assert index[1:6].tolist() == [0, 1, 2, 2, 3]  # 600: nearest row 300 (dist 300), too far anyway
+    index, outside, too_far = nclt.match_nearest(np.array([100, 90, 150]), np.array([100]), tolerance_us=50)
+    assert index.tolist() == [0, 0, 0] and outside.tolist() == [False, True, True] and not too_far.any()
 
 
 def test_tolerance_option(fake):
