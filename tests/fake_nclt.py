@@ -2,7 +2,7 @@
 
 Reusable by any test (end-to-end runs of the ``paper`` code path included)::
 
-    from tests.fake_nclt import make_fake_nclt
+    from fake_nclt import make_fake_nclt   # tests/ is on sys.path under pytest (no __init__.py)
     fake = make_fake_nclt(tmp_path, ["2012-01-22", "2012-03-31"], n_frames=10)
     session = nclt.load_session(fake.root, "2012-01-22")
     assert len(session) == fake.sessions["2012-01-22"].n_kept
