@@ -1,7 +1,7 @@
 """The one session interface shared by every data source (NCLT, SimCampus).
 
-A session is one drive of the robot through the workspace: N frames, each an upright RGB image with the pose it
-was taken from. The grid, caches, pipelines and the experiment only ever see this interface.
+A session is one drive of the robot through the workspace: N frames, each an upright RGB image with the pose
+it was taken from. The grid, caches, pipelines and the experiment only ever see this interface.
 """
 
 from __future__ import annotations
@@ -23,6 +23,10 @@ class Session(Protocol):
         intrinsics: ``float64 (3, 3)`` pinhole matrix of the images ``image(i)`` returns, 0-based (OpenCV)
             pixel convention (pixel (row i, col j) has u = j, v = i).
         image_shape: ``(H, W)`` of the images ``image(i)`` returns.
+
+    Optional: a ``fingerprint() -> dict`` method (JSON-serialisable: source, settings, a content hash) names
+    what the session's images are made from; on-disk caches use it as the source identity
+    (:func:`placejax.data.session_identity`). Without it, caches hash the metadata and three sample images.
     """
 
     name: str

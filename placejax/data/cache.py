@@ -1,0 +1,431 @@
+"""On-disk caches of per-frame arrays: written once, chunk by chunk, atomically, resumable after a kill.
+
+Two entry points share one mechanism:
+
+* :func:`cache_session` — a session's images decoded, made upright, undistorted and resized once into a memory-
+  mapped ``uint8 (N, H, W, 3)`` array with its utimes, poses and intrinsics. Works for any
+  :class:`~placejax.data.Session` (NCLT, SimCampus, ...). Returns a :class:`CachedSession`, itself a Session.
+* :func:`build_array_cache` — any derived per-frame array (depth maps, HHA images, conv features) produced by a
+  function of a frame range.
+
+Layout under ``root``::
+
+    <name>-<digest>/            complete cache (only ever appears by an atomic rename)
+        manifest.json           key, shapes, dtypes, "complete": true
+        data.npy                the (N, ...) array, read back with np.load(mmap_mode="r")
+        <extra>.npy             small per-session arrays (utimes, poses, intrinsics)
+    <name>-<digest>.partial/    build in progress: data.npy + progress.json (rows done), resumed on rerun
+    .<name>-<digest>.lock       serialises concurrent builders of the same cache
+
+``digest`` hashes the key (the settings and the identity of the source), so a cache built with other settings or
+from another source is simply a different folder and is never read; the manifest's key is checked again on open.
+A kill at any point leaves either the complete folder or a ``.partial`` one; the rerun continues from the last
+chunk whose progress marker was written (after the chunk's data was flushed) and produces the same bytes as an
+uninterrupted build.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import fcntl
+import hashlib
+import json
+import os
+import re
+import shutil
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from placejax.data import _atomic
+from placejax.data import camera as _camera
+from placejax.data.session import Session
+
+__all__ = [
+    "ArrayCache",
+    "CacheError",
+    "CachedSession",
+    "build_array_cache",
+    "cache_digest",
+    "cache_session",
+    "open_array_cache",
+    "open_session_cache",
+    "session_identity",
+]
+
+FORMAT_VERSION = 1
+_DATA = "data.npy"
+_MANIFEST = "manifest.json"
+_PROGRESS = "progress.json"
+_SESSION_EXTRAS = ("utimes", "poses", "intrinsics")
+
+
+class CacheError(RuntimeError):
+    """A cache folder that is incomplete, stale or corrupt, or a producer that returned the wrong array."""
+
+
+def _canonical(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def cache_digest(key: Mapping[str, Any]) -> str:
+    """16 hex digits of the SHA-256 of the key's canonical JSON (sorted keys)."""
+    try:
+        text = _canonical(key)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"cache key must be JSON-serialisable (str, int, float, bool, lists, dicts): {e}") from None
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _safe_name(name: str) -> str:
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
+    if not safe:
+        raise ValueError(f"cache name {name!r} has no usable characters")
+    return safe
+
+
+@dataclasses.dataclass(frozen=True)
+class ArrayCache:
+    """A complete cache: ``data`` is a read-only memmap ``(N, ...)``; ``extras`` small arrays loaded in RAM."""
+
+    path: Path
+    key: dict
+    data: np.ndarray
+    extras: dict[str, np.ndarray]
+
+
+def _manifest(key: Mapping, n: int, shape: tuple[int, ...], dtype: np.dtype, extras: Mapping) -> dict:
+    return {
+        "format_version": FORMAT_VERSION,
+        "complete": True,
+        "key": json.loads(_canonical(key)),
+        "digest": cache_digest(key),
+        "n": n,
+        "shape": [n, *shape],
+        "dtype": np.dtype(dtype).str,
+        "extras": sorted(extras),
+    }
+
+
+def open_array_cache(path: str | os.PathLike, key: Mapping | None = None) -> ArrayCache:
+    """Opens a complete cache folder; with ``key``, also checks it was built for that key.
+
+    Raises:
+        CacheError: no complete manifest, a different key or format, or a data file of the wrong size.
+    """
+    path = Path(path)
+    mpath = path / _MANIFEST
+    try:
+        manifest = json.loads(mpath.read_text())
+    except FileNotFoundError:
+        raise CacheError(f"{path}: not a complete cache (no {_MANIFEST})") from None
+    except json.JSONDecodeError as e:
+        raise CacheError(f"{mpath}: corrupt manifest ({e})") from None
+    if manifest.get("format_version") != FORMAT_VERSION or manifest.get("complete") is not True:
+        raise CacheError(f"{mpath}: incomplete or format {manifest.get('format_version')} != {FORMAT_VERSION}")
+    if key is not None and manifest.get("key") != json.loads(_canonical(key)):
+        raise CacheError(f"{mpath}: stale cache, built for another key")
+    try:
+        data = np.load(path / _DATA, mmap_mode="r")
+    except (OSError, ValueError) as e:
+        raise CacheError(f"{path / _DATA}: unreadable cache data ({e})") from None
+    if list(data.shape) != manifest["shape"] or data.dtype.str != manifest["dtype"]:
+        raise CacheError(
+            f"{path / _DATA}: holds {data.dtype} {data.shape}, manifest says {manifest['dtype']} {manifest['shape']}"
+        )
+    extras = {name: np.load(path / f"{name}.npy") for name in manifest["extras"]}
+    return ArrayCache(path=path, key=manifest["key"], data=data, extras=extras)
+
+
+@contextlib.contextmanager
+def _locked(lock_path: Path):
+    # flock is released by the kernel when the process dies, so a killed builder never leaves a stuck lock.
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock_path, "a+") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _discard(path: Path) -> None:
+    """Removes a folder by renaming it aside first, so no reader ever sees it half-deleted."""
+    if path.exists():
+        trash = path.with_name(f".{path.name}.trash-{os.getpid()}")
+        os.replace(path, trash)
+        shutil.rmtree(trash)
+
+
+def _open_partial(partial: Path, digest: str, n: int, shape: tuple[int, ...], dtype: np.dtype):
+    """Returns ``(memmap, rows_done)``, resuming a previous build of the same key when one is usable."""
+    data_path = partial / _DATA
+    rows_done = 0
+    if partial.is_dir():
+        try:
+            progress = json.loads((partial / _PROGRESS).read_text())
+            mm = np.lib.format.open_memmap(data_path, mode="r+")
+            if progress.get("digest") == digest and mm.shape == (n, *shape) and mm.dtype == dtype:
+                rows_done = int(progress["rows_done"])
+                if 0 <= rows_done <= n:
+                    return mm, rows_done
+            del mm
+        except (OSError, ValueError, KeyError, json.JSONDecodeError):
+            pass  # killed before the first marker, or foreign content: start over
+        _discard(partial)
+    partial.mkdir(parents=True)
+    mm = np.lib.format.open_memmap(data_path, mode="w+", dtype=dtype, shape=(n, *shape))
+    return mm, 0
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def build_array_cache(
+    root: str | os.PathLike,
+    name: str,
+    n: int,
+    fn: Callable[[int, int], np.ndarray],
+    shape: tuple[int, ...],
+    dtype: Any,
+    *,
+    key: Mapping[str, Any],
+    extras: Mapping[str, np.ndarray] | None = None,
+    chunk: int = 64,
+    progress: bool = True,
+    desc: str | None = None,
+) -> ArrayCache:
+    """Builds (or reuses) the cache of ``n`` per-frame arrays ``fn(start, stop)`` under ``root``.
+
+    Example (an HHA cache the experiment could build from a depth cache)::
+
+        hha = build_array_cache(root, "WI-hha", len(depth.data), lambda a, b: encode(depth.data[a:b]),
+                                (224, 224, 3), np.uint8, key={"depth": depth.key, "hha": hha_settings})
+
+    Args:
+        root: folder holding caches.
+        name: human-readable cache name (session name + what it holds); sanitised for the filesystem.
+        n: number of frames.
+        fn: ``fn(start, stop)`` → array ``(stop - start, *shape)`` of frames ``start..stop-1``; must be
+            deterministic, which is what makes a resumed build equal to an uninterrupted one.
+        shape: per-frame shape.
+        dtype: array dtype.
+        key: everything that determines the content (settings, identity of the source), JSON-serialisable.
+            Different keys live in different folders.
+        extras: small arrays stored beside the data (e.g. utimes); part of the cache, not of the key.
+        chunk: frames per write; progress is committed after each chunk.
+        progress: show a tqdm bar.
+        desc: bar label, default ``name``.
+
+    Returns:
+        The complete cache with ``data`` memory-mapped read-only.
+    """
+    if n < 1 or chunk < 1:
+        raise ValueError(f"cache {name!r}: need n >= 1 frames and chunk >= 1, got n={n}, chunk={chunk}")
+    for k in extras or {}:
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", k) or k == "data":
+            raise ValueError(f"cache {name!r}: extra name {k!r} must be an identifier other than 'data'")
+    shape = tuple(int(s) for s in shape)
+    dtype = np.dtype(dtype)
+    full_key = {"user": dict(key), "n": int(n), "shape": list(shape), "dtype": dtype.str}
+    digest = cache_digest(full_key)
+    root = Path(root)
+    stem = f"{_safe_name(name)}-{digest}"
+    final, partial = root / stem, root / f"{stem}.partial"
+
+    with contextlib.suppress(CacheError):
+        return open_array_cache(final, full_key)
+    with _locked(root / f".{stem}.lock"):
+        if final.exists():
+            try:  # another process may have finished it while we waited for the lock
+                return open_array_cache(final, full_key)
+            except CacheError:
+                _discard(final)  # never trust a folder without a matching complete manifest
+        mm, rows_done = _open_partial(partial, digest, n, shape, dtype)
+        starts = range(rows_done, n, chunk)
+        bar = tqdm(total=n, initial=rows_done, desc=desc or name, unit="frame", disable=not progress)
+        with bar:
+            for start in starts:
+                stop = min(start + chunk, n)
+                block = np.asarray(fn(start, stop))
+                if block.shape != (stop - start, *shape):
+                    raise CacheError(
+                        f"cache {name!r}: producer returned shape {block.shape} for frames {start}..{stop - 1}, "
+                        f"expected {(stop - start, *shape)}"
+                    )
+                if block.dtype != dtype:
+                    if not np.can_cast(block.dtype, dtype, casting="same_kind"):
+                        raise CacheError(f"cache {name!r}: producer returned {block.dtype}, expected {dtype}")
+                    block = block.astype(dtype)
+                mm[start:stop] = block
+                # Data reaches the file before the marker that claims it, so a marker never overstates progress.
+                mm.flush()
+                _atomic.write_json(partial / _PROGRESS, {"digest": digest, "rows_done": stop})
+                bar.update(stop - start)
+        mm.flush()
+        del mm
+        extras = {k: np.asarray(v) for k, v in (extras or {}).items()}
+        for k, v in extras.items():
+            np.save(partial / f"{k}.npy", v)
+        # The manifest is written last inside the folder and the folder appears under its final name by an
+        # atomic rename, so a complete-looking cache is always a complete one.
+        _atomic.write_json(partial / _MANIFEST, _manifest(full_key, n, shape, dtype, extras))
+        (partial / _PROGRESS).unlink()
+        _fsync_dir(partial)
+        os.replace(partial, final)
+        _fsync_dir(root)
+    return open_array_cache(final, full_key)
+
+
+def session_identity(session: Session) -> dict:
+    """What identifies a session's images, for cache keys.
+
+    A session may define ``fingerprint() -> dict`` (JSON-serialisable: its source, settings and a content
+    hash); NCLT sessions do. Otherwise the identity is a hash of its name, type, metadata and the first, middle
+    and last images, which catches regenerated or re-rendered sessions without reading every frame.
+    """
+    fp = getattr(session, "fingerprint", None)
+    if callable(fp):
+        return {"fingerprint": fp()}
+    digest = hashlib.sha256()
+    for a in (session.utimes, session.poses, session.intrinsics):
+        digest.update(np.ascontiguousarray(a).tobytes())
+    n = len(session)
+    for i in sorted({0, n // 2, n - 1} if n else set()):
+        digest.update(np.ascontiguousarray(session.image(i)).tobytes())
+    return {
+        "type": f"{type(session).__module__}.{type(session).__qualname__}",
+        "name": session.name,
+        "n": n,
+        "image_shape": [int(s) for s in session.image_shape],
+        "content_sha256": digest.hexdigest(),
+    }
+
+
+class CachedSession:
+    """A session read back from its cache; satisfies :class:`~placejax.data.Session`.
+
+    Attributes:
+        name, utimes, poses, intrinsics, image_shape: as in :class:`~placejax.data.Session` (intrinsics are
+            those of the cached, resized images).
+        images: read-only memmap ``uint8 (N, H, W, 3)``; slicing it reads only the frames asked for.
+        path: the cache folder.
+        key: what the cache was built from.
+    """
+
+    def __init__(self, cache: ArrayCache):
+        self._cache = cache
+        self.path = cache.path
+        self.key = cache.key
+        self.name = cache.key["user"]["name"]
+        self.images = cache.data
+        self.utimes = cache.extras["utimes"]
+        self.poses = cache.extras["poses"]
+        self.intrinsics = cache.extras["intrinsics"]
+        self.image_shape = tuple(int(s) for s in self.images.shape[1:3])
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def image(self, i: int) -> np.ndarray:
+        """Upright RGB ``uint8 (H, W, 3)`` of frame ``i`` (a copy, read from disk)."""
+        return np.array(self.images[i])
+
+    def __repr__(self) -> str:
+        return f"CachedSession({self.name!r}, {len(self)} frames, image_shape={self.image_shape}, path={self.path})"
+
+
+def cache_session(
+    session: Session,
+    root: str | os.PathLike,
+    *,
+    image_size: tuple[int, int] | None = None,
+    chunk: int = 64,
+    workers: int | None = None,
+    progress: bool = True,
+) -> CachedSession:
+    """Caches a session's upright RGB images at ``image_size`` (default: as the session returns them).
+
+    The session does the decoding, rotation and undistortion (its own settings are part of its identity); the
+    cache resizes (area averaging when shrinking) and transforms the intrinsics to match. Rerunning with the
+    same session and settings reuses the cache; a killed build resumes.
+
+    Args:
+        session: any Session.
+        root: cache folder.
+        image_size: ``(H, W)`` of the cached images.
+        chunk: frames per committed write.
+        workers: threads decoding frames in parallel (OpenCV releases the GIL); default ``os.cpu_count()``
+            up to 8. Frame order and the result do not depend on it.
+        progress: show a tqdm bar.
+
+    Returns:
+        The cached session (memory-mapped images).
+    """
+    src_hw = tuple(int(s) for s in session.image_shape)
+    hw = tuple(int(s) for s in image_size) if image_size is not None else src_hw
+    key = {
+        "kind": "session_images",
+        "name": session.name,
+        "source": session_identity(session),
+        "image_size": list(hw),
+        "resize": "cv2.INTER_AREA when shrinking else INTER_LINEAR",
+    }
+
+    def frame(i: int) -> np.ndarray:
+        img = session.image(i)
+        if img.shape != (*src_hw, 3) or img.dtype != np.uint8:
+            raise CacheError(
+                f"session {session.name!r} frame {i}: image is {img.dtype} {img.shape}, expected uint8 {(*src_hw, 3)}"
+            )
+        return _camera.resize_image(img, hw)
+
+    n_workers = workers if workers is not None else min(8, os.cpu_count() or 1)
+    pool = ThreadPoolExecutor(n_workers) if n_workers > 1 else None
+
+    def frames(start: int, stop: int) -> np.ndarray:
+        images = pool.map(frame, range(start, stop)) if pool is not None else map(frame, range(start, stop))
+        return np.stack(list(images))
+
+    extras = {
+        "utimes": np.asarray(session.utimes, dtype=np.int64),
+        "poses": np.asarray(session.poses, dtype=np.float64),
+        "intrinsics": _camera.resize_intrinsics(session.intrinsics, src_hw, hw),
+    }
+    try:
+        cache = build_array_cache(
+            root,
+            f"{session.name}-rgb{hw[0]}x{hw[1]}",
+            len(session),
+            frames,
+            (*hw, 3),
+            np.uint8,
+            key=key,
+            extras=extras,
+            chunk=chunk,
+            progress=progress,
+            desc=f"cache {session.name} {hw[0]}×{hw[1]}",
+        )
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+    return CachedSession(cache)
+
+
+def open_session_cache(path: str | os.PathLike) -> CachedSession:
+    """Reopens a complete session cache folder (e.g. one recorded next to an experiment's results)."""
+    cache = open_array_cache(path)
+    missing = [k for k in _SESSION_EXTRAS if k not in cache.extras]
+    if missing or cache.key.get("user", {}).get("kind") != "session_images":
+        raise CacheError(f"{path}: not a session image cache (missing {missing or 'kind'})")
+    return CachedSession(cache)

@@ -1,0 +1,232 @@
+"""On-disk caches: contents, reuse, keys, killed-and-resumed builds equal uninterrupted ones, never stale."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fake_nclt import make_fake_nclt
+
+import placejax
+from placejax.data import Session, nclt
+from placejax.data.cache import (
+    CachedSession,
+    CacheError,
+    build_array_cache,
+    cache_session,
+    open_array_cache,
+    open_session_cache,
+)
+from placejax.data.camera import resize_image, resize_intrinsics
+
+REPO = Path(placejax.__file__).resolve().parents[1]
+
+
+class ToySession:
+    """A deterministic in-memory Session that counts how often its images are read."""
+
+    def __init__(self, n=11, hw=(9, 7), seed=0, name="toy"):
+        rng = np.random.default_rng(seed)
+        self.name = name
+        self.utimes = 1_000_000 + 200_000 * np.arange(n, dtype=np.int64)
+        self.poses = rng.normal(size=(n, 3))
+        self.intrinsics = np.array([[5.0, 0.0, 3.0], [0.0, 5.0, 4.0], [0.0, 0.0, 1.0]])
+        self.image_shape = hw
+        self._images = rng.integers(0, 256, size=(n, *hw, 3), dtype=np.uint8)
+        self.reads = 0
+
+    def __len__(self):
+        return len(self.utimes)
+
+    def image(self, i):
+        self.reads += 1
+        return self._images[i].copy()
+
+
+def _tree_bytes(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _complete_dirs(root: Path) -> list[Path]:
+    return sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and "." not in p.name)
+
+
+def test_session_cache_contents(tmp_path):
+    s = ToySession()
+    c = cache_session(s, tmp_path, image_size=(6, 4), chunk=4, progress=False)
+    assert isinstance(c, CachedSession) and isinstance(c, Session)
+    assert isinstance(c.images, np.memmap) and not c.images.flags.writeable
+    assert c.name == "toy" and len(c) == 11 and c.image_shape == (6, 4)
+    for i in range(len(s)):
+        np.testing.assert_array_equal(c.image(i), resize_image(s._images[i], (6, 4)))
+    np.testing.assert_array_equal(c.utimes, s.utimes)
+    np.testing.assert_array_equal(c.poses, s.poses)
+    np.testing.assert_allclose(c.intrinsics, resize_intrinsics(s.intrinsics, (9, 7), (6, 4)))
+    reopened = open_session_cache(c.path)
+    np.testing.assert_array_equal(reopened.images, c.images)
+
+
+def test_reused_not_rebuilt_and_keyed_by_settings(tmp_path):
+    s = ToySession()
+    c1 = cache_session(s, tmp_path, image_size=(6, 4), progress=False)
+    reads = s.reads
+    c2 = cache_session(s, tmp_path, image_size=(6, 4), progress=False)
+    assert c2.path == c1.path
+    assert s.reads == reads + 3  # only the identity probe (first, middle, last image), no rebuild
+    c3 = cache_session(s, tmp_path, image_size=(5, 5), progress=False)
+    assert c3.path != c1.path and c3.image_shape == (5, 5)
+    # Same name and settings but other content (a regenerated session): a new cache, the old one not read.
+    c4 = cache_session(ToySession(seed=1), tmp_path, image_size=(6, 4), progress=False)
+    assert c4.path != c1.path
+    assert not np.array_equal(c4.images, c1.images)
+    assert len(_complete_dirs(tmp_path)) == 3
+
+
+class Boom(RuntimeError):
+    pass
+
+
+def _producer(fail_after_chunks=None, chunk=3, calls=None):
+    def fn(start, stop):
+        if calls is not None:
+            calls.append((start, stop))
+        if fail_after_chunks is not None and start >= fail_after_chunks * chunk:
+            raise Boom(f"killed at frame {start}")
+        idx = np.arange(start, stop, dtype=np.float32)[:, None, None]
+        return np.sin(idx + np.arange(20, dtype=np.float32).reshape(1, 4, 5)).astype(np.float32)
+
+    return fn
+
+
+def test_interrupted_build_resumes_to_identical_cache(tmp_path):
+    key = {"what": "test", "v": 1}
+    args = dict(name="feat", n=17, shape=(4, 5), dtype=np.float32, key=key, chunk=3, progress=False)
+    ref = build_array_cache(tmp_path / "a", fn=_producer(), **args)
+
+    root = tmp_path / "b"
+    with pytest.raises(Boom):
+        build_array_cache(root, fn=_producer(fail_after_chunks=2), **args)
+    partial = [p for p in root.iterdir() if p.name.endswith(".partial")]
+    assert len(partial) == 1 and not _complete_dirs(root)
+    assert json.loads((partial[0] / "progress.json").read_text())["rows_done"] == 6
+    with pytest.raises(CacheError, match="not a complete cache"):
+        open_array_cache(partial[0])
+    calls = []
+    done = build_array_cache(root, fn=_producer(calls=calls), **args)
+    assert calls[0] == (6, 9)  # resumed after the last committed chunk, not from 0
+    assert done.path.name == ref.path.name
+    assert _tree_bytes(done.path) == _tree_bytes(ref.path)
+    assert not any(p.name.endswith(".partial") for p in root.iterdir())
+
+
+def test_sigkilled_build_resumes_to_identical_cache(tmp_path):
+    """A real kill -9 half-way through a session cache build, then a rerun in this process."""
+    fake = make_fake_nclt(tmp_path / "nclt", ["2012-01-22"], n_frames=12)
+    script = textwrap.dedent(
+        f"""
+        import os, signal
+        from placejax.data import nclt
+        from placejax.data.cache import cache_session
+        s = nclt.load_session({str(fake.root)!r}, "2012-01-22", image_size=(8, 6))
+        read = s.image
+        def image(i):
+            if i == 6:  # two chunks of 3 committed; the third one is being decoded (by 2 threads)
+                os.kill(os.getpid(), signal.SIGKILL)
+            return read(i)
+        s.image = image
+        cache_session(s, {str(tmp_path / "killed")!r}, image_size=(5, 4), chunk=3, workers=2, progress=False)
+        """
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
+
+    s = nclt.load_session(fake.root, "2012-01-22", image_size=(8, 6))
+    (partial,) = [p for p in (tmp_path / "killed").iterdir() if p.name.endswith(".partial")]
+    assert json.loads((partial / "progress.json").read_text())["rows_done"] == 6
+    resumed = cache_session(s, tmp_path / "killed", image_size=(5, 4), chunk=3, progress=False)
+    fresh = cache_session(s, tmp_path / "fresh", image_size=(5, 4), chunk=3, workers=1, progress=False)
+    assert resumed.path.name == fresh.path.name
+    assert _tree_bytes(resumed.path) == _tree_bytes(fresh.path)
+    for i in range(len(s)):
+        np.testing.assert_array_equal(resumed.image(i), resize_image(s.image(i), (5, 4)))
+
+
+def test_stale_or_tampered_cache_never_read(tmp_path):
+    args = dict(name="x", n=5, shape=(4, 5), dtype=np.float32, chunk=2, progress=False)
+    c = build_array_cache(tmp_path, fn=_producer(), key={"k": 1}, **args)
+    # A foreign manifest under this key's folder name is detected and the cache rebuilt.
+    manifest = json.loads((c.path / "manifest.json").read_text())
+    manifest["key"]["user"]["k"] = 2
+    (c.path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(CacheError, match="stale"):
+        open_array_cache(c.path, {"user": {"k": 1}, "n": 5, "shape": [4, 5], "dtype": "<f4"})
+    calls = []
+    c2 = build_array_cache(tmp_path, fn=_producer(calls=calls), key={"k": 1}, **args)
+    assert calls and c2.key["user"] == {"k": 1}
+    # A folder without its manifest (e.g. copied half-way) is rebuilt too.
+    (c2.path / "manifest.json").unlink()
+    calls.clear()
+    build_array_cache(tmp_path, fn=_producer(calls=calls), key={"k": 1}, **args)
+    assert calls
+    # A data file of the wrong size is not read.
+    np.save(c2.path / "data.npy", np.zeros((4, 4, 5), np.float32))
+    with pytest.raises(CacheError, match="manifest says"):
+        open_array_cache(c2.path)
+    # A partial folder with garbage progress and data of another shape is discarded, not resumed.
+    ref = build_array_cache(tmp_path / "ref", fn=_producer(), key={"k": 3}, **args)
+    garbage = tmp_path / "g" / f"{ref.path.name}.partial"
+    garbage.mkdir(parents=True)
+    (garbage / "progress.json").write_text('{"digest": "nope", "rows_done": 4}')
+    np.save(garbage / "data.npy", np.ones((2, 2), np.float32))
+    rebuilt = build_array_cache(tmp_path / "g", fn=_producer(), key={"k": 3}, **args)
+    assert _tree_bytes(rebuilt.path) == _tree_bytes(ref.path)
+
+
+def test_producer_errors_are_clear(tmp_path):
+    with pytest.raises(CacheError, match=r"shape \(2, 3\) for frames 0\.\.1, expected \(2, 4, 5\)"):
+        build_array_cache(
+            tmp_path, "bad", 4, lambda a, b: np.zeros((b - a, 3)), (4, 5), np.float32, key={}, chunk=2, progress=False
+        )
+    with pytest.raises(CacheError, match="returned complex128, expected float32"):
+        build_array_cache(
+            tmp_path,
+            "bad2",
+            2,
+            lambda a, b: np.zeros((b - a, 4, 5), np.complex128),
+            (4, 5),
+            np.float32,
+            key={},
+            progress=False,
+        )
+    with pytest.raises(TypeError, match="JSON-serialisable"):
+        build_array_cache(tmp_path, "k", 2, _producer(), (4, 5), np.float32, key={"a": object()}, progress=False)
+    with pytest.raises(ValueError, match="extra name"):
+        build_array_cache(
+            tmp_path, "k", 2, _producer(), (4, 5), np.float32, key={}, extras={"../x": np.zeros(1)}, progress=False
+        )
+
+    class WrongShape(ToySession):
+        def image(self, i):
+            return np.zeros((3, 3, 3), np.uint8)
+
+    with pytest.raises(CacheError, match=r"session 'toy' frame 0: image is uint8 \(3, 3, 3\), expected uint8"):
+        cache_session(WrongShape(), tmp_path, progress=False)
+
+
+def test_nclt_session_cache_keyed_by_fingerprint(tmp_path):
+    fake = make_fake_nclt(tmp_path / "nclt", ["2012-01-22"], n_frames=8)
+    s = nclt.load_session(fake.root, "2012-01-22")
+    c = cache_session(s, tmp_path / "cache", image_size=(8, 6), progress=False)
+    assert c.key["user"]["source"] == {"fingerprint": s.fingerprint()}
+    for i in range(len(s)):
+        np.testing.assert_array_equal(c.image(i), resize_image(s.image(i), (8, 6)))
+    np.testing.assert_allclose(c.intrinsics, resize_intrinsics(s.intrinsics, (16, 12), (8, 6)))
+    s_und = nclt.load_session(fake.root, "2012-01-22", undistort=True)
+    c_und = cache_session(s_und, tmp_path / "cache", image_size=(8, 6), progress=False)
+    assert c_und.path != c.path  # undistortion is a setting of the source, so another cache

@@ -1,0 +1,242 @@
+"""grain pipelines: determinism, epochs are permutations, shards disjoint and covering, augmentation, padding."""
+
+import pickle
+
+import grain
+import numpy as np
+import pytest
+
+from placejax.data.cache import build_array_cache, cache_session
+from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dataset
+
+
+class ToySession:
+    def __init__(self, n=23, hw=(10, 8), seed=0):
+        rng = np.random.default_rng(seed)
+        self.name = "toy"
+        self.utimes = np.arange(n, dtype=np.int64)
+        self.poses = rng.normal(size=(n, 3))
+        self.intrinsics = np.eye(3)
+        self.image_shape = hw
+        self._images = rng.integers(0, 256, size=(n, *hw, 3), dtype=np.uint8)
+
+    def __len__(self):
+        return len(self.utimes)
+
+    def image(self, i):
+        return self._images[i].copy()
+
+
+@pytest.fixture(scope="module")
+def cached(tmp_path_factory):
+    s = ToySession()
+    c = cache_session(s, tmp_path_factory.mktemp("cache"), progress=False)
+    labels = (np.arange(len(s)) * 7 % 5).astype(np.int32)
+    return s, c, labels
+
+
+def _shard(i, n):
+    return grain.sharding.ShardOptions(shard_index=i, shard_count=n)
+
+
+def _indices(batches):
+    return np.concatenate([b["index"] for b in batches])
+
+
+def test_batches_hold_the_right_frames(cached):
+    s, c, labels = cached
+    batches = list(train_dataset(c, labels, batch_size=4, seed=0, drop_remainder=False))
+    assert [len(b["index"]) for b in batches] == [4, 4, 4, 4, 4, 3]
+    b = batches[0]
+    assert b["image"].dtype == np.uint8 and b["image"].shape == (4, 10, 8, 3)
+    assert b["label"].dtype == np.int32 and b["index"].dtype == np.int64 and b["valid"].all()
+    for batch in batches:  # batch == loop over single frames
+        for k, i in enumerate(batch["index"]):
+            np.testing.assert_array_equal(batch["image"][k], s.image(i))
+            assert batch["label"][k] == labels[i]
+
+
+def test_deterministic_given_seed(cached):
+    _, c, labels = cached
+    aug = Augment(crop_hw=(6, 5), brightness=0.2, contrast=0.3)
+    a = list(train_dataset(c, labels, batch_size=5, seed=7, num_epochs=2, augment=aug))
+    b = list(train_dataset(c, labels, batch_size=5, seed=7, num_epochs=2, augment=aug))
+    assert len(a) == len(b) == 8
+    for x, y in zip(a, b, strict=True):
+        for key in x:
+            np.testing.assert_array_equal(x[key], y[key])
+    other = list(train_dataset(c, labels, batch_size=5, seed=8, num_epochs=2, augment=aug))
+    assert not np.array_equal(_indices(a), _indices(other))
+
+
+def test_each_epoch_is_a_fresh_permutation(cached):
+    _, c, labels = cached
+    idx = _indices(list(train_dataset(c, labels, batch_size=4, seed=1, num_epochs=3, drop_remainder=False)))
+    epochs = idx.reshape(3, 23)
+    for e in epochs:
+        assert sorted(e.tolist()) == list(range(23))
+    assert not np.array_equal(epochs[0], epochs[1]) and not np.array_equal(epochs[1], epochs[2])
+    assert not np.array_equal(epochs[0], np.arange(23))
+
+
+def test_train_shards_disjoint_equal_and_covering(cached):
+    _, c, labels = cached
+    for count in (2, 3):
+        per_shard = [
+            _indices(list(train_dataset(c, labels, batch_size=1, seed=3, num_epochs=2, shard=_shard(i, count))))
+            for i in range(count)
+        ]
+        per = 23 // count
+        assert all(len(p) == 2 * per for p in per_shard)  # same number of steps on every process
+        for e in range(2):
+            parts = [p[e * per : (e + 1) * per] for p in per_shard]
+            union = np.concatenate(parts)
+            assert len(set(union.tolist())) == len(union) == per * count  # disjoint
+            assert set(union.tolist()) <= set(range(23))  # only the remainder of the permutation is skipped
+
+
+def test_shards_come_from_one_global_permutation(cached):
+    _, c, labels = cached
+    whole = _indices(list(train_dataset(c, labels, batch_size=1, seed=3, shard=_shard(0, 1))))
+    s0 = _indices(list(train_dataset(c, labels, batch_size=1, seed=3, shard=_shard(0, 2))))
+    s1 = _indices(list(train_dataset(c, labels, batch_size=1, seed=3, shard=_shard(1, 2))))
+    np.testing.assert_array_equal(s0, whole[:22][0::2])
+    np.testing.assert_array_equal(s1, whole[:22][1::2])
+
+
+def test_drop_remainder(cached):
+    _, c, labels = cached
+    ds = train_dataset(c, labels, batch_size=5, seed=0, num_epochs=2)
+    assert len(ds) == 8 and all(len(b["index"]) == 5 for b in ds)
+    with pytest.raises(ValueError, match="exceeds"):
+        train_dataset(c, labels, batch_size=30, seed=0)
+
+
+def test_augmentation(cached):
+    s, c, labels = cached
+    aug = Augment(crop_hw=(6, 5))
+    batches = list(train_dataset(c, labels, batch_size=23, seed=0, num_epochs=2, augment=aug))
+    for b in batches:
+        assert b["image"].shape == (23, 6, 5, 3)
+        for k, i in enumerate(b["index"]):  # every output is some 6×5 window of its own frame
+            full = s.image(i)
+            windows = np.lib.stride_tricks.sliding_window_view(full, (6, 5, 3))[:, :, 0]
+            assert (windows == b["image"][k]).all(axis=(-1, -2, -3)).any()
+    # Crops differ across epochs for the same frame.
+    e0 = {int(i): img for i, img in zip(batches[0]["index"], batches[0]["image"], strict=True)}
+    e1 = {int(i): img for i, img in zip(batches[1]["index"], batches[1]["image"], strict=True)}
+    assert sum(not np.array_equal(e0[i], e1[i]) for i in e0) > 10
+    jitter = Augment(brightness=0.5)
+    b = next(iter(train_dataset(c, labels, batch_size=23, seed=0, augment=jitter)))
+    ref = np.stack([s.image(i) for i in b["index"]]).astype(np.int32)
+    diff = b["image"].astype(np.int32) - ref
+    assert np.abs(diff).max() <= 128 and np.abs(diff).mean() > 5
+    with pytest.raises(ValueError, match="larger than the image"):
+        Augment(crop_hw=(20, 5))({"image": s.image(0)}, np.random.default_rng(0))
+
+
+def test_eval_covers_every_frame_once_with_padding(cached):
+    s, c, labels = cached
+    for count in (1, 2, 3):
+        seen = []
+        n_batches = set()
+        for i in range(count):
+            batches = list(eval_dataset(c, labels, batch_size=4, crop_hw=(6, 6), shard=_shard(i, count)))
+            n_batches.add(len(batches))
+            for b in batches:
+                assert b["image"].shape == (4, 6, 6, 3)  # static shape, padding included
+                assert (b["index"][~b["valid"]] == -1).all() and (b["label"][~b["valid"]] == -1).all()
+                for k in np.flatnonzero(b["valid"]):
+                    idx = b["index"][k]
+                    np.testing.assert_array_equal(b["image"][k], s.image(idx)[2:8, 1:7])
+                    assert b["label"][k] == labels[idx]
+                seen.extend(b["index"][b["valid"]].tolist())
+        assert len(n_batches) == 1  # same number of steps on every process
+        assert sorted(seen) == list(range(23))
+        if count == 1:
+            assert seen == list(range(23))  # in order
+
+
+def test_any_session_works_and_memory_stays_bounded(cached):
+    s, c, labels = cached
+    plain = [b["index"] for b in train_dataset(s, labels, batch_size=4, seed=2)]
+    from_cache = [b["index"] for b in train_dataset(c, labels, batch_size=4, seed=2)]
+    np.testing.assert_array_equal(np.concatenate(plain), np.concatenate(from_cache))
+    src = FrameSource(c, labels)
+    src[0]  # opens the memmap
+    blob = pickle.dumps(src)
+    assert len(blob) < c.images.nbytes / 4  # workers get a path, not the session's pixels
+    clone = pickle.loads(blob)
+    np.testing.assert_array_equal(clone[5]["image"], s.image(5))
+    eval_all = eval_dataset(s, None, batch_size=8)
+    assert (next(iter(eval_all))["label"] == -1).all()
+
+
+def test_bad_labels_named():
+    s = ToySession(n=5)
+    with pytest.raises(ValueError, match=r"labels for 'toy' must be integer \(5,\)"):
+        FrameSource(s, np.zeros(4, np.int32))
+    with pytest.raises(ValueError, match="must be integer"):
+        FrameSource(s, np.zeros(5, np.float32))
+
+
+def test_photometric_jitter_matches_float_formula():
+    img = np.random.default_rng(4).integers(0, 256, size=(9, 7, 3), dtype=np.uint8)
+    aug = Augment(brightness=0.3, contrast=0.4)
+    out = aug({"image": img, "label": 1}, np.random.default_rng(11))["image"]
+    rng = np.random.default_rng(11)  # the same draws, in the documented order: contrast, then brightness
+    a, b = rng.uniform(0.6, 1.4), rng.uniform(-0.3, 0.3) * 255.0
+    x = img.astype(np.float64)
+    expected = np.clip(np.rint((x - x.mean()) * a + x.mean() + b), 0, 255)
+    assert out.dtype == np.uint8 and out.shape == img.shape
+    assert np.abs(out.astype(np.float64) - expected).max() <= 1.0
+
+
+def test_array_caches_and_paired_extras(cached, tmp_path):
+    s, c, labels = cached
+    n = len(s)
+    # A derived per-frame cache (say, a 1-channel float "depth" map) paired with the RGB frames.
+    depth = build_array_cache(
+        tmp_path,
+        "toy-depth",
+        n,
+        lambda a, b: np.arange(a, b, dtype=np.float32)[:, None, None] * np.ones((1, 3, 2)),
+        (3, 2),
+        np.float32,
+        key={"kind": "depth"},
+        progress=False,
+    )
+    src = FrameSource(c, labels, extras={"depth": depth, "feat": np.arange(n * 4, dtype=np.float32).reshape(n, 4)})
+    clone = pickle.loads(pickle.dumps(src))
+    for batch in eval_dataset(clone, batch_size=4, shard=_shard(1, 2)):
+        assert batch["depth"].shape == (4, 3, 2) and batch["feat"].shape == (4, 4)
+        for k, i in enumerate(batch["index"]):
+            if batch["valid"][k]:
+                assert (batch["depth"][k] == i).all() and (batch["feat"][k] == np.arange(4 * i, 4 * i + 4)).all()
+                np.testing.assert_array_equal(batch["image"][k], s.image(i))
+            else:
+                assert (batch["depth"][k] == 0).all() and (batch["image"][k] == 0).all()
+    # An ArrayCache as the image column (e.g. HHA-Net training on cached HHA images).
+    b = next(iter(train_dataset(depth, labels, batch_size=5, seed=0)))
+    assert b["image"].dtype == np.float32 and (b["image"][:, 0, 0] == b["index"]).all()
+    # A memmap *slice* is not mistaken for its whole file.
+    part = FrameSource(c.images[3:9])
+    assert len(part) == 6
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(part))[0]["image"], s.image(3))
+    with pytest.raises(ValueError, match="'feat' has 2 frames, 'image' has 23"):
+        FrameSource(c, extras={"feat": np.zeros((2, 1))})
+    with pytest.raises(ValueError, match="reserved"):
+        FrameSource(c, extras={"label": np.zeros((n, 1))})
+
+
+def test_datasets_pickle_for_worker_processes(cached):
+    """grain's multiprocessing workers receive the pipeline pickled: it must survive that unchanged."""
+    _, c, labels = cached
+    for ds in (
+        eval_dataset(c, labels, batch_size=4, crop_hw=(6, 6)),
+        train_dataset(c, labels, batch_size=4, seed=5, augment=Augment(crop_hw=(6, 6), brightness=0.1)),
+    ):
+        clone = pickle.loads(pickle.dumps(ds))
+        for a, b in zip(ds, clone, strict=True):
+            for key in a:
+                np.testing.assert_array_equal(a[key], b[key])
