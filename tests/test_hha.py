@@ -4,11 +4,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scenes import ground_and_wall
 
 from placejax import hha
 from placejax.hha import _encode
 from placejax.hha._reference import box_sum
+from placejax.hha.scenes import ground_and_wall
 
 
 def load_fixture(shared_dir, name):

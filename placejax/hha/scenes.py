@@ -1,4 +1,4 @@
-"""Analytic depth scenes for tests: a camera above a ground plane, facing a wall, with known gravity."""
+"""Analytic depth scenes with known geometry: a camera above a ground plane, facing a wall."""
 
 from __future__ import annotations
 
