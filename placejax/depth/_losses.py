@@ -1,0 +1,167 @@
+"""Scale- and shift-invariant losses for monocular depth (Ranftl et al., TPAMI 2020, "Towards Robust Monocular
+Depth Estimation: Mixing Datasets for Zero-shot Cross-dataset Transfer", §5 "Training on diverse data").
+
+All losses work in inverse-depth (disparity) space, on batches ``(B, H, W)`` with a validity mask (sky, far or
+missing pixels are 0). Each image is aligned to its target on its own valid pixels, the per-image losses are
+normalised by that image's number of valid pixels M, and the batch loss is their mean. Images with no valid pixel
+contribute 0.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+_EPS = 1e-6
+
+
+def _masked_sums(x, mask):
+    return jnp.sum(x * mask, axis=(-2, -1))
+
+
+def align_least_squares(pred: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Array:
+    """Per-image least-squares scale and shift of ``pred`` onto ``target`` over the masked pixels (eq. 4).
+
+    (s, t) = argmin Σ_i M_i (s·d_i + t − d*_i)², solved in closed form from the 2×2 normal equations.
+
+    Args:
+        pred: ``(B, H, W)`` predicted inverse depth d.
+        target: ``(B, H, W)`` true inverse depth d*.
+        mask: ``(B, H, W)`` 1 for valid pixels, 0 elsewhere.
+
+    Returns:
+        ``(B, H, W)`` aligned prediction s·d + t (all pixels, masked ones included).
+    """
+    m = mask.astype(pred.dtype)
+    n = _masked_sums(jnp.ones_like(pred), m)
+    inv_n = 1.0 / jnp.maximum(n, 1.0)
+    # Centred normal equations: the raw ones cancel badly in float32 when the prediction has a large offset.
+    mean_p = _masked_sums(pred, m) * inv_n
+    mean_t = _masked_sums(target, m) * inv_n
+    dp = (pred - mean_p[:, None, None]) * m
+    dt = (target - mean_t[:, None, None]) * m
+    var = jnp.sum(dp * dp, axis=(-2, -1))
+    cov = jnp.sum(dp * dt, axis=(-2, -1))
+    ok = var > _EPS * _EPS * jnp.maximum(n, 1.0)  # a constant prediction has no defined scale: use s = 0
+    s = jnp.where(ok, cov / jnp.where(ok, var, 1.0), 0.0)
+    t = mean_t - s * mean_p
+    return s[:, None, None] * pred + t[:, None, None]
+
+
+def _masked_median(x, mask):
+    """Lower median of each image's masked values, ``(B,)``; 0 for an empty mask."""
+    b = x.shape[0]
+    flat = jnp.where(mask > 0, x, jnp.inf).reshape(b, -1)
+    n = jnp.sum(mask > 0, axis=(-2, -1))
+    srt = jnp.sort(flat, axis=-1)
+    med = jnp.take_along_axis(srt, jnp.maximum((n - 1) // 2, 0)[:, None], axis=-1)[:, 0]
+    return jnp.where(n > 0, med, 0.0)
+
+
+def normalise_median_mad(d: jax.Array, mask: jax.Array) -> jax.Array:
+    """Robust per-image normalisation (eq. 6–7): d̂ = (d − median(d)) / mean|d − median(d)| over the mask."""
+    m = mask.astype(d.dtype)
+    t = _masked_median(d, m)
+    centred = d - t[:, None, None]
+    n = jnp.maximum(_masked_sums(jnp.ones_like(d), m), 1.0)
+    s = _masked_sums(jnp.abs(centred), m) / n
+    return centred / jnp.maximum(s, _EPS)[:, None, None]
+
+
+def _per_image_mean(values, counts):
+    return jnp.mean(jnp.where(counts > 0, values / jnp.maximum(counts, 1.0), 0.0))
+
+
+def ssi_mse(pred: jax.Array, target: jax.Array, mask: jax.Array) -> jax.Array:
+    """Scale- and shift-invariant MSE (eq. 5): (1 / 2M) Σ_i M_i (s·d_i + t − d*_i)², least-squares (s, t).
+
+    Args:
+        pred, target: ``(B, H, W)`` predicted and true inverse depth.
+        mask: ``(B, H, W)`` valid pixels.
+
+    Returns:
+        Scalar loss, mean over the batch.
+    """
+    m = mask.astype(pred.dtype)
+    r = align_least_squares(pred, target, m) - target
+    return _per_image_mean(0.5 * _masked_sums(r * r, m), _masked_sums(jnp.ones_like(r), m))
+
+
+def ssi_trimmed_mae(pred: jax.Array, target: jax.Array, mask: jax.Array, trim: float = 0.2) -> jax.Array:
+    """Trimmed scale- and shift-invariant MAE (eq. 8, "ssitrim"): robustly normalised prediction and target,
+    absolute residuals, the largest ``trim`` share of each image's residuals discarded.
+
+    L = (1 / 2M) Σ_{j ≤ (1 − trim)·M} |d̂ − d̂*|_(j), residuals sorted ascending, d̂ from :func:`normalise_median_mad`.
+
+    Args:
+        pred, target: ``(B, H, W)`` predicted and true inverse depth.
+        mask: ``(B, H, W)`` valid pixels.
+        trim: share of the largest residuals left out (the paper's 20%).
+
+    Returns:
+        Scalar loss, mean over the batch.
+    """
+    m = mask.astype(pred.dtype)
+    b = pred.shape[0]
+    r = jnp.abs(normalise_median_mad(pred, m) - normalise_median_mad(target, m))
+    n = _masked_sums(jnp.ones_like(r), m)
+    keep = jnp.floor((1.0 - trim) * n)
+    srt = jnp.sort(jnp.where(m > 0, r, jnp.inf).reshape(b, -1), axis=-1)
+    rank = jnp.arange(srt.shape[-1])[None, :]
+    kept = jnp.where(rank < keep[:, None], srt, 0.0)
+    return _per_image_mean(0.5 * jnp.sum(kept, axis=-1), n)
+
+
+def gradient_matching(
+    pred: jax.Array, target: jax.Array, mask: jax.Array, scales: int = 4, *, robust: bool = False
+) -> jax.Array:
+    """Multi-scale gradient-matching term (eq. 11): (1 / M) Σ_k Σ_i |∇_x R^k_i| + |∇_y R^k_i|.
+
+    R = aligned prediction − target (least-squares alignment, or the median/MAD normalisation if ``robust``),
+    taken at ``scales`` resolutions (every 2^k-th pixel); a gradient counts only where both of its pixels are valid.
+    A constant residual (e.g. a prediction off by a constant) has zero gradient loss.
+
+    Returns:
+        Scalar loss, mean over the batch.
+    """
+    m = mask.astype(pred.dtype)
+    if robust:
+        r = normalise_median_mad(pred, m) - normalise_median_mad(target, m)
+    else:
+        r = align_least_squares(pred, target, m) - target
+    r = r * m
+    total = jnp.zeros(pred.shape[0], pred.dtype)
+    for k in range(scales):
+        step = 2**k
+        rk, mk = r[:, ::step, ::step], m[:, ::step, ::step]
+        gx = jnp.abs(rk[:, :, 1:] - rk[:, :, :-1]) * mk[:, :, 1:] * mk[:, :, :-1]
+        gy = jnp.abs(rk[:, 1:, :] - rk[:, :-1, :]) * mk[:, 1:, :] * mk[:, :-1, :]
+        total = total + jnp.sum(gx, axis=(-2, -1)) + jnp.sum(gy, axis=(-2, -1))
+    return _per_image_mean(total, _masked_sums(jnp.ones_like(r), m))
+
+
+def midas_loss(
+    pred: jax.Array,
+    target: jax.Array,
+    mask: jax.Array,
+    *,
+    variant: str = "trimmed",
+    alpha: float = 0.5,
+    scales: int = 4,
+) -> jax.Array:
+    """The full training objective L = L_ssi + α·L_reg (eq. 3), α = 0.5 and 4 scales as in the paper.
+
+    Args:
+        pred, target, mask: ``(B, H, W)`` predicted inverse depth, true inverse depth, validity mask.
+        variant: ``"trimmed"`` (ssitrim, robust normalisation) or ``"mse"`` (ssimse, least-squares alignment).
+        alpha: weight of the gradient-matching term.
+        scales: number of scales of the gradient-matching term.
+    """
+    if variant == "trimmed":
+        data = ssi_trimmed_mae(pred, target, mask)
+    elif variant == "mse":
+        data = ssi_mse(pred, target, mask)
+    else:
+        raise ValueError(f"variant must be 'trimmed' or 'mse', got {variant!r}")
+    reg = gradient_matching(pred, target, mask, scales, robust=variant == "trimmed")
+    return data + alpha * reg

@@ -1,0 +1,114 @@
+"""Depth losses and metrics: analytic invariances, perfect predictions, masks, jit == eager."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from placejax.depth import _losses as L
+from placejax.depth import _metrics as M
+
+
+@pytest.fixture
+def batch():
+    rng = np.random.default_rng(0)
+    target = jnp.asarray(rng.uniform(0.05, 1.0, (3, 24, 32)), jnp.float32)
+    pred = jnp.asarray(rng.uniform(0.05, 1.0, (3, 24, 32)), jnp.float32)
+    mask = jnp.asarray(rng.random((3, 24, 32)) > 0.2, jnp.float32)
+    return pred, target, mask
+
+
+LOSSES = {
+    "mse": L.ssi_mse,
+    "trimmed": L.ssi_trimmed_mae,
+    "grad": L.gradient_matching,
+    "grad_robust": lambda p, t, m: L.gradient_matching(p, t, m, robust=True),
+    "full_trimmed": L.midas_loss,
+    "full_mse": lambda p, t, m: L.midas_loss(p, t, m, variant="mse"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(LOSSES))
+def test_invariant_to_scale_and_shift_of_prediction(batch, name):
+    pred, target, mask = batch
+    loss = LOSSES[name]
+    base = float(loss(pred, target, mask))
+    assert base > 0
+    np.testing.assert_allclose(float(loss(3.7 * pred - 0.4, target, mask)), base, rtol=2e-4)
+
+
+@pytest.mark.parametrize("name", sorted(LOSSES))
+def test_zero_for_a_perfect_prediction_up_to_scale_and_shift(batch, name):
+    _, target, mask = batch
+    assert abs(float(LOSSES[name](0.25 * target + 2.0, target, mask))) < 1e-5
+
+
+@pytest.mark.parametrize("name", sorted(LOSSES))
+def test_masked_pixels_are_ignored(batch, name):
+    pred, target, mask = batch
+    rng = np.random.default_rng(1)
+    garbage = jnp.asarray(rng.normal(0, 100, pred.shape), jnp.float32)
+    loss = LOSSES[name]
+    np.testing.assert_allclose(
+        float(loss(jnp.where(mask > 0, pred, garbage), jnp.where(mask > 0, target, -garbage), mask)),
+        float(loss(pred, target, mask)),
+        rtol=1e-5,
+    )
+
+
+@pytest.mark.parametrize("name", sorted(LOSSES))
+def test_jit_equals_eager(batch, name):
+    pred, target, mask = batch
+    with jax.disable_jit():
+        eager = float(LOSSES[name](pred, target, mask))
+    np.testing.assert_allclose(float(jax.jit(LOSSES[name])(pred, target, mask)), eager, rtol=1e-5)
+
+
+def test_gradient_matching_is_zero_for_a_constant_residual(batch):
+    _, target, mask = batch
+    # Without any alignment a constant offset leaves the residual's gradients at 0; with alignment it is removed.
+    assert float(L.gradient_matching(target + 0.3, target, mask)) < 1e-6
+    assert float(L.gradient_matching(target + 0.3, target, mask, robust=True)) < 1e-5
+
+
+def test_least_squares_alignment_recovers_scale_and_shift(batch):
+    pred, _, mask = batch
+    target = 2.5 * pred - 0.7
+    np.testing.assert_allclose(np.asarray(L.align_least_squares(pred, target, mask)), np.asarray(target), atol=1e-4)
+
+
+def test_trimmed_mae_matches_a_numpy_oracle(batch):
+    pred, target, mask = batch
+    pred = pred.at[:, :2, :].set(5.0)  # outliers: they must be among the trimmed residuals
+
+    def normalise(d, m):
+        v = d[m]
+        med = np.sort(v)[(len(v) - 1) // 2]  # lower median
+        return (d - med) / np.mean(np.abs(v - med))
+
+    expected = []
+    for p, t, m in zip(np.asarray(pred, np.float64), np.asarray(target, np.float64), np.asarray(mask) > 0, strict=True):
+        r = np.sort(np.abs(normalise(p, m) - normalise(t, m))[m])
+        expected.append(0.5 * r[: int(np.floor(0.8 * m.sum()))].sum() / m.sum())
+    np.testing.assert_allclose(float(L.ssi_trimmed_mae(pred, target, mask)), np.mean(expected), rtol=1e-4)
+    assert float(L.ssi_trimmed_mae(pred, target, mask)) < float(L.ssi_trimmed_mae(pred, target, mask, trim=0.0))
+
+
+def test_empty_mask_gives_zero_and_finite_gradients(batch):
+    pred, target, _ = batch
+    empty = jnp.zeros_like(pred)
+    for name, loss in LOSSES.items():
+        value, grad = jax.value_and_grad(loss)(pred, target, empty)
+        assert float(value) == 0.0, name
+        assert np.all(np.isfinite(np.asarray(grad))), name
+
+
+def test_metrics_perfect_and_baseline(batch):
+    _, target_inv, mask = batch
+    depth = 1.0 / target_inv
+    perfect = M.depth_metrics(3.0 * target_inv + 1.0, depth, mask)
+    np.testing.assert_allclose(np.asarray(perfect["abs_rel"]), 0.0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(perfect["delta1"]), 1.0)
+    constant = M.depth_metrics(jnp.ones_like(target_inv), depth, mask)
+    assert np.all(np.asarray(constant["abs_rel"]) > 0.1)
+    assert np.all(np.asarray(constant["delta1"]) < 0.9)
