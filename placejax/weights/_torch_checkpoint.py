@@ -154,7 +154,7 @@ def _materialise(obj: Any, storages: Mapping[str, np.ndarray], source: str) -> A
             strides=tuple(s * flat.itemsize for s in obj.stride),
             writeable=False,
         )
-        return np.array(view)  # own, contiguous, native byte order
+        return np.array(view, order="C")  # an owned C-contiguous copy, whatever the strides
     if isinstance(obj, dict):
         out = type(obj)() if isinstance(obj, OrderedDict) else {}
         for k, v in obj.items():

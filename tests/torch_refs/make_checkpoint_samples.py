@@ -5,7 +5,9 @@ Usage: ``python tests/torch_refs/make_checkpoint_samples.py OUT_DIR``. Writes
     ``num_batches_tracked``) plus float16/bfloat16/float64/int32/uint8/bool and a non-contiguous view;
   * ``wrapped.pt``: ``{"model": state_dict, "optimizer": ..., "epoch": 3}`` (zip);
   * ``expected.npz``: every tensor as float64/int64 NumPy (bfloat16 upcast), keyed ``<file>|<key>``;
-  * ``resize.npz``: ``F.interpolate`` outputs for bilinear/bicubic, align_corners on/off, up and down.
+  * ``resize.npz``: ``F.interpolate`` outputs for bilinear/bicubic, align_corners on/off, up and down;
+  * with ``--midas-fixture weights_fp16.npz``: ``midas_fixture.pt``, that state dict as float32 tensors in a
+    ``torch.save`` file like the official checkpoint (BN buffers, ``num_batches_tracked`` int64).
 Run by ``tests/test_weights.py`` and ``tests/test_models_midas.py`` (session fixtures, in a tmp dir).
 """
 
@@ -23,7 +25,9 @@ from torch import nn
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("out_dir", type=Path)
-    out = parser.parse_args().out_dir
+    parser.add_argument("--midas-fixture", type=Path)
+    args = parser.parse_args()
+    out = args.out_dir
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(0)
     net = nn.Sequential(nn.Conv2d(3, 4, 3), nn.BatchNorm2d(4), nn.Linear(5, 2))
@@ -54,6 +58,14 @@ def main() -> None:
                 y = F.interpolate(x, size=size, mode=method, align_corners=ac)
                 refs[f"{method}_{int(ac)}_{size[0]}x{size[1]}"] = y.numpy()
     np.savez(out / "resize.npz", **refs)
+
+    if args.midas_fixture is not None:
+        with np.load(args.midas_fixture) as f:
+            midas = {
+                k: torch.from_numpy(f[k].astype(np.float32) if f[k].dtype == np.float16 else f[k])
+                for k in f.files
+            }
+        torch.save(midas, out / "midas_fixture.pt")
 
 
 if __name__ == "__main__":
