@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -165,3 +169,23 @@ def test_interpolation_matrix_rows_sum_to_one_and_identity(method, align_corners
         m = interpolation_matrix(n_in, n_out, method, align_corners)
         np.testing.assert_allclose(m.sum(1), 1.0, atol=1e-12)
     np.testing.assert_allclose(interpolation_matrix(6, 6, method, align_corners), np.eye(6), atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def torch_resize_refs(tmp_path_factory):
+    """``F.interpolate`` outputs written by torch in a subprocess (torch_refs/make_checkpoint_samples.py)."""
+    out = tmp_path_factory.mktemp("resize_refs")
+    script = Path(__file__).parent / "torch_refs" / "make_checkpoint_samples.py"
+    subprocess.run([sys.executable, str(script), str(out)], check=True)
+    with np.load(out / "resize.npz") as f:
+        return {k: f[k] for k in f.files}
+
+
+@pytest.mark.parametrize("method", ["bilinear", "bicubic"])
+@pytest.mark.parametrize("align_corners", [False, True])
+@pytest.mark.parametrize("size", [(13, 17), (4, 5)])
+def test_resize_matches_torch_interpolate(torch_resize_refs, method, align_corners, size):
+    x = jnp.asarray(torch_resize_refs["input_nchw"].transpose(0, 2, 3, 1), jnp.float32)
+    want = torch_resize_refs[f"{method}_{int(align_corners)}_{size[0]}x{size[1]}"].transpose(0, 2, 3, 1)
+    got = resize(x, size, method, align_corners=align_corners)
+    np.testing.assert_allclose(got, want, atol=2e-6 * np.abs(want).max())
