@@ -2,7 +2,8 @@
 
     python -m benchmarks.models_speed [--repeats 5] [--no-torch] [--only midas|vgg]
 
-Prints a table (median ms/image over ``--repeats`` timed runs after a warm-up/compile run, images/s, and the
+Prints a table (median ms/image over ``--repeats`` timed runs after a warm-up/compile run, the frameworks'
+runs interleaved so they share the machine's load; images/s; and the
 ratio PyTorch time / Flax time: > 1 means Flax is faster) and writes ``benchmarks/results/models_speed.json``.
 Both frameworks run the same random weights (the PyTorch state dict goes through placejax's converter), and
 the largest output difference is reported as a sanity check. PyTorch runs under ``no_grad`` with as many
@@ -31,14 +32,18 @@ from placejax.weights import convert_midas_small, convert_vgg16
 RESULTS = Path(__file__).parent / "results"
 
 
-def _median_seconds(fn: Callable[[], object], repeats: int) -> tuple[float, list[float]]:
-    fn()  # warm-up: compilation for JAX, allocator/oneDNN priming for torch
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
+def _interleaved_runs(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, list[float]]:
+    """Times each function ``repeats`` times, alternating between them so that all see the same machine
+    load (shared machines); one untimed warm-up call each first (JAX compilation, torch priming)."""
+    for fn in fns.values():
         fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), times
+    runs: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            runs[k].append(time.perf_counter() - t0)
+    return runs
 
 
 def _torch():
@@ -72,28 +77,37 @@ def _random_torch_state(model, seed: int):
 def _case(name, batch, hw, flax_fn, flax_vars, torch_fns, repeats, rng):
     x = rng.normal(size=(batch, *hw, 3)).astype(np.float32)
     xj = jnp.asarray(x)
-    flax_run = lambda: jax.block_until_ready(flax_fn(flax_vars, xj))
-    t_flax, runs_flax = _median_seconds(flax_run, repeats)
+    flax_run = lambda: np.asarray(jax.block_until_ready(flax_fn(flax_vars, xj)))
+    fns: dict[str, Callable[[], object]] = {"flax": flax_run}
+    ref = flax_run()
+    outputs = {}
+    if torch_fns:
+        torch = _torch()
+        xt = torch.from_numpy(x.transpose(0, 3, 1, 2).copy())
+        for label, (fn, layout) in torch_fns.items():
+            xin = xt.contiguous(memory_format=torch.channels_last) if layout == "channels_last" else xt
+
+            def run(fn=fn, xin=xin):
+                with torch.no_grad():
+                    return fn(xin)
+
+            fns[label] = run
+            outputs[label] = run().numpy()
+    runs = _interleaved_runs(fns, repeats)
+    t_flax = statistics.median(runs["flax"])
     row = {
         "case": name,
         "batch": batch,
         "input_hw": list(hw),
         "flax_ms_per_image": 1e3 * t_flax / batch,
-        "flax_runs_s": runs_flax,
+        "flax_runs_s": runs["flax"],
     }
-    if torch_fns:
-        torch = _torch()
-        xt = torch.from_numpy(x.transpose(0, 3, 1, 2).copy())
-        ref = np.asarray(flax_run())
-        for label, (fn, layout) in torch_fns.items():
-            xin = xt.contiguous(memory_format=torch.channels_last) if layout == "channels_last" else xt
-            with torch.no_grad():
-                t_torch, runs_torch = _median_seconds(lambda fn=fn, xin=xin: fn(xin), repeats)
-                out = fn(xin).numpy()
-            row[f"{label}_ms_per_image"] = 1e3 * t_torch / batch
-            row[f"{label}_runs_s"] = runs_torch
-            row[f"{label}_over_flax"] = t_torch / t_flax
-            row[f"{label}_max_rel_diff"] = float(np.abs(out - ref).max() / (np.abs(ref).max() + 1e-12))
+    for label, out in outputs.items():
+        t_torch = statistics.median(runs[label])
+        row[f"{label}_ms_per_image"] = 1e3 * t_torch / batch
+        row[f"{label}_runs_s"] = runs[label]
+        row[f"{label}_over_flax"] = t_torch / t_flax
+        row[f"{label}_max_rel_diff"] = float(np.abs(out - ref).max() / (np.abs(ref).max() + 1e-12))
     return row
 
 
@@ -150,6 +164,8 @@ def main() -> None:
         "machine": platform.platform(),
         "repeats": args.repeats,
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        # Shared machines: a load average above the core count means the timings are contended.
+        "load_average_1_5_15min": list(os.getloadavg()),
     }
     RESULTS.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=RESULTS, suffix=".tmp")
