@@ -133,7 +133,8 @@ def main() -> None:
             torch_fns = {"torch": (tm, "nchw"), "torch_channels_last": (tm_cl, "channels_last")}
         else:
             shapes = jax.eval_shape(MidasSmall().init, jax.random.key(0), jnp.zeros((1, 64, 64, 3)))
-            variables = jax.tree.map(lambda s: np.asarray(rng.normal(0, 0.05, s.shape), np.float32), shapes)
+            fill = lambda s: np.abs(rng.normal(0, 0.05, s.shape)).astype(np.float32)  # var > 0
+            variables = jax.tree.map(fill, shapes)
             torch_fns, state = {}, None
         variables = convert_midas_small(state) if state is not None else variables
         midas = jax.jit(MidasSmall().apply)
