@@ -1,0 +1,192 @@
+"""Forward speed of MidasSmall and VGG16 (fc7 embeddings) on CPU, against PyTorch on the same weights.
+
+    python -m benchmarks.models_speed [--repeats 5] [--no-torch] [--only midas|vgg]
+
+Prints a table (median ms/image over ``--repeats`` timed runs after a warm-up/compile run, the frameworks'
+runs interleaved so they share the machine's load; images/s; and the
+ratio PyTorch time / Flax time: > 1 means Flax is faster) and writes ``benchmarks/results/models_speed.json``.
+Both frameworks run the same random weights (the PyTorch state dict goes through placejax's converter), and
+the largest output difference is reported as a sanity check. PyTorch runs under ``no_grad`` with as many
+threads as XLA uses (all cores), NCHW (its default) and, for MiDaS, also ``channels_last``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from placejax.models import VGG16, MidasSmall
+from placejax.weights import convert_midas_small, convert_vgg16
+
+RESULTS = Path(__file__).parent / "results"
+
+
+def _interleaved_runs(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, list[float]]:
+    """Times each function ``repeats`` times, alternating between them so that all see the same machine
+    load (shared machines); one untimed warm-up call each first (JAX compilation, torch priming)."""
+    for fn in fns.values():
+        fn()
+    runs: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            runs[k].append(time.perf_counter() - t0)
+    return runs
+
+
+def _torch():
+    try:
+        import torch
+    except ImportError:
+        return None
+    return torch
+
+
+def _random_torch_state(model, seed: int):
+    """Deterministic He-scaled weights and randomised BatchNorm statistics (so BN does real work)."""
+    torch = _torch()
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, t in model.state_dict().items():
+            if name.endswith("num_batches_tracked"):
+                continue
+            if name.endswith("running_var"):
+                t.copy_(torch.rand(t.shape, generator=g) + 0.5)
+            elif name.endswith(("running_mean", "bias")):
+                t.copy_(0.1 * torch.randn(t.shape, generator=g))
+            elif t.ndim == 1:  # BN weight
+                t.copy_(1 + 0.1 * torch.randn(t.shape, generator=g))
+            else:
+                fan_in = t[0].numel()
+                t.copy_(torch.randn(t.shape, generator=g) * (2.0 / fan_in) ** 0.5)
+    return {k: v.numpy().copy() for k, v in model.state_dict().items()}
+
+
+def _case(name, batch, hw, flax_fn, flax_vars, torch_fns, repeats, rng):
+    x = rng.normal(size=(batch, *hw, 3)).astype(np.float32)
+    xj = jnp.asarray(x)
+    flax_run = lambda: np.asarray(jax.block_until_ready(flax_fn(flax_vars, xj)))
+    fns: dict[str, Callable[[], object]] = {"flax": flax_run}
+    ref = flax_run()
+    outputs = {}
+    if torch_fns:
+        torch = _torch()
+        xt = torch.from_numpy(x.transpose(0, 3, 1, 2).copy())
+        for label, (fn, layout) in torch_fns.items():
+            xin = xt.contiguous(memory_format=torch.channels_last) if layout == "channels_last" else xt
+
+            def run(fn=fn, xin=xin):
+                with torch.no_grad():
+                    return fn(xin)
+
+            fns[label] = run
+            outputs[label] = run().numpy()
+    runs = _interleaved_runs(fns, repeats)
+    t_flax = statistics.median(runs["flax"])
+    row = {
+        "case": name,
+        "batch": batch,
+        "input_hw": list(hw),
+        "flax_ms_per_image": 1e3 * t_flax / batch,
+        "flax_runs_s": runs["flax"],
+    }
+    for label, out in outputs.items():
+        t_torch = statistics.median(runs[label])
+        row[f"{label}_ms_per_image"] = 1e3 * t_torch / batch
+        row[f"{label}_runs_s"] = runs[label]
+        row[f"{label}_over_flax"] = t_torch / t_flax
+        row[f"{label}_max_rel_diff"] = float(np.abs(out - ref).max() / (np.abs(ref).max() + 1e-12))
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--no-torch", action="store_true", help="skip the PyTorch baseline")
+    parser.add_argument("--only", choices=("midas", "vgg"), default=None)
+    args = parser.parse_args()
+    torch = None if args.no_torch else _torch()
+    rng = np.random.default_rng(0)
+    rows = []
+    if torch is not None:
+        torch.set_num_threads(os.cpu_count() or 1)
+        from benchmarks.torch_baselines import TorchMidasSmall, TorchVGG16
+
+    if args.only in (None, "midas"):
+        if torch is not None:
+            tm = TorchMidasSmall().eval()
+            state = _random_torch_state(tm, 0)
+            tm_cl = TorchMidasSmall().eval().to(memory_format=torch.channels_last)
+            tm_cl.load_state_dict(tm.state_dict())
+            torch_fns = {"torch": (tm, "nchw"), "torch_channels_last": (tm_cl, "channels_last")}
+        else:
+            shapes = jax.eval_shape(MidasSmall().init, jax.random.key(0), jnp.zeros((1, 64, 64, 3)))
+            fill = lambda s: np.abs(rng.normal(0, 0.05, s.shape)).astype(np.float32)  # var > 0
+            variables = jax.tree.map(fill, shapes)
+            torch_fns, state = {}, None
+        variables = convert_midas_small(state) if state is not None else variables
+        midas = jax.jit(MidasSmall().apply)
+        for batch in (1, 8):
+            row = _case("midas_small", batch, (256, 256), midas, variables, torch_fns, args.repeats, rng)
+            rows.append(row)
+            _print_row(rows[-1])
+
+    if args.only in (None, "vgg"):
+        fc7 = jax.jit(lambda v, x: VGG16(num_classes=1000).apply(v, x)[1]["fc7"])
+        if torch is not None:
+            tv = TorchVGG16().eval()
+            variables = convert_vgg16(_random_torch_state(tv, 1))
+            torch_fns = {"torch": (tv.fc7, "nchw")}
+        else:
+            shapes = jax.eval_shape(VGG16().init, jax.random.key(0), jnp.zeros((1, 32, 32, 3)))
+            variables = jax.tree.map(lambda s: np.asarray(rng.normal(0, 0.01, s.shape), np.float32), shapes)
+            torch_fns = {}
+        for hw in ((224, 224), (64, 64)):
+            rows.append(_case("vgg16_fc7", 8, hw, fc7, variables, torch_fns, args.repeats, rng))
+            _print_row(rows[-1])
+
+    meta = {
+        "jax": jax.__version__,
+        "torch": None if torch is None else torch.__version__,
+        "devices": [str(d) for d in jax.devices()],
+        "cpu_count": os.cpu_count(),
+        "machine": platform.platform(),
+        "repeats": args.repeats,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        # Shared machines: a load average above the core count means the timings are contended.
+        "load_average_1_5_15min": list(os.getloadavg()),
+    }
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=RESULTS, suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump({"meta": meta, "rows": rows}, f, indent=2)
+    os.replace(tmp, RESULTS / "models_speed.json")
+    print(f"wrote {RESULTS / 'models_speed.json'}")
+
+
+def _print_row(row: dict) -> None:
+    parts = [f"{row['case']:<12} b={row['batch']:<2} {row['input_hw'][0]}x{row['input_hw'][1]:<4}"]
+    parts.append(f"flax {row['flax_ms_per_image']:8.1f} ms/img ({1e3 / row['flax_ms_per_image']:6.1f} img/s)")
+    for label in ("torch", "torch_channels_last"):
+        if f"{label}_ms_per_image" in row:
+            parts.append(
+                f"{label} {row[f'{label}_ms_per_image']:8.1f} ms/img  ×{row[f'{label}_over_flax']:.2f}"
+                f"  Δ={row[f'{label}_max_rel_diff']:.1e}"
+            )
+    print(" | ".join(parts), flush=True)
+
+
+if __name__ == "__main__":
+    main()
