@@ -1,0 +1,107 @@
+"""SimCampus rendering speed: frames/s at 64x64 and 256x256 (targets: >= 200 and >= 20 on 2 CPU cores).
+
+Baseline, measured in the same run: the same renderer with culling off (every ray tests every primitive).
+Prints a table and writes ``benchmarks/results/simcampus_speed.json``.
+
+    python -m benchmarks.simcampus_speed [--runs 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from placejax.data import simcampus
+from placejax.data.simcampus import _render
+from placejax.data.simcampus._session import _scene
+
+# (H, W), frames per call, target frames/s; baseline frames per call (it is ~50x slower).
+CASES = [((64, 64), 64, 200.0, 8), ((256, 256), 16, 20.0, 2)]
+NO_CULLING = (10**6, 10**6, 10**6)
+
+
+def _time(fn, runs: int) -> list[float]:
+    jax.block_until_ready(fn())  # compile
+    out = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        out.append(time.perf_counter() - t)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=7)
+    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "simcampus_speed.json")
+    args = ap.parse_args()
+
+    session = simcampus.load_session("SU", image_size=(64, 64))
+    geo, look = _scene(session.world, "SU")
+    rows = []
+    for hw, batch, target, base_batch in CASES:
+        kmat = simcampus.intrinsics(hw)
+        # Consecutive frames of the drive: the workload of an experiment.
+        idx = np.arange(batch) * 7 % len(session)
+
+        def call(n, budget, idx=idx, hw=hw, kmat=kmat):
+            poses = jnp.asarray(session.poses6[idx[:n]], jnp.float32)
+            ks = jnp.asarray(np.broadcast_to(kmat, (n, 3, 3)), jnp.float32)
+            ids = jnp.arange(n, dtype=jnp.int32)
+            return lambda: _render.render_batch(geo, look, poses, ks, ids, hw=hw, budget=budget)
+
+        fast = _time(call(batch, (_render.K_BOX, _render.K_CYL, _render.K_ELL)), args.runs)
+        slow = _time(call(base_batch, NO_CULLING), max(3, args.runs // 2))
+        fps = batch / statistics.median(fast)
+        base_fps = base_batch / statistics.median(slow)
+        rows.append(
+            {
+                "size": f"{hw[0]}x{hw[1]}",
+                "batch": batch,
+                "fps_median": fps,
+                "run_seconds": fast,
+                "baseline_no_culling_fps_median": base_fps,
+                "baseline_batch": base_batch,
+                "baseline_run_seconds": slow,
+                "speedup_vs_baseline": fps / base_fps,
+                "target_fps": target,
+                "meets_target": fps >= target,
+            }
+        )
+
+    print(f"{'size':>9} {'batch':>5} {'frames/s':>9} {'no-cull f/s':>11} {'ratio':>6} {'target':>6}  ok")
+    for r in rows:
+        print(
+            f"{r['size']:>9} {r['batch']:>5} {r['fps_median']:>9.1f} {r['baseline_no_culling_fps_median']:>11.2f}"
+            f" {r['speedup_vs_baseline']:>6.1f} {r['target_fps']:>6.0f}  {'yes' if r['meets_target'] else 'NO'}"
+        )
+    result = {
+        "benchmark": "simcampus_speed",
+        "runs": args.runs,
+        "jax": jax.__version__,
+        "devices": [str(d) for d in jax.devices()],
+        "cpu_count": os.cpu_count(),
+        "load_average_at_end": os.getloadavg(),
+        "platform": platform.platform(),
+        "cases": rows,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    # Atomic write: a killed run never leaves a half-written result.
+    with tempfile.NamedTemporaryFile("w", dir=args.out.parent, delete=False, suffix=".tmp") as f:
+        json.dump(result, f, indent=2)
+    os.replace(f.name, args.out)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
