@@ -399,7 +399,7 @@ def _row_table(geo: Geometry, look: Look) -> jax.Array:
 
 
 def _rays(pose6: jax.Array, kmat: jax.Array, hw):
-    """Camera centre ``(3,)``, rotation, column ray-plane normals ``(W, 3)``, ray directions 3 x ``(H, W)``."""
+    """Camera centre ``(3,)``, rotation, column ray-plane normals ``(W, 3)``, ray directions ``(H, W)`` x3."""
     h, w = hw
     rot = world_from_camera(pose6[3], pose6[4], pose6[5])
     fx, fy, cx, cy = kmat[0, 0], kmat[1, 1], kmat[0, 2], kmat[1, 2]
