@@ -383,7 +383,11 @@ def _shade_ground(geo: Geometry, look_ground, px, py, pz):
         for c in range(7)
     ]
     lk = jnp.stack(lk, -1)
-    w = _cell_noise(px, py, jnp.zeros_like(pz), lk[..., 6])
+    # Two octaves of cell noise: one octave reads as a checkerboard on near ground.
+    zero = jnp.zeros_like(pz)
+    w = 0.6 * _cell_noise(px, py, zero, lk[..., 6]) + 0.4 * _cell_noise(
+        px + 0.37, py, zero, lk[..., 6] * 0.31
+    )
     return _mix(lk, w), (-gx * inv, -gy * inv, inv)
 
 
