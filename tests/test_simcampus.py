@@ -1,6 +1,7 @@
 """SimCampus: determinism, the Session interface, analytic depth, seasons, routes, renderer invariants."""
 
 import dataclasses
+import pickle
 
 import jax
 import jax.numpy as jnp
@@ -82,6 +83,8 @@ def test_session_interface(sessions):
         assert 1000 < len(full) < 5000
     with pytest.raises(IndexError, match="out of range"):
         s.image(12)
+    # Picklable for multi-process data loaders; the copy renders the same pixels.
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(s)).image(3), img)
 
 
 def test_batch_equals_loop(sessions):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import threading
 
 import jax.numpy as jnp
 import numpy as np
@@ -138,11 +139,24 @@ class SimCampusSession:
         self.batch_size = int(batch_size)
         self._cached = int(cached_batches)
         self._chunks: collections.OrderedDict[int, dict[str, np.ndarray]] = collections.OrderedDict()
+        # Data loaders may call image(i) from several threads; the batch cache must stay consistent.
+        self._lock = threading.Lock()
         # Noise seeds unique per (season, frame), so a frame's pixels do not depend on how it is batched.
         self._id0 = (_seasons.season_index(season) + 1) * 10_000_000
 
     def __len__(self) -> int:
         return len(self.poses6)
+
+    def __getstate__(self):
+        # Picklable for multi-process loaders: drop the lock and the rendered-batch cache.
+        state = dict(self.__dict__)
+        state["_lock"] = None
+        state["_chunks"] = collections.OrderedDict()
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
 
     def __repr__(self) -> str:
         return f"SimCampusSession({self.name!r}, frames={len(self)}, image_shape={self.image_shape})"
@@ -176,13 +190,14 @@ class SimCampusSession:
     def _frame(self, i: int, key: str) -> np.ndarray:
         i = self._check(i)
         c = i // self.batch_size
-        if c not in self._chunks:
-            lo = c * self.batch_size
-            self._chunks[c] = self.render(np.arange(lo, min(lo + self.batch_size, len(self))))
-            while len(self._chunks) > self._cached:
-                self._chunks.popitem(last=False)
-        self._chunks.move_to_end(c)
-        return self._chunks[c][key][i - c * self.batch_size]
+        with self._lock:
+            if c not in self._chunks:
+                lo = c * self.batch_size
+                self._chunks[c] = self.render(np.arange(lo, min(lo + self.batch_size, len(self))))
+                while len(self._chunks) > self._cached:
+                    self._chunks.popitem(last=False)
+            self._chunks.move_to_end(c)
+            return self._chunks[c][key][i - c * self.batch_size].copy()
 
     def image(self, i: int) -> np.ndarray:
         """Upright RGB ``uint8 (H, W, 3)`` of frame `i`."""
