@@ -210,6 +210,36 @@ def test_seasons_change_appearance_not_geometry(sessions):
             assert (rel < 0.05).mean() > 0.8, (a, b)  # the rest: foliage, snow banks, people, cars, the site
 
 
+def test_seasonal_geometry_changes_exist():
+    """Spec: thinner bare trees, snow banks in WI, per-session dynamic objects, renovations, a site later."""
+    world = simcampus.make_world(0)
+    t = {s: _seasons.scene_tables(world, s) for s in simcampus.SEASONS}
+    crown = world.ells.role == W.ROLE_CROWN
+    n = len(world.ells)
+    vol = {s: np.prod(t[s].ells.geo[:n][crown, 3:6], axis=1).sum() for s in t}
+    assert vol["WI"] < 0.4 * vol["SU"] and vol["SP"] < vol["SU"]
+    # Snow banks: long, low ellipsoids only in winter.
+    banks = {s: ((t[s].ells.geo[:, 3] > 4.5) & (t[s].ells.geo[:, 5] < 0.6)).sum() for s in t}
+    assert banks["WI"] > 100 and banks["SP"] == banks["SU"] == banks["AU"] == 0
+    # Dynamic objects differ in number and place between sessions.
+    props = {s: t[s].cyls.geo[t[s].cyls.role == W.ROLE_PROP] for s in t}
+    assert len({len(p) for p in props.values()}) == 4
+    assert not np.allclose(props["SP"][:5, :2], props["AU"][:5, :2])
+    # Renovated facades and the construction site (a crane taller than 20 m) appear in SU and AU only.
+    for s in simcampus.SEASONS:
+        facade = np.r_[0:6, 9:13]  # wall, windows, window grid (roofs get snow in winter)
+        r = world.renovated
+        renovated = not np.allclose(t[s].boxes.look[r][:, facade], world.boxes.look[r][:, facade])
+        crane = (
+            (t[s].boxes.geo[:, 2] + t[s].boxes.geo[:, 5]) - world.height(*t[s].boxes.geo[:, :2].T) > 20
+        ) & (t[s].boxes.role == W.ROLE_PROP)
+        assert renovated == (s in ("SU", "AU")) and crane.any() == (s in ("SU", "AU")), s
+    # Snow on roofs in winter only.
+    bld = world.boxes.role == W.ROLE_BUILDING
+    assert np.all(t["WI"].boxes.look[: len(bld)][bld, 6:9].mean(1) > 0.9)
+    assert np.all(t["SU"].boxes.look[: len(bld)][bld, 6:9].mean(1) < 0.9)
+
+
 def test_depth_edges_line_up_with_colour_edges(sessions):
     s = sessions["SU"]
     out = s.render(np.arange(8) * 97 + 13)
