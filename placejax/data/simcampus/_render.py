@@ -44,6 +44,8 @@ class Geometry(NamedTuple):
         cyl: ``(NC, 5)`` cx, cy, z0, z1, r.
         ell: ``(NE, 8)`` cx, cy, cz, rx, ry, rz, cos(yaw), sin(yaw).
         box_sphere, cyl_sphere, ell_sphere: ``(N, 4)`` bounding spheres (cx, cy, cz, radius) for culling.
+        ell_unit: ``(NE, 8)`` cx, cy, cz and the world-to-unit-sphere map (cos/rx, sin/rx, -sin/ry, cos/ry,
+            1/rz), precomputed because XLA recomputes per-primitive factors for every pixel they broadcast to.
         terrain: ``(T, 4)`` amplitude, kx, ky, phase of the height field.
         matmap: ``int32 (M, M)`` ground material ids, ``matmap[iy, ix]`` for 0.5 m texels from ``-map_half``.
         map_half: ``()`` half extent (m) of the material map.
@@ -56,6 +58,7 @@ class Geometry(NamedTuple):
     box_sphere: jax.Array
     cyl_sphere: jax.Array
     ell_sphere: jax.Array
+    ell_unit: jax.Array
     terrain: jax.Array
     matmap: jax.Array
     map_half: jax.Array
@@ -245,11 +248,8 @@ def _hit_cyls(g, o, dx, dy, dz):
 
 
 def _hit_ells(g, o, dx, dy, dz):
-    cx, cy, cz, rx, ry, rz, c, s = (g[:, None, :, i] for i in range(8))
-    # Fold rotation and the 1/radius scaling into per-primitive coefficients, so that the per-ray work
-    # is a handful of multiply-adds (this halves the cost against rotating then scaling each ray).
-    irx, iry, irz = 1.0 / rx, 1.0 / ry, 1.0 / rz
-    axx, axy, ayx, ayy = c * irx, s * irx, -s * iry, c * iry
+    """Ray / ellipsoid first hits; `g` rows are `Geometry.ell_unit` (the map to the unit sphere)."""
+    cx, cy, cz, axx, axy, ayx, ayy, irz = (g[:, None, :, i] for i in range(8))
     ox, oy, oz = o[0] - cx, o[1] - cy, o[2] - cz
     lox, loy, loz = axx * ox + axy * oy, ayx * ox + ayy * oy, oz * irz
     ldx, ldy, ldz = axx * dx + axy * dy, ayx * dx + ayy * dy, dz * irz
@@ -260,6 +260,13 @@ def _hit_ells(g, o, dx, dy, dz):
     num = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
     # Test on the numerator (a > 0) so that the division has a single consumer and fuses into the min.
     return jnp.where((disc > 0) & (num > _EPS_T * a), num / a, _INF)
+
+
+def ellipsoid_unit_map(ell: np.ndarray) -> np.ndarray:
+    """`Geometry.ell_unit` rows from ellipsoid rows ``(N, 8)`` (numpy, once per scene)."""
+    c, s = ell[:, 6], ell[:, 7]
+    irx, iry, irz = 1.0 / ell[:, 3], 1.0 / ell[:, 4], 1.0 / ell[:, 5]
+    return np.stack([ell[:, 0], ell[:, 1], ell[:, 2], c * irx, s * irx, -s * iry, c * iry, irz], 1)
 
 
 def _hit_terrain(terrain, o, dx, dy, dz):
@@ -427,7 +434,7 @@ def _geometry_stage(geo: Geometry, pose6, kmat, hw, budget):
     rx, ry, rz = dx[None], dy[None], dz[None]
     tb, gb = _first_hit(_hit_boxes(geo.box[ib.T], o, rx, ry, rz), ib)
     tc, gc = _first_hit(_hit_cyls(geo.cyl[ic.T], o, rx, ry, rz), ic)
-    te, ge = _first_hit(_hit_ells(geo.ell[ie.T], o, rx, ry, rz), ie)
+    te, ge = _first_hit(_hit_ells(geo.ell_unit[ie.T], o, rx, ry, rz), ie)
     tg = _hit_terrain(geo.terrain, o, dx, dy, dz)
     tk = _hit_backdrop(geo.backdrop, o, dx, dy, dz)
     ts = jnp.stack([tb, tc, te, tg, tk], 0)
@@ -440,7 +447,7 @@ def _geometry_stage(geo: Geometry, pose6, kmat, hw, budget):
 
 
 def _surface_stage(geo: Geometry, look: Look, pose6, kmat, t, kind, row_idx, hw):
-    """Albedo ``(3, H, W)`` and Lambert factor ``(H, W)`` at the hits."""
+    """Albedo (three ``(H, W)`` planes) and Lambert factor ``(H, W)`` at the hits."""
     o, _, _, (dx, dy, dz) = _rays(pose6, kmat, hw)
     px, py, pz = o[0] + t * dx, o[1] + t * dy, o[2] + t * dz
     row = _row_table(geo, look)[row_idx]  # (H, W, 21)
@@ -453,7 +460,8 @@ def _surface_stage(geo: Geometry, look: Look, pose6, kmat, t, kind, row_idx, hw)
     sel = lambda vals: functools.reduce(
         lambda acc, kv: jnp.where(kind == kv[0], kv[1], acc), enumerate(vals[1:], 1), vals[0]
     )
-    albedo = jnp.stack([sel([s[0][i] for s in shaded]) for i in range(3)], 0)
+    # Three separate planes: stacking them here makes XLA evaluate all of the shading per stacked element.
+    albedo = tuple(sel([s[0][i] for s in shaded]) for i in range(3))
     normal = [sel([s[1][i] for s in shaded]) for i in range(3)]
     lam = jnp.maximum(
         normal[0] * look.sun_dir[0] + normal[1] * look.sun_dir[1] + normal[2] * look.sun_dir[2], 0

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax.data.simcampus import _world as W
-from placejax.data.simcampus._render import Geometry, Look, bounding_spheres
+from placejax.data.simcampus._render import Geometry, Look, bounding_spheres, ellipsoid_unit_map
 
 SEASONS = ("WI", "SP", "SU", "AU")
 # Capacities of the primitive tables: every scene is padded to these so that one compiled renderer serves all
@@ -406,6 +406,7 @@ def geometry_from_tables(world: W.World, tables: SceneTables) -> Geometry:
         box_sphere=f32(bs),
         cyl_sphere=f32(cs),
         ell_sphere=f32(es),
+        ell_unit=f32(ellipsoid_unit_map(ell)),
         terrain=f32(terrain),
         matmap=jnp.asarray(world.matmap, jnp.int32),
         map_half=f32(W.MAP_HALF),
