@@ -320,7 +320,7 @@ def _hit_backdrop(profile, o, dx, dy, dz):
     az = jnp.arctan2(o[1] + t * dy, o[0] + t * dx)
     top = jnp.full_like(az, 6.0)
     for i in range(profile.shape[0]):
-        top = top + profile[i, 0] * jnp.maximum(jnp.sin(profile[i, 1] * az + profile[i, 2]), -0.3)
+        top = top + profile[i, 0] * jnp.maximum(wave(profile[i, 1] * az + profile[i, 2]), -0.3)
     return jnp.where((o[2] + t * dz < top) & (a > 1e-12), t, _INF)
 
 
