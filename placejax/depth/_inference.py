@@ -1,0 +1,123 @@
+"""MiDaS inference: the original input transform and a jitted, batched ``predict``.
+
+Follows isl-org/MiDaS ``midas/transforms.py`` (``Resize`` with ``keep_aspect_ratio=True``,
+``ensure_multiple_of=32``, ``resize_method="upper_bound"``, ``cv2.INTER_CUBIC``; ``NormalizeImage`` with
+ImageNet statistics) and ``run.py``'s bicubic upsampling of the prediction back to the image size;
+``shared/specs/midas_small.md``.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from placejax.models import MidasSmall, resize
+
+__all__ = ["network_size", "predict", "preprocess"]
+
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+_MULTIPLE = 32
+
+
+def _to_multiple(x: float, max_val: int) -> int:
+    # np.round is round-half-to-even, as in MiDaS's Resize.constrain_to_multiple_of.
+    y = int(np.round(x / _MULTIPLE) * _MULTIPLE)
+    if y > max_val:
+        y = int(np.floor(x / _MULTIPLE) * _MULTIPLE)
+    return y
+
+
+def network_size(image_hw: tuple[int, int], size: int = 256, square: bool = False) -> tuple[int, int]:
+    """The ``(h, w)`` MiDaS resizes an ``(H, W)`` image to before the network.
+
+    The longer side goes to ``size`` and the aspect ratio is kept, each side rounded (half to even) to a
+    multiple of 32; ``square=True`` gives ``(size, size)``.
+
+    >>> network_size((480, 640)), network_size((1080, 1920)), network_size((50, 100))
+    ((192, 256), (128, 256), (128, 256))
+    """
+    h, w = (int(v) for v in image_hw)
+    if h < 1 or w < 1:
+        raise ValueError(f"image size must be positive, got {image_hw}")
+    if square:
+        return size, size
+    scale = min(size / w, size / h)
+    out = _to_multiple(scale * h, size), _to_multiple(scale * w, size)
+    if min(out) < _MULTIPLE:
+        raise ValueError(f"image of size {image_hw} is too elongated for MiDaS: it would be resized to {out}")
+    return out
+
+
+def preprocess(image: np.ndarray, *, size: int = 256, square: bool = False) -> np.ndarray:
+    """MiDaS's input transform of one image: resize (bicubic) to ``network_size`` and ImageNet-normalise.
+
+    Args:
+        image: ``(H, W, 3)`` RGB, ``uint8`` in [0, 255] or floating point in [0, 1] (not clipped).
+        size: the longer network side (256 for MiDaS v2.1 small).
+        square: resize to ``size × size`` ignoring the aspect ratio (MiDaS's ``square`` option).
+
+    Returns:
+        ``(h, w, 3)`` float32, ``(h, w) = network_size((H, W), size, square)``.
+    """
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[-1] != 3:
+        raise ValueError(f"preprocess expects one (H, W, 3) RGB image, got shape {image.shape}")
+    if image.dtype == np.uint8:
+        x = image.astype(np.float32) / np.float32(255.0)
+    elif np.issubdtype(image.dtype, np.floating):
+        x = image.astype(np.float32)
+    else:
+        raise ValueError(f"preprocess expects uint8 or float images, got dtype {image.dtype}")
+    h, w = network_size(image.shape[:2], size, square)
+    if (h, w) != x.shape[:2]:
+        x = cv2.resize(x, (w, h), interpolation=cv2.INTER_CUBIC)
+    return (x - IMAGENET_MEAN) / IMAGENET_STD
+
+
+@functools.partial(jax.jit, static_argnames=("model", "out_hw"))
+def _forward(model: MidasSmall, variables: Any, x: jax.Array, out_hw: tuple[int, int]) -> jax.Array:
+    depth = model.apply(variables, x, train=False)
+    # run.py: F.interpolate(prediction[:, None], size=image size, mode="bicubic", align_corners=False).
+    return resize(depth[..., None], out_hw, "bicubic", align_corners=False)[..., 0]
+
+
+def predict(
+    variables: Any,
+    images: np.ndarray,
+    *,
+    model: MidasSmall | None = None,
+    size: int = 256,
+    square: bool = False,
+) -> np.ndarray:
+    """Relative inverse depth of a batch of images at their own resolution.
+
+    Preprocessing runs in NumPy/OpenCV (as the original does); the network and the bicubic upsampling back to
+    ``(H, W)`` run in one function jitted per (model, image size): repeated calls with same-sized batches do
+    not recompile.
+
+    Args:
+        variables: ``MidasSmall`` variables, e.g. ``placejax.weights.load("midas_v21_small_256")``.
+        images: ``(N, H, W, 3)`` or ``(H, W, 3)`` RGB, uint8 or float in [0, 1].
+        model: the network (default ``MidasSmall()``, the official architecture).
+        size, square: see ``preprocess``.
+
+    Returns:
+        float32 ``(N, H, W)`` (or ``(H, W)``) relative inverse depth: bigger is closer, unknown scale and
+        shift. The network output is ≥ 0; bicubic upsampling may undershoot slightly near edges, as in MiDaS.
+    """
+    images = np.asarray(images)
+    single = images.ndim == 3
+    if single:
+        images = images[None]
+    if images.ndim != 4 or images.shape[-1] != 3 or 0 in images.shape:
+        raise ValueError(f"predict expects (N, H, W, 3) or (H, W, 3) RGB images, got shape {images.shape}")
+    model = MidasSmall() if model is None else model
+    x = np.stack([preprocess(im, size=size, square=square) for im in images])
+    depth = np.asarray(_forward(model, variables, jnp.asarray(x), tuple(images.shape[1:3])))
+    return depth[0] if single else depth

@@ -1,0 +1,19 @@
+"""Flax Linen models: MiDaS v2.1 small, VGG16 (torchvision layout) and the fusion MLP, plus exact resizes."""
+
+from placejax.models._fusion import FusionMLP
+from placejax.models._midas import EfficientNetLite3Encoder, MidasSmall
+from placejax.models._resize import interpolation_matrix, resize, upsample2x_align_corners
+from placejax.models._vgg import VGG16, VGG16Head, VGG16Trunk, adaptive_avg_pool
+
+__all__ = [
+    "VGG16",
+    "EfficientNetLite3Encoder",
+    "FusionMLP",
+    "MidasSmall",
+    "VGG16Head",
+    "VGG16Trunk",
+    "adaptive_avg_pool",
+    "interpolation_matrix",
+    "resize",
+    "upsample2x_align_corners",
+]
