@@ -1,0 +1,41 @@
+"""SimCampus: the built-in seasonal 3-D campus, rendered in JAX (spec: ``../shared/specs/simcampus.md``).
+
+A procedural campus (terrain, paths, buildings, trees, street furniture, landmarks) visited by a robot in four
+seasons. Appearance changes a lot across sessions, geometry a little, routes and viewpoints differ — so the
+cross-season experiment runs end to end anywhere. Sessions satisfy `placejax.data.session.Session`.
+
+Example:
+    >>> from placejax.data import simcampus
+    >>> s = simcampus.load_session("WI", image_size=(16, 16), max_frames=3)
+    >>> s.image(0).shape, s.depth(0).shape
+    ((16, 16, 3), (16, 16))
+"""
+
+from placejax.data.simcampus._depth_worlds import depth_training_batches, depth_training_frames
+from placejax.data.simcampus._render import SKY_DEPTH
+from placejax.data.simcampus._seasons import SEASONS, STYLES, SeasonStyle
+from placejax.data.simcampus._session import (
+    SimCampusSession,
+    intrinsics,
+    load_session,
+    make_world,
+    render,
+)
+from placejax.data.simcampus._trajectory import RouteConfig
+from placejax.data.simcampus._world import World
+
+__all__ = [
+    "SEASONS",
+    "SKY_DEPTH",
+    "STYLES",
+    "RouteConfig",
+    "SeasonStyle",
+    "SimCampusSession",
+    "World",
+    "depth_training_batches",
+    "depth_training_frames",
+    "intrinsics",
+    "load_session",
+    "make_world",
+    "render",
+]
