@@ -68,6 +68,23 @@ class HHAResult(NamedTuple):
 
 
 # ----------------------------------------------------------------------------------------------------------------------
+# Materialisation points.
+
+
+def _materialise(tree, token: jax.Array):
+    """``tree`` unchanged, computed once into memory: a fusion barrier XLA CPU respects.
+
+    Left to itself XLA fuses each window-sum stage into every consumer and recomputes it there: the 7-tap
+    row-pass slices of the moments went into each of nx, ny, nz and the validity mask separately (4× the work,
+    plus the fit itself 4×), which made the whole encoder ~4× slower than its stages. ``optimization_barrier``
+    does not stop this on CPU (it is expanded before fusion); a conditional does, since fusion never crosses its
+    boundary. Both branches are the identity, so the predicate only has to be an *unbatched* runtime scalar
+    (``token``, taken outside ``vmap``): a batched predicate would turn the cond into a select of both branches.
+    """
+    return jax.lax.cond(token != 0.5, lambda t: t, lambda t: jax.tree.map(jnp.copy, t), tree)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
 # Window moments.
 
 
@@ -118,10 +135,13 @@ def _widen(m: dict[int, jax.Array], powers: tuple[int, ...], axis: int) -> dict[
     return out
 
 
-def _moments(x: jax.Array, spec: dict[int, tuple[int, ...]], wide: bool) -> dict[tuple[int, int], jax.Array]:
+def _moments(
+    x: jax.Array, spec: dict[int, tuple[int, ...]], wide: bool, token: jax.Array
+) -> dict[tuple[int, int], jax.Array]:
     """Window sums Σ s^p t^q x over 7×7 (or 21×21 if ``wide``) windows of an ``(H, W)`` map, zero-padded.
 
-    ``spec`` maps a column power p to the row powers q needed with it. s = column offset, t = row offset.
+    ``spec`` maps a column power p to the row powers q needed with it. s = column offset, t = row offset. Each
+    pass is materialised (see :func:`_materialise`).
     """
     r = RADIUS_ANGLE
     if wide:
@@ -130,16 +150,16 @@ def _moments(x: jax.Array, spec: dict[int, tuple[int, ...]], wide: bool) -> dict
         e = 2 * r + 1
         x = jnp.pad(x, e)
     col_powers = tuple(sorted(spec))
-    cols = dict(zip(col_powers, _shift_correlate(x, r, col_powers, axis=1), strict=True))
+    cols = _materialise(dict(zip(col_powers, _shift_correlate(x, r, col_powers, axis=1), strict=True)), token)
     if wide:
-        cols = _widen(cols, col_powers, axis=1)
+        cols = _materialise(_widen(cols, col_powers, axis=1), token)
     out = {}
     for p, row_powers in spec.items():
         rows = dict(zip(row_powers, _shift_correlate(cols[p], r, row_powers, axis=0), strict=True))
         if wide:
             rows = {q: v[e:-e, e:-e] for q, v in _widen(rows, row_powers, axis=0).items()}
         out.update({(p, q): v for q, v in rows.items()})
-    return out
+    return _materialise(out, token)
 
 
 _SINGULAR_RTOL = 1e-5
@@ -147,15 +167,15 @@ _MASK_SPEC = {0: (0, 1, 2), 1: (0, 1), 2: (0,)}  # moments of the valid mask: 1,
 _WEIGHT_SPEC = {0: (0, 1), 1: (0,)}  # moments of 1/Z: 1, t, s
 
 
-def _fit_normals(w, fit_mask, a_c, b_c, z, fx, fy, wide):
+def _fit_normals(w, fit_mask, a_c, b_c, z, fx, fy, token, wide):
     """Unit normals (nx, ny, nz maps) of the least-squares plane in each window, oriented away from the camera.
 
     Returns the three component maps and the mask of windows that define a plane. Components are kept as separate
     ``(H, W)`` maps rather than a stacked ``(H, W, 3)`` array: every step is then a plain elementwise loop that
     XLA fuses, with no strided channel access.
     """
-    mm = _moments(fit_mask, _MASK_SPEC, wide)
-    mw = _moments(w, _WEIGHT_SPEC, wide)
+    mm = _moments(fit_mask, _MASK_SPEC, wide, token)
+    mw = _moments(w, _WEIGHT_SPEC, wide, token)
     s_ss, s_st, s_s = mm[(2, 0)], mm[(1, 1)], mm[(1, 0)]
     s_tt, s_t, s_1 = mm[(0, 2)], mm[(0, 1)], mm[(0, 0)]
     r_s, r_t, r_1 = mw[(1, 0)], mw[(0, 1)], mw[(0, 0)]
@@ -184,7 +204,7 @@ def _fit_normals(w, fit_mask, a_c, b_c, z, fx, fy, wide):
     s1 = jnp.where(x3 < 0, -1.0, 1.0)
     s2 = jnp.where(s1 * (x1 * a_c + x2 * b_c + x3) * z < 0, -1.0, 1.0)
     f = inv_norm * s1 * s2
-    return (x1 * f, x2 * f, x3 * f), ok
+    return _materialise(((x1 * f, x2 * f, x3 * f), ok), token)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -224,8 +244,9 @@ def _gravity(normals: tuple[jax.Array, jax.Array, jax.Array], ok: jax.Array) -> 
 # One image.
 
 
-def _encode_one(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array) -> HHAResult:
-    """One ``(H, W)`` image; ``fit_mask`` (float 0/1) marks the pixels the normal fits may use."""
+def _encode_one(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array, token: jax.Array) -> HHAResult:
+    """One ``(H, W)`` image; ``fit_mask`` (float 0/1) marks the pixels the normal fits may use; ``token`` is the
+    unbatched scalar of :func:`_materialise`."""
     h, w = depth_m.shape
     dtype = depth_m.dtype
     valid = jnp.isfinite(depth_m) & (depth_m > 0)
@@ -237,7 +258,7 @@ def _encode_one(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array) 
     a_c = (jnp.arange(w, dtype=dtype)[None, :] - cx) / fx  # (1, W): X/Z of each column
     b_c = (jnp.arange(h, dtype=dtype)[:, None] - cy) / fy  # (H, 1): Y/Z of each row
 
-    fit = functools.partial(_fit_normals, inv_z, fit_mask, a_c, b_c, z, fx, fy)
+    fit = functools.partial(_fit_normals, inv_z, fit_mask, a_c, b_c, z, fx, fy, token)
     (nx, ny, nz), ok_angle = fit(wide=False)
     g = _gravity(*fit(wide=True))
 
@@ -264,11 +285,12 @@ def _encode_one(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array) 
 def _encode_batch(depth_m: jax.Array, intrinsics: jax.Array, raw_depth_m: jax.Array | None) -> HHAResult:
     """``depth_m (B, H, W)``, ``intrinsics (B, 3, 3)``, ``raw_depth_m (B, H, W)``, or ``None`` when the caller has
     checked that every depth is valid and nothing is missing."""
+    token = depth_m.reshape(-1)[0]  # any unbatched runtime scalar (see _materialise)
     if raw_depth_m is None:
         # The fit mask is then shared by the whole batch: vmap leaves an unbatched input unbatched, so its window
         # moments (half of the normal-fitting work) are computed once per call instead of once per image.
         fit_mask = jnp.ones(depth_m.shape[1:], depth_m.dtype)
-        return jax.vmap(_encode_one, in_axes=(0, 0, None))(depth_m, intrinsics, fit_mask)
+        return jax.vmap(_encode_one, in_axes=(0, 0, None, None))(depth_m, intrinsics, fit_mask, token)
     valid = jnp.isfinite(depth_m) & (depth_m > 0)
     fit_mask = (valid & (raw_depth_m != 0)).astype(depth_m.dtype)
-    return jax.vmap(_encode_one)(depth_m, intrinsics, fit_mask)
+    return jax.vmap(_encode_one, in_axes=(0, 0, 0, None))(depth_m, intrinsics, fit_mask, token)
