@@ -212,30 +212,36 @@ def _fit_normals(w, fit_mask, a_c, b_c, z, fx, fy, token, wide):
 
 
 def _gravity(normals: tuple[jax.Array, jax.Array, jax.Array], ok: jax.Array) -> jax.Array:
-    """Iterative floor/wall estimate of the down direction (reference ``getYDir``) as a fixed-trip-count loop."""
+    """Iterative floor/wall estimate of the down direction (reference ``getYDir``) as a fixed-trip-count loop.
+
+    One image at a time (the caller maps it over the batch, so that an image's normals stay in cache through the
+    ten passes). The six distinct entries of n nᵀ are formed once; each iteration then only builds the ±1/0
+    floor/wall weights and takes one matrix-vector product: A = Σ_W n nᵀ − Σ_F n nᵀ = (n nᵀ entries) · weights.
+    The normals are materialised before the loop, so the product's operands are plain arrays.
+    """
     nx, ny, nz = (c.reshape(-1) for c in normals)
     ok = ok.reshape(-1)
     dtype = nx.dtype
     thresholds = np.repeat(np.deg2rad(GRAVITY_THRESHOLDS_DEG), GRAVITY_ITERATIONS)
     cos_t = jnp.asarray(np.cos(thresholds), dtype)
     sin_t = jnp.asarray(np.sin(thresholds), dtype)
+    outer = jnp.stack([nx * nx, nx * ny, nx * nz, ny * ny, ny * nz, nz * nz])  # (6, P)
+    okf = ok.astype(dtype)
+    hi = jax.lax.Precision.HIGHEST
 
     def step(i, y):
         c = jnp.abs(nx * y[0] + ny * y[1] + nz * y[2])
         floor = ok & (c > cos_t[i])
         wall = ok & (c < sin_t[i])
         weight = wall.astype(dtype) - floor.astype(dtype)
-        # A = Σ_W n nᵀ − Σ_F n nᵀ as six elementwise reductions (a dot here would let XLA fuse the whole normal
-        # computation into its operand and redo it for every output element).
-        wx, wy, wz = weight * nx, weight * ny, weight * nz
-        axx, axy, axz = jnp.sum(wx * nx), jnp.sum(wx * ny), jnp.sum(wx * nz)
-        ayy, ayz, azz = jnp.sum(wy * ny), jnp.sum(wy * nz), jnp.sum(wz * nz)
+        axx, axy, axz, ayy, ayz, azz = jnp.dot(outer, weight, precision=hi)
         a = jnp.stack([jnp.stack([axx, axy, axz]), jnp.stack([axy, ayy, ayz]), jnp.stack([axz, ayz, azz])])
         _, vecs = jnp.linalg.eigh(a)
         new = vecs[:, 0]  # eigenvalues ascend: the smallest one's eigenvector
         new = new * jnp.where(new @ y < 0, -1.0, 1.0)
         # Nothing selected: A = 0 has no preferred direction, so keep the current estimate.
-        return jnp.where(jnp.any(floor | wall), new, y)
+        selected = jnp.dot(okf, jnp.abs(weight), precision=hi)
+        return jnp.where(selected > 0, new, y)
 
     return jax.lax.fori_loop(0, len(thresholds), step, jnp.array([0.0, 1.0, 0.0], dtype))
 
@@ -244,23 +250,34 @@ def _gravity(normals: tuple[jax.Array, jax.Array, jax.Array], ok: jax.Array) -> 
 # One image.
 
 
-def _encode_one(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array, token: jax.Array) -> HHAResult:
-    """One ``(H, W)`` image; ``fit_mask`` (float 0/1) marks the pixels the normal fits may use; ``token`` is the
-    unbatched scalar of :func:`_materialise`."""
+def _camera(depth_m: jax.Array, intrinsics: jax.Array):
+    """Valid mask, depth in cm, and X/Z of each column ``(1, W)`` and Y/Z of each row ``(H, 1)``."""
     h, w = depth_m.shape
     dtype = depth_m.dtype
     valid = jnp.isfinite(depth_m) & (depth_m > 0)
     z = jnp.where(valid, depth_m, 0.0) * 100.0  # cm, as the reference
-    inv_z = fit_mask / jnp.where(fit_mask > 0, z, 1.0)
-
     fx, fy = intrinsics[0, 0], intrinsics[1, 1]
     cx, cy = intrinsics[0, 2], intrinsics[1, 2]
     a_c = (jnp.arange(w, dtype=dtype)[None, :] - cx) / fx  # (1, W): X/Z of each column
     b_c = (jnp.arange(h, dtype=dtype)[:, None] - cy) / fy  # (H, 1): Y/Z of each row
+    return valid, z, a_c, b_c
 
+
+def _normals_one(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array, token: jax.Array):
+    """One ``(H, W)`` image's 7×7 and 21×21 normals; ``fit_mask`` (float 0/1) marks the pixels the normal fits may
+    use; ``token`` is the unbatched scalar of :func:`_materialise`."""
+    _, z, a_c, b_c = _camera(depth_m, intrinsics)
+    inv_z = fit_mask / jnp.where(fit_mask > 0, z, 1.0)
+    fx, fy = intrinsics[0, 0], intrinsics[1, 1]
     fit = functools.partial(_fit_normals, inv_z, fit_mask, a_c, b_c, z, fx, fy, token)
-    (nx, ny, nz), ok_angle = fit(wide=False)
-    g = _gravity(*fit(wide=True))
+    return fit(wide=False), fit(wide=True)
+
+
+def _finish_one(depth_m: jax.Array, intrinsics: jax.Array, normals, ok_angle: jax.Array, g: jax.Array) -> HHAResult:
+    """One image's height, angle and quantised channels from its 7×7 normals and its gravity vector."""
+    dtype = depth_m.dtype
+    valid, z, a_c, b_c = _camera(depth_m, intrinsics)
+    nx, ny, nz = normals
 
     rotate = jnp.arccos(jnp.clip(g[1], -1.0, 1.0)) > np.deg2rad(ROTATION_SKIP_DEG)
     up = jnp.where(rotate, g, jnp.array([0.0, 1.0, 0.0], dtype))  # (Rᵀp)_y = (R y0)·p = g·p, R y0 = g (Rodrigues)
@@ -290,7 +307,15 @@ def _encode_batch(depth_m: jax.Array, intrinsics: jax.Array, raw_depth_m: jax.Ar
         # The fit mask is then shared by the whole batch: vmap leaves an unbatched input unbatched, so its window
         # moments (half of the normal-fitting work) are computed once per call instead of once per image.
         fit_mask = jnp.ones(depth_m.shape[1:], depth_m.dtype)
-        return jax.vmap(_encode_one, in_axes=(0, 0, None, None))(depth_m, intrinsics, fit_mask, token)
-    valid = jnp.isfinite(depth_m) & (depth_m > 0)
-    fit_mask = (valid & (raw_depth_m != 0)).astype(depth_m.dtype)
-    return jax.vmap(_encode_one, in_axes=(0, 0, 0, None))(depth_m, intrinsics, fit_mask, token)
+        mask_axis = None
+    else:
+        valid = jnp.isfinite(depth_m) & (depth_m > 0)
+        fit_mask = (valid & (raw_depth_m != 0)).astype(depth_m.dtype)
+        mask_axis = 0
+    (n_angle, ok_angle), n_gravity = jax.vmap(_normals_one, in_axes=(0, 0, mask_axis, None))(
+        depth_m, intrinsics, fit_mask, token
+    )
+    # Gravity image by image (a loop over the batch, not vmap): each image's normals then stay in cache through
+    # the ten passes, instead of every pass streaming the whole batch's normals through memory.
+    g = jax.lax.map(lambda a: _gravity(*a), n_gravity)
+    return jax.vmap(_finish_one)(depth_m, intrinsics, n_angle, ok_angle, g)
