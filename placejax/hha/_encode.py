@@ -18,7 +18,6 @@ computed so that float32 is enough and XLA can compile it once for a whole batch
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -88,14 +87,16 @@ def _materialise(tree, token: jax.Array):
 # Window moments.
 
 
-def _shift_correlate(x: jax.Array, r: int, powers: tuple[int, ...], axis: int) -> list[jax.Array]:
-    """Σ_{k=-r..r} k^p · x[i + k] along ``axis`` for every p in ``powers``, zero-padded, same size."""
-    n = x.shape[axis]
-    pad = [(0, 0)] * x.ndim
-    pad[axis] = (r, r)
-    xp = jnp.pad(x, pad)
-    taps = [jax.lax.slice_in_dim(xp, r + k, r + k + n, axis=axis) for k in range(-r, r + 1)]
-    outs = []
+def _correlate(x: jax.Array, powers: tuple[int, ...], axis: int) -> dict[int, jax.Array]:
+    """Σ_{k=-3..3} k^p · x[i + k] along ``axis`` for every p in ``powers``, "valid" part only (6 shorter).
+
+    Plain shifted slices of an array that already carries its zero border: no padding op in between, which XLA
+    CPU would otherwise materialise as a separate copy at every stage.
+    """
+    r = RADIUS_ANGLE
+    n = x.shape[axis] - 2 * r
+    taps = [jax.lax.slice_in_dim(x, r + k, r + k + n, axis=axis) for k in range(-r, r + 1)]
+    outs = {}
     for p in powers:
         acc = taps[r] if p == 0 else None  # k = 0 contributes only to p = 0
         for k in range(1, r + 1):
@@ -106,60 +107,62 @@ def _shift_correlate(x: jax.Array, r: int, powers: tuple[int, ...], axis: int) -
             else:
                 term = float(k**p) * (taps[r + k] + taps[r - k])
             acc = term if acc is None else acc + term
-        outs.append(acc)
+        outs[p] = acc
     return outs
 
 
 def _widen(m: dict[int, jax.Array], powers: tuple[int, ...], axis: int) -> dict[int, jax.Array]:
-    """Moments over 21 taps from moments over 7 taps: blocks centred at offsets −7, 0, +7.
+    """Moments over 21 taps from moments over 7 taps: blocks centred at offsets −7, 0, +7 ("valid", 14 shorter).
 
     Σ_{k in block c} k^p x = Σ_{k'=-3..3} (k' + c)^p x[i + c + k'], expanded binomially in the block's own
     moments M_q (q ≤ p) evaluated at i + c.
     """
     w = 2 * RADIUS_ANGLE + 1
-    n = next(iter(m.values())).shape[axis]
+    n = next(iter(m.values())).shape[axis] - 2 * w
 
-    def shifted(x, c):  # x[i + c], zero outside
-        pad = [(0, 0)] * x.ndim
-        pad[axis] = (w, w)
-        return jax.lax.slice_in_dim(jnp.pad(x, pad), w + c, w + c + n, axis=axis)
+    def at(x, c):  # x[i + c] on the output domain
+        return jax.lax.slice_in_dim(x, w + c, w + c + n, axis=axis)
 
     binom = {0: (1,), 1: (1, 1), 2: (1, 2, 1)}
     out = {}
     for p in powers:
-        total = m[p]
+        total = at(m[p], 0)
         for c in (-w, w):
             block = sum(binom[p][q] * float(c ** (p - q)) * m[q] for q in range(p + 1))
-            total = total + shifted(block, c)
+            total = total + at(block, c)
         out[p] = total
     return out
 
 
-def _moments(
-    x: jax.Array, spec: dict[int, tuple[int, ...]], wide: bool, token: jax.Array
-) -> dict[tuple[int, int], jax.Array]:
-    """Window sums Σ s^p t^q x over 7×7 (or 21×21 if ``wide``) windows of an ``(H, W)`` map, zero-padded.
+# Border the maps carry into the moment computation: 3 for the 7-tap pass, then 7 more for the 21-wide blocks.
+_BORDER = RADIUS_ANGLE + 2 * RADIUS_ANGLE + 1  # = RADIUS_GRAVITY
 
-    ``spec`` maps a column power p to the row powers q needed with it. s = column offset, t = row offset. Each
-    pass is materialised (see :func:`_materialise`).
+
+def _moments(
+    x: jax.Array, spec: dict[int, tuple[int, ...]], token: jax.Array
+) -> tuple[dict[tuple[int, int], jax.Array], dict[tuple[int, int], jax.Array]]:
+    """Window sums Σ s^p t^q x over 7×7 and over 21×21 windows of an ``(H, W)`` map, zero outside the image.
+
+    ``spec`` maps a column power p to the row powers q needed with it (s = column offset, t = row offset).
+    The map is zero-padded once by ``_BORDER``; every pass after that is a "valid" correlation that shrinks the
+    domain, so the 7-tap column pass is shared by both sizes and no stage pads again. The 7-wide blocks of a
+    border window are centred up to 7 pixels outside the image, where their own sums still see image pixels:
+    that is what the border is for. Each stage is materialised (see :func:`_materialise`).
     """
-    r = RADIUS_ANGLE
-    if wide:
-        # The 7-wide blocks of a border window are centred up to 7 pixels outside the image, where their own sums
-        # still see image pixels: compute them on a domain extended by 7 and crop at the end.
-        e = 2 * r + 1
-        x = jnp.pad(x, e)
+    r, e = RADIUS_ANGLE, 2 * RADIUS_ANGLE + 1
+    h, w = x.shape
+    xp = jnp.pad(x, _BORDER)
     col_powers = tuple(sorted(spec))
-    cols = _materialise(dict(zip(col_powers, _shift_correlate(x, r, col_powers, axis=1), strict=True)), token)
-    if wide:
-        cols = _materialise(_widen(cols, col_powers, axis=1), token)
-    out = {}
+    cols = _materialise(_correlate(xp, col_powers, axis=1), token)  # columns −7 … W+7
+    cols_wide = _materialise(_widen(cols, col_powers, axis=1), token)  # columns 0 … W
+    narrow, wide = {}, {}
     for p, row_powers in spec.items():
-        rows = dict(zip(row_powers, _shift_correlate(cols[p], r, row_powers, axis=0), strict=True))
-        if wide:
-            rows = {q: v[e:-e, e:-e] for q, v in _widen(rows, row_powers, axis=0).items()}
-        out.update({(p, q): v for q, v in rows.items()})
-    return _materialise(out, token)
+        # 7×7: rows −3 … H+3 of the columns 0 … W of the 7-tap column sums.
+        c7 = cols[p][_BORDER - r : _BORDER + h + r, e : e + w]
+        narrow.update({(p, q): v for q, v in _correlate(c7, row_powers, axis=0).items()})
+        rows = _materialise(_correlate(cols_wide[p], row_powers, axis=0), token)  # rows −7 … H+7
+        wide.update({(p, q): v for q, v in _widen(rows, row_powers, axis=0).items()})
+    return _materialise((narrow, wide), token)
 
 
 _SINGULAR_RTOL = 1e-5
@@ -167,25 +170,38 @@ _MASK_SPEC = {0: (0, 1, 2), 1: (0, 1), 2: (0,)}  # moments of the valid mask: 1,
 _WEIGHT_SPEC = {0: (0, 1), 1: (0,)}  # moments of 1/Z: 1, t, s
 
 
-def _fit_normals(w, fit_mask, a_c, b_c, z, fx, fy, token, wide):
-    """Unit normals (nx, ny, nz maps) of the least-squares plane in each window, oriented away from the camera.
+def _cofactors(mm: dict[tuple[int, int], jax.Array]):
+    """Adjugate of each window's symmetric system [[ss, st, s], [st, tt, t], [s, t, 1]] (mask moments only) and
+    whether the system is regular.
 
-    Returns the three component maps and the mask of windows that define a plane. Components are kept as separate
-    ``(H, W)`` maps rather than a stacked ``(H, W, 3)`` array: every step is then a plain elementwise loop that
-    XLA fuses, with no strided channel access.
+    A window defines a plane only if its valid pixels are not collinear (≥ 3 of them, spanning 2-D): otherwise
+    the moment matrix is singular and the reference's normal there is rounding noise. The pixel-offset moments
+    are small integers, so the singular case is an exact (relative) zero; well-posed windows sit far above.
+    Depends on the fit mask alone: for dense input it is computed once per batch.
     """
-    mm = _moments(fit_mask, _MASK_SPEC, wide, token)
-    mw = _moments(w, _WEIGHT_SPEC, wide, token)
     s_ss, s_st, s_s = mm[(2, 0)], mm[(1, 1)], mm[(1, 0)]
     s_tt, s_t, s_1 = mm[(0, 2)], mm[(0, 1)], mm[(0, 0)]
-    r_s, r_t, r_1 = mw[(1, 0)], mw[(0, 1)], mw[(0, 0)]
-    # Adjugate of the symmetric [[ss, st, s], [st, tt, t], [s, t, 1]] applied to the right-hand side.
     c00 = s_tt * s_1 - s_t * s_t
     c01 = s_s * s_t - s_st * s_1
     c02 = s_st * s_t - s_s * s_tt
     c11 = s_ss * s_1 - s_s * s_s
     c12 = s_st * s_s - s_ss * s_t
     c22 = s_ss * s_tt - s_st * s_st
+    det = s_ss * c00 + s_st * c01 + s_s * c02
+    regular = det > _SINGULAR_RTOL * s_ss * s_tt * s_1
+    return (c00, c01, c02, c11, c12, c22), regular
+
+
+def _fit_normals(cof, regular, mw, a_c, b_c, z, fx, fy, token):
+    """Unit normals (nx, ny, nz maps) of the least-squares plane in each window, oriented away from the camera.
+
+    ``cof``/``regular`` from :func:`_cofactors`, ``mw`` the window moments of 1/Z. Returns the three component
+    maps and the mask of windows that define a plane. Components are kept as separate ``(H, W)`` maps rather
+    than a stacked ``(H, W, 3)`` array: every step is then a plain elementwise loop that XLA fuses, with no
+    strided channel access.
+    """
+    c00, c01, c02, c11, c12, c22 = cof
+    r_s, r_t, r_1 = mw[(1, 0)], mw[(0, 1)], mw[(0, 0)]
     y1 = c00 * r_s + c01 * r_t + c02 * r_1
     y2 = c01 * r_s + c11 * r_t + c12 * r_1
     y3 = c02 * r_s + c12 * r_t + c22 * r_1
@@ -193,11 +209,7 @@ def _fit_normals(w, fit_mask, a_c, b_c, z, fx, fy, token, wide):
     x2 = y2 * fy
     x3 = y3 - x1 * a_c - x2 * b_c
     norm2 = x1 * x1 + x2 * x2 + x3 * x3
-    # A window defines a plane only if its valid pixels are not collinear (≥ 3 of them, spanning 2-D): otherwise
-    # the moment matrix is singular and the reference's normal there is rounding noise. The pixel-offset moments
-    # are small integers, so the singular case is an exact (relative) zero; well-posed windows sit far above.
-    det = s_ss * c00 + s_st * c01 + s_s * c02
-    ok = (det > _SINGULAR_RTOL * s_ss * s_tt * s_1) & (norm2 > 0)
+    ok = regular & (norm2 > 0)
     inv_norm = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, norm2, 1.0)), 0.0)
     # Orientation as the reference: first n_z >= 0, then n·p >= 0 with the unmasked point p = z·(a_c, b_c, 1).
     # Both signs combine into one factor; z > 0 drops out of the second test (z = 0 counts as +).
@@ -282,14 +294,24 @@ def _camera(depth_m: jax.Array, intrinsics: jax.Array):
     return valid, z, a_c, b_c
 
 
-def _normals_one(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array, token: jax.Array):
-    """One ``(H, W)`` image's 7×7 and 21×21 normals; ``fit_mask`` (float 0/1) marks the pixels the normal fits may
-    use; ``token`` is the unbatched scalar of :func:`_materialise`."""
+def _normals_one(depth_m: jax.Array, intrinsics: jax.Array, mask_terms, token: jax.Array):
+    """One ``(H, W)`` image's 7×7 and 21×21 normals. ``mask_terms``: :func:`_mask_terms` of its fit mask (the
+    pixels the normal fits may use); ``token`` is the unbatched scalar of :func:`_materialise`."""
+    fit_mask, (cof7, regular7), (cof21, regular21) = mask_terms
     _, z, a_c, b_c = _camera(depth_m, intrinsics)
     inv_z = fit_mask / jnp.where(fit_mask > 0, z, 1.0)
     fx, fy = intrinsics[0, 0], intrinsics[1, 1]
-    fit = functools.partial(_fit_normals, inv_z, fit_mask, a_c, b_c, z, fx, fy, token)
-    return fit(wide=False), fit(wide=True)
+    mw7, mw21 = _moments(inv_z, _WEIGHT_SPEC, token)
+    return (
+        _fit_normals(cof7, regular7, mw7, a_c, b_c, z, fx, fy, token),
+        _fit_normals(cof21, regular21, mw21, a_c, b_c, z, fx, fy, token),
+    )
+
+
+def _mask_terms(fit_mask: jax.Array, token: jax.Array):
+    """The fit mask and the cofactors of its 7×7 and 21×21 systems (the depth-independent half of the fits)."""
+    mm7, mm21 = _moments(fit_mask, _MASK_SPEC, token)
+    return fit_mask, _materialise(_cofactors(mm7), token), _materialise(_cofactors(mm21), token)
 
 
 def _finish_one(depth_m: jax.Array, intrinsics: jax.Array, normals, ok_angle: jax.Array, g: jax.Array) -> HHAResult:
@@ -331,8 +353,12 @@ def _encode_batch(depth_m: jax.Array, intrinsics: jax.Array, raw_depth_m: jax.Ar
         valid = jnp.isfinite(depth_m) & (depth_m > 0)
         fit_mask = (valid & (raw_depth_m != 0)).astype(depth_m.dtype)
         mask_axis = 0
+    if mask_axis is None:
+        mask_terms = _mask_terms(fit_mask, token)
+    else:
+        mask_terms = jax.vmap(_mask_terms, in_axes=(0, None))(fit_mask, token)
     (n_angle, ok_angle), n_gravity = jax.vmap(_normals_one, in_axes=(0, 0, mask_axis, None))(
-        depth_m, intrinsics, fit_mask, token
+        depth_m, intrinsics, mask_terms, token
     )
     # Gravity image by image (a loop over the batch, not vmap): each image's normals then stay in cache through
     # the ten passes, instead of every pass streaming the whole batch's normals through memory.
