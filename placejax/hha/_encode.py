@@ -238,7 +238,6 @@ def _gravity(normals: tuple[jax.Array, jax.Array, jax.Array], ok: jax.Array) -> 
     cos_t = jnp.asarray(np.cos(thresholds), dtype)
     sin_t = jnp.asarray(np.sin(thresholds), dtype)
     outer = jnp.stack([nx * nx, nx * ny, nx * nz, ny * ny, ny * nz, nz * nz])  # (6, P)
-    okf = ok.astype(dtype)
     hi = jax.lax.Precision.HIGHEST
 
     def step(i, y):
@@ -251,9 +250,10 @@ def _gravity(normals: tuple[jax.Array, jax.Array, jax.Array], ok: jax.Array) -> 
         _, vecs = jnp.linalg.eigh(a)
         new = vecs[:, 0]  # eigenvalues ascend: the smallest one's eigenvector
         new = new * jnp.where(new @ y < 0, -1.0, 1.0)
-        # Nothing selected: A = 0 has no preferred direction, so keep the current estimate.
-        selected = jnp.dot(okf, jnp.abs(weight), precision=hi)
-        return jnp.where(selected > 0, new, y)
+        # Nothing selected: A = 0 has no preferred direction, so keep the current estimate. A = 0 means exactly
+        # that, without a separate count: tr A = |W| − |F| (unit normals) would force |W| = |F| = k, and then
+        # yᵀAy = Σ_W c² − Σ_F c² < k sin²θ − k cos²θ ≤ 0 (θ ≤ 45°) unless k = 0.
+        return jnp.where(jnp.any(a != 0), new, y)
 
     return jax.lax.fori_loop(0, len(thresholds), step, jnp.array([0.0, 1.0, 0.0], dtype))
 
