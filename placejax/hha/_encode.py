@@ -13,7 +13,19 @@ computed so that float32 is enough and XLA can compile it once for a whole batch
   7-wide blocks of the 7×7 sums (Σ over a shifted block of (k + c)^p expands into the block's own moments), which
   costs a fraction of a direct 21-tap pass.
 * The gravity estimate is a ``lax.fori_loop`` over 5 + 5 iterations with fixed-shape floor/wall masks, so one
-  compiled function serves every image of a batch under ``vmap``.
+  compiled function serves every image of a batch.
+
+Performance (XLA CPU; measured on a loaded 2-core x86 machine, see ``benchmarks/hha_speed.py``):
+
+* Every stage is materialised with :func:`_materialise` (an identity ``lax.cond``): otherwise XLA fuses each
+  stage into all its consumers and recomputes it there (4× the work of the stages; ``optimization_barrier``
+  does not prevent this on CPU).
+* Maps are zero-padded once and every pass after that is a "valid" correlation: an explicit pad per stage is
+  materialised as a separate copy. The 7×7 and 21×21 moments share their column pass; the depth-independent
+  cofactors of the mask moments are computed once per call for dense input.
+* Gravity runs image by image (``lax.map``), so each image's normals stay in cache through the ten passes, and
+  each pass is one matrix-vector product against the precomputed entries of n nᵀ.
+* ``jnp.arccos`` (an ``atan2`` that does not vectorise) is replaced by a float32 polynomial of the same accuracy.
 """
 
 from __future__ import annotations
