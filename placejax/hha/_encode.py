@@ -355,7 +355,7 @@ def _finish_one(depth_m: jax.Array, intrinsics: jax.Array, normals, ok_angle: ja
 def _encode_batch(depth_m: jax.Array, intrinsics: jax.Array, raw_depth_m: jax.Array | None) -> HHAResult:
     """``depth_m (B, H, W)``, ``intrinsics (B, 3, 3)``, ``raw_depth_m (B, H, W)``, or ``None`` when the caller has
     checked that every depth is valid and nothing is missing."""
-    token = depth_m.reshape(-1)[0]  # any unbatched runtime scalar (see _materialise)
+    token = jnp.sum(depth_m.reshape(-1)[:1])  # any unbatched runtime scalar (see _materialise); 0 if empty
     if raw_depth_m is None:
         # The fit mask is then shared by the whole batch: vmap leaves an unbatched input unbatched, so its window
         # moments (half of the normal-fitting work) are computed once per call instead of once per image.
