@@ -142,6 +142,12 @@ def test_no_retracing_for_same_shapes():
     assert _encode._encode_batch._cache_size() == before
 
 
+def test_empty_batch():
+    k = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    assert hha.encode(np.ones((0, 24, 32)), k).shape == (0, 24, 32, 3)
+    assert hha.encode(np.ones((0, 24, 32)), k, np.ones((0, 24, 32))).shape == (0, 24, 32, 3)
+
+
 def test_stream_matches_batch_and_pads_the_last_batch():
     rng = np.random.default_rng(3)
     k = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
