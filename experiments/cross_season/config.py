@@ -92,13 +92,13 @@ def _base() -> ml_collections.ConfigDict:
         far_m=50.0,
         batch_size=64,
     )
-    c.vgg = dict(width=0.125, pretrained=False, weights="", dropout=0.5)
+    c.vgg = dict(width=0.125, pretrained=False, weights="", dropout=0.0)
     c.train = dict(
-        epochs=8,
+        epochs=6,
         batch_size=32,
-        learning_rate=0.01,
-        optimizer="sgd",
-        warmup_steps=50,
+        learning_rate=1e-3,
+        optimizer="adamw",
+        warmup_steps=20,
         weight_decay=5e-4,
         save_every=50,
     )
@@ -137,8 +137,8 @@ def get_config(preset: str = "default") -> ml_collections.ConfigDict:
             nclt_root="/data/nclt",
         )
         c.depth.update(source="midas", near_m=1.0, far_m=80.0, batch_size=32)
-        c.vgg.update(width=1.0, pretrained=True)
-        c.train.update(epochs=10, batch_size=64, learning_rate=1e-3, warmup_steps=0, save_every=200)
+        c.vgg.update(width=1.0, pretrained=True, dropout=0.5)
+        c.train.update(epochs=10, batch_size=64, learning_rate=1e-3, optimizer="sgd", warmup_steps=0, save_every=200)
         c.mlp.update(hidden=1024, epochs=30, batch_size=128, learning_rate=1e-3)
         c.eval.batch_size = 64
     return c
