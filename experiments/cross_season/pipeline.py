@@ -229,7 +229,14 @@ def _depth_source(ctx: Context) -> tuple[dict, Callable[[SessionData, int, int],
         return key, midas
     if c.source == "trained":
         # The placejax-trained depth network (issue 5), imported lazily: it trains once and caches itself.
-        from experiments.train_depth import ensure_depth_model
+        try:
+            from experiments.train_depth import ensure_depth_model
+        except ImportError as e:
+            raise RuntimeError(
+                "depth.source='trained' needs experiments.train_depth (the depth-network training, issue 5), "
+                f"which is not importable here ({e}); use depth.source=true (SimCampus rendered depth) or "
+                "depth.source=midas"
+            ) from e
 
         trained = ensure_depth_model(c.trained_preset, cache_root=Path(c.trained_cache) if c.trained_cache else None)
 
