@@ -1,10 +1,11 @@
 """Presets of the cross-season experiment as data (``ml_collections.ConfigDict``), overridable by ``key=value``.
 
 Presets:
-    smoke: SimCampus, 4 seasons × 48 frames at 32×32, a 3×3 grid, VGG16 at 1/16 width from scratch, rendered
-        depth; a couple of minutes at most on 2 CPU cores. Used by the tests.
-    default: SimCampus, 4 seasons at 64×64 (a frame every 2 m of travel, ~900–1200 per season), the 10×10 grid,
-        VGG16 at 1/8 width trained from scratch, the placejax-trained depth network (issue 5) as depth source.
+    smoke: SimCampus, 4 seasons with a frame every 40 m (45–60 frames) at 32×32, a 3×3 grid, VGG16 at 1/16
+        width from scratch, rendered depth; a couple of minutes at most on 2 CPU cores. Used by the tests.
+    default: SimCampus, 4 seasons at 48×48 (a frame every 2 m of travel, ~900–1200 per season), the 10×10
+        grid, VGG16 at 1/8 width trained from scratch (AdamW, 12 epochs), the placejax-trained depth network
+        (issue 5) as depth source.
     paper: NCLT 2012-01-22 / 03-31 / 08-04 / 11-17, Cam5, 256×256, ImageNet VGG16 at full width with frozen
         convolutions (features cached, fc6–fc8 trained), the official MiDaS v2.1 small, 100 classes, fusion MLP
         8192 → 1024 → 100 (paper §IV).
@@ -72,7 +73,7 @@ def _base() -> ml_collections.ConfigDict:
     c.data = dict(
         source="simcampus",
         sessions=("WI", "SP", "SU", "AU"),
-        image_size=(64, 64),
+        image_size=(48, 48),
         world_seed=0,
         frame_spacing=2.0,
         max_frames=0,
@@ -94,7 +95,7 @@ def _base() -> ml_collections.ConfigDict:
     )
     c.vgg = dict(width=0.125, pretrained=False, weights="", dropout=0.0)
     c.train = dict(
-        epochs=6,
+        epochs=12,
         batch_size=32,
         learning_rate=1e-3,
         optimizer="adamw",
