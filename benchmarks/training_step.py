@@ -1,0 +1,108 @@
+"""Training throughput of the cross-season nets on CPU: the default preset's VGG16 step and data feed.
+
+    python -m benchmarks.training_step [--repeats 5] [--steps 10]
+
+Times, as medians of ``--repeats`` runs of ``--steps`` steps each (after a warm-up that compiles):
+
+* ``vgg_step_1dev`` / ``vgg_step_2dev``: ``placejax.training.train_step`` of the default preset's VGG16 (width
+  1/8, 64 × 64, batch 32) on a 1-device mesh and on a 2-device mesh (batch axis sharded); the ratio column is
+  relative to the 1-device step.
+* ``epoch_batches`` vs ``grain_train_dataset``: producing one 32-frame batch with per-epoch NumPy permutations
+  (what the experiment uses) vs ``placejax.data.train_dataset``'s grain index shuffle (the baseline).
+* ``mlp_step``: the fusion MLP step (1024 hidden, 2 × 512-d embeddings, batch 64).
+
+Run with ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` for the 2-device row on CPU (set here when
+unset). Prints a table and writes ``benchmarks/results/training_step.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from benchmarks._report import median_seconds, print_table, write_json
+from placejax.data import train_dataset
+from placejax.models import VGG16, FusionMLP
+from placejax.training import (
+    apply_fn,
+    create_state,
+    data_mesh,
+    epoch_batches,
+    make_optimizer,
+    replicate,
+    shard_batch,
+    train_step,
+)
+
+
+def _steps(model, x_shape, mesh, steps: int, repeats: int) -> float:
+    params = jax.device_get(model.init(jax.random.key(0), jnp.zeros((1, *x_shape[1:])))["params"])
+    state = replicate(
+        create_state(apply_fn(model), params, make_optimizer("adamw"), learning_rate=1e-3, total_steps=10**6), mesh
+    )
+    rng = np.random.default_rng(0)
+    batch = shard_batch(
+        {
+            "x": rng.normal(size=x_shape).astype(np.float32),
+            "label": rng.integers(0, 100, x_shape[0]).astype(np.int32),
+            "valid": np.ones(x_shape[0], bool),
+        },
+        mesh,
+    )
+    key = jax.random.key(1)
+    holder = {"state": state}
+
+    def run():
+        s = holder["state"]
+        for _ in range(steps):
+            s, m = train_step(s, batch, key)
+        jax.block_until_ready(m)
+        holder["state"] = s
+
+    run()  # compile
+    med, _ = median_seconds(run, repeats)
+    return med / steps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=10)
+    args = parser.parse_args()
+    rows = []
+    vgg = VGG16(num_classes=100, width=0.125, dropout_rate=0.0)
+    one = _steps(vgg, (32, 64, 64, 3), data_mesh(1), args.steps, args.repeats)
+    rows.append({"case": "vgg_step_1dev", "ms": 1e3 * one, "ratio": 1.0})
+    if jax.device_count() >= 2:
+        two = _steps(vgg, (32, 64, 64, 3), data_mesh(2), args.steps, args.repeats)
+        rows.append({"case": "vgg_step_2dev", "ms": 1e3 * two, "ratio": two / one})
+    mlp = _steps(FusionMLP(num_classes=100, hidden=1024), (64, 1024), data_mesh(1), args.steps, args.repeats)
+    rows.append({"case": "mlp_step", "ms": 1e3 * mlp, "ratio": mlp / one})
+
+    n = 1000
+    frames = np.random.default_rng(0).integers(0, 256, (n, 64, 64, 3), dtype=np.uint8)
+    labels = np.arange(n, dtype=np.int32) % 100
+    grain_ds = train_dataset(frames, labels, batch_size=32, seed=0, num_epochs=1)
+    ours = epoch_batches(frames, labels, batch_size=32, seed=0, epochs=1)
+    k = len(ours)
+
+    def read(ds):
+        return lambda: [ds[i] for i in range(k)]
+
+    base, _ = median_seconds(read(grain_ds), args.repeats)
+    fast, _ = median_seconds(read(ours), args.repeats)
+    rows.append({"case": "grain_train_dataset_batch", "ms": 1e3 * base / k, "ratio": 1.0})
+    rows.append({"case": "epoch_batches_batch", "ms": 1e3 * fast / k, "ratio": fast / base})
+    print_table(rows, [("case", "case"), ("ms", "median ms"), ("ratio", "ratio to baseline")])
+    path = write_json("training_step", {"rows": rows, "repeats": args.repeats, "steps": args.steps})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,206 @@
+"""Presets of the cross-season experiment as data (``ml_collections.ConfigDict``), overridable by ``key=value``.
+
+Presets:
+    smoke: SimCampus, 4 seasons with a frame every 40 m (45–60 frames) at 32×32, a 3×3 grid, VGG16 at 1/16
+        width from scratch, rendered depth; a couple of minutes at most on 2 CPU cores. Used by the tests.
+    default: SimCampus, 4 seasons at 48×48 (a frame every 2 m of travel, ~900–1200 per season), the 10×10
+        grid, VGG16 at 1/8 width trained from scratch (AdamW, 12 epochs), the placejax-trained depth network
+        (issue 5) as depth source.
+    paper: NCLT 2012-01-22 / 03-31 / 08-04 / 11-17, Cam5, 256×256, ImageNet VGG16 at full width with frozen
+        convolutions (features cached, fc6–fc8 trained), the official MiDaS v2.1 small, 100 classes, fusion MLP
+        8192 → 1024 → 100 (paper §IV).
+"""
+
+from __future__ import annotations
+
+import ast
+
+import ml_collections
+
+PRESETS = ("smoke", "default", "paper")
+
+# Help text for every key, printed by --help.
+HELP: dict[str, str] = {
+    "data.source": "'simcampus' (built in) or 'nclt' (needs data.nclt_root)",
+    "data.sessions": "session names: SimCampus seasons (WI SP SU AU) or NCLT dates (YYYY-MM-DD)",
+    "data.image_size": "(H, W) of the cached upright images the networks see",
+    "data.world_seed": "SimCampus campus seed",
+    "data.frame_spacing": "SimCampus metres of travel between frames",
+    "data.max_frames": "truncate each session (0: whole session)",
+    "data.nclt_root": "NCLT root with images/, ground_truth/, ladybug3_calib/",
+    "data.camera": "NCLT Ladybug3 camera (5 faces forward)",
+    "data.undistort": "NCLT: remap with the official U2D tables",
+    "grid.n": "cells per axis of the place grid (n × n classes)",
+    "depth.source": "'trained' (placejax depth net, issue 5), 'midas' (official MiDaS v2.1 small), 'true' (rendered)",
+    "depth.midas_weights": "path of midas_v21_small_256.pt ('' = placejax.weights registry / download)",
+    "depth.midas_features": "MiDaS decoder width (64 official; smaller only for tests)",
+    "depth.midas_encoder_width": "MiDaS encoder channel multiplier (1.0 official)",
+    "depth.trained_preset": "preset of experiments.train_depth for depth.source='trained'",
+    "depth.trained_cache": "cache folder of the trained depth network ('' = its default)",
+    "depth.near_m": "metric depth assigned to the 98th percentile of inverse depth (m)",
+    "depth.far_m": "metric depth assigned to the 2nd percentile of inverse depth (m)",
+    "depth.batch_size": "images per depth-network / HHA call",
+    "vgg.width": "channel multiplier of VGG16 (1.0 = VGG16)",
+    "vgg.pretrained": "ImageNet weights: freeze the convs, cache their features, train fc6–fc8 only",
+    "vgg.weights": "path of torchvision vgg16-397923af.pth ('' = registry / download)",
+    "vgg.dropout": "dropout after fc6 and fc7",
+    "train.epochs": "epochs of each VGG16 place classifier",
+    "train.batch_size": "global batch (divisible by the device count)",
+    "train.learning_rate": "peak learning rate (cosine decay)",
+    "train.optimizer": "'sgd' (momentum 0.9) or 'adamw'",
+    "train.warmup_steps": "linear warmup steps",
+    "train.weight_decay": "L2 / decoupled weight decay",
+    "train.save_every": "steps between orbax checkpoints",
+    "mlp.hidden": "hidden units of the fusion MLP (1024 in the paper)",
+    "mlp.dropout": "dropout on the MLP hidden layer",
+    "mlp.epochs": "epochs of the fusion MLP",
+    "mlp.batch_size": "fusion MLP batch",
+    "mlp.learning_rate": "fusion MLP peak learning rate (AdamW)",
+    "mlp.save_every": "MLP steps between orbax checkpoints",
+    "eval.batch_size": "inference batch (divisible by the device count)",
+    "ablations.depth1": "also train a net on the 1-channel depth image (the HHA disparity channel ×3)",
+    "ablations.average": "also report equal-weight averaging of RGB-Net and HHA-Net softmax outputs",
+    "seed": "seed of initialisation, shuffling and dropout",
+    "devices": "devices of the data mesh (0: all)",
+    "figures": "write the figures",
+    "progress": "show progress bars",
+}
+
+
+def _base() -> ml_collections.ConfigDict:
+    c = ml_collections.ConfigDict()
+    c.preset = ""
+    c.data = dict(
+        source="simcampus",
+        sessions=("WI", "SP", "SU", "AU"),
+        image_size=(48, 48),
+        world_seed=0,
+        frame_spacing=2.0,
+        max_frames=0,
+        nclt_root="",
+        camera=5,
+        undistort=False,
+    )
+    c.grid = dict(n=10)
+    c.depth = dict(
+        source="trained",
+        midas_weights="",
+        midas_features=64,
+        midas_encoder_width=1.0,
+        trained_preset="default",
+        trained_cache="",
+        near_m=1.0,
+        far_m=50.0,
+        batch_size=64,
+    )
+    c.vgg = dict(width=0.125, pretrained=False, weights="", dropout=0.0)
+    c.train = dict(
+        epochs=12,
+        batch_size=32,
+        learning_rate=1e-3,
+        optimizer="adamw",
+        warmup_steps=20,
+        weight_decay=5e-4,
+        save_every=50,
+    )
+    c.mlp = dict(hidden=1024, dropout=0.0, epochs=20, batch_size=64, learning_rate=1e-3, save_every=200)
+    c.eval = dict(batch_size=128)
+    c.ablations = dict(depth1=True, average=True)
+    c.seed = 0
+    c.devices = 0
+    c.figures = True
+    c.progress = True
+    return c
+
+
+def get_config(preset: str = "default") -> ml_collections.ConfigDict:
+    """The configuration of a preset (a fresh, mutable ConfigDict)."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {PRESETS}")
+    c = _base()
+    c.preset = preset
+    if preset == "smoke":
+        # A frame every 40 m covers each season's whole route in ~50 frames, so sessions share places.
+        c.data.image_size = (32, 32)
+        c.data.frame_spacing = 40.0
+        c.grid.n = 3
+        c.depth.source = "true"
+        c.vgg.width = 1 / 16
+        c.train.update(epochs=4, batch_size=16, warmup_steps=2, save_every=6, learning_rate=1e-3, optimizer="adamw")
+        c.mlp.update(hidden=64, epochs=10, batch_size=16, save_every=20)
+        c.eval.batch_size = 32
+    elif preset == "paper":
+        c.data.update(
+            source="nclt",
+            sessions=("2012-01-22", "2012-03-31", "2012-08-04", "2012-11-17"),
+            image_size=(256, 256),
+            frame_spacing=0.0,
+            nclt_root="/data/nclt",
+        )
+        c.depth.update(source="midas", near_m=1.0, far_m=80.0, batch_size=32)
+        c.vgg.update(width=1.0, pretrained=True, dropout=0.5)
+        c.train.update(epochs=10, batch_size=64, learning_rate=1e-3, optimizer="sgd", warmup_steps=0, save_every=200)
+        c.mlp.update(hidden=1024, epochs=30, batch_size=128, learning_rate=1e-3)
+        c.eval.batch_size = 64
+    return c
+
+
+def _leaf_keys(c: ml_collections.ConfigDict, prefix: str = "") -> list[str]:
+    keys = []
+    for k, v in c.items():
+        if isinstance(v, ml_collections.ConfigDict):
+            keys += _leaf_keys(v, f"{prefix}{k}.")
+        else:
+            keys.append(f"{prefix}{k}")
+    return keys
+
+
+def leaf_keys(c: ml_collections.ConfigDict) -> list[str]:
+    """Dotted names of every overridable value."""
+    return _leaf_keys(c)
+
+
+def _parse(text: str, old):
+    if isinstance(old, str):
+        return text
+    try:
+        value = ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        raise ValueError(f"cannot parse {text!r} as a Python literal") from None
+    if isinstance(old, bool):
+        if not isinstance(value, bool):
+            raise ValueError(f"expected True or False, got {text!r}")
+    elif isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    elif isinstance(old, tuple):
+        value = tuple(value) if isinstance(value, list | tuple) else (value,)
+    elif type(value) is not type(old):
+        raise ValueError(f"expected {type(old).__name__}, got {type(value).__name__} {text!r}")
+    return value
+
+
+def apply_overrides(c: ml_collections.ConfigDict, overrides: list[str]) -> ml_collections.ConfigDict:
+    """Applies ``key=value`` overrides (``train.epochs=3``, ``data.sessions=('WI','SU')``) in place.
+
+    Values are Python literals checked against the type of the preset's value; strings need no quotes.
+
+    Raises:
+        ValueError: a malformed override, an unknown key (the message lists the known ones) or a wrong type.
+    """
+    known = leaf_keys(c)
+    for item in overrides:
+        if "=" not in item:
+            raise ValueError(f"override {item!r} is not key=value")
+        key, text = item.split("=", 1)
+        key = key.strip()
+        if key not in known:
+            raise ValueError(f"unknown config key {key!r}; known keys: {', '.join(known)}")
+        *parents, leaf = key.split(".")
+        node = c
+        for p in parents:
+            node = node[p]
+        try:
+            node[leaf] = _parse(text, node[leaf])
+        except ValueError as e:
+            raise ValueError(f"override {key}: {e}") from None
+    return c

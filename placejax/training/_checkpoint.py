@@ -1,0 +1,58 @@
+"""orbax checkpoints of a TrainState: saved every k steps, the latest restored on rerun."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import orbax.checkpoint as ocp
+
+from placejax.training._state import TrainState, abstract_like
+
+
+class Checkpointer:
+    """A thin ``orbax.checkpoint.CheckpointManager`` for one training run.
+
+    Saves ``{"params", "opt_state", "step"}`` (the static ``apply_fn``/``tx`` are rebuilt by the caller). orbax
+    writes each step to a temporary folder and renames it when complete, so a kill mid-save leaves the previous
+    step as the latest. Saving is synchronous: the next step may donate the state's buffers.
+
+    Args:
+        directory: checkpoint folder (created).
+        max_to_keep: checkpoints kept (the last one always).
+    """
+
+    def __init__(self, directory: str | os.PathLike, *, max_to_keep: int = 2):
+        self.directory = Path(directory).absolute()
+        options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True, enable_async_checkpointing=False)
+        self._manager = ocp.CheckpointManager(self.directory, options=options)
+
+    def latest_step(self) -> int | None:
+        return self._manager.latest_step()
+
+    def save(self, state: TrainState) -> None:
+        step = int(state.step)
+        if self._manager.latest_step() == step:
+            return
+        item = {"params": state.params, "opt_state": state.opt_state, "step": state.step}
+        self._manager.save(step, args=ocp.args.StandardSave(item), force=True)
+        self._manager.wait_until_finished()
+
+    def restore(self, template: TrainState, step: int | None = None) -> TrainState:
+        """The checkpoint at ``step`` (default latest) in the structure, dtypes and shardings of ``template``."""
+        step = self._manager.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint under {self.directory}")
+        abstract = abstract_like(template)
+        target = {"params": abstract.params, "opt_state": abstract.opt_state, "step": abstract.step}
+        item = self._manager.restore(step, args=ocp.args.StandardRestore(target))
+        return template.replace(params=item["params"], opt_state=item["opt_state"], step=item["step"])
+
+    def close(self) -> None:
+        self._manager.close()
+
+    def __enter__(self) -> Checkpointer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

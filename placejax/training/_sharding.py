@@ -1,0 +1,75 @@
+"""Data parallelism with ``jax.sharding``: a 1-D mesh over devices, batch axis sharded, parameters replicated."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+DATA_AXIS = "data"
+
+# Environment variables that mean "this process is one of several launched together".
+_MULTI_HOST_ENV = ("JAX_COORDINATOR_ADDRESS", "COORDINATOR_ADDRESS")
+
+
+def initialize_distributed() -> bool:
+    """Calls ``jax.distributed.initialize()`` when the process was launched as part of a multi-host job.
+
+    Detected by ``JAX_COORDINATOR_ADDRESS`` (with ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``) or by a cluster
+    environment JAX recognises itself (SLURM, Open MPI, Cloud TPU) through ``JAX_DISTRIBUTED=1``. Must run before
+    any other JAX call. Returns whether it initialised.
+    """
+    explicit = os.environ.get("JAX_COORDINATOR_ADDRESS")
+    if explicit:
+        jax.distributed.initialize(
+            coordinator_address=explicit,
+            num_processes=int(os.environ["JAX_NUM_PROCESSES"]),
+            process_id=int(os.environ["JAX_PROCESS_ID"]),
+        )
+        return True
+    if os.environ.get("JAX_DISTRIBUTED") == "1":
+        jax.distributed.initialize()  # cluster auto-detection
+        return True
+    return False
+
+
+def data_mesh(devices: Sequence[jax.Device] | int | None = None) -> Mesh:
+    """A 1-D mesh with axis ``"data"``.
+
+    Args:
+        devices: the devices, or how many of ``jax.devices()`` to use; default all (every process's, so a
+            multi-host run spans all hosts).
+    """
+    if devices is None:
+        devices = jax.devices()
+    elif isinstance(devices, int):
+        if not 1 <= devices <= jax.device_count():
+            raise ValueError(f"asked for {devices} devices, {jax.device_count()} available")
+        devices = jax.devices()[:devices]
+    return Mesh(np.asarray(devices), (DATA_AXIS,))
+
+
+def replicate(tree: Any, mesh: Mesh) -> Any:
+    """Places every leaf on every device of the mesh (parameters, optimiser state)."""
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+def shard_batch(batch: dict[str, np.ndarray], mesh: Mesh) -> dict[str, jax.Array]:
+    """Turns this process's part of a batch into global arrays sharded along the batch axis.
+
+    Each process passes its own rows (``(B_local, ...)``); the global batch is their concatenation in process
+    order. ``B_local`` must be divisible by the process's local device count.
+    """
+    sharding = NamedSharding(mesh, PartitionSpec(DATA_AXIS))
+    n_local = len(mesh.local_devices)
+    out = {}
+    for k, v in batch.items():
+        v = np.asarray(v)
+        if v.shape[0] % n_local:
+            raise ValueError(f"batch field {k!r}: {v.shape[0]} rows do not split over {n_local} local devices")
+        out[k] = jax.make_array_from_process_local_data(sharding, v)
+    return out

@@ -1,0 +1,188 @@
+"""End to end: ``python -m experiments.cross_season`` on the smoke preset, resume after a kill, the paper path."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from experiments.cross_season import apply_overrides, get_config, run
+from placejax.data import PlaceGrid, open_array_cache
+
+REPO = Path(__file__).resolve().parents[1]
+SEASONS = ("WI", "SP", "SU", "AU")
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("smoke")
+    cfg = get_config("smoke")
+    cfg.progress = False
+    return workdir, run(cfg, workdir)
+
+
+def _accuracies(results: dict) -> dict:
+    methods = ("ours", "rgb_net", "hha_net", "depth1_net", "average")
+    return {(p["train"], p["test"]): tuple(p[m] for m in methods) for p in results["pairs"]}
+
+
+def test_smoke_table_and_results(smoke):
+    workdir, results = smoke
+    assert json.loads((workdir / "results.json").read_text()) == json.loads(json.dumps(results))
+    # All 12 ordered pairs of distinct sessions, each once.
+    assert sorted((p["train"], p["test"]) for p in results["pairs"]) == sorted(itertools.permutations(SEASONS, 2))
+    for key in ("config", "versions", "seeds", "timings_s", "mean", "grid"):
+        assert key in results
+    for stage in ("sessions", "depth", "hha", "nets", "outputs", "mlp", "evaluate"):
+        assert results["timings_s"][stage] >= 0
+    table = (workdir / "table.md").read_text().splitlines()
+    assert table[0].split("|")[1:8] == [" train ", " test ", " Ours ", " RGB-Net ", " gain ", " HHA-Net ", " gain "]
+    rows = [r for r in table[2:] if r.startswith("|")]
+    assert len(rows) == 13 and rows[-1].startswith("| **mean**")
+    for p, r in zip(results["pairs"], rows, strict=False):
+        cells = [c.strip() for c in r.strip("|").split("|")]
+        assert cells[:2] == [p["train"], p["test"]]
+        assert float(cells[2]) == pytest.approx(100 * p["ours"], abs=0.051)
+        assert float(cells[4]) == pytest.approx(100 * (p["ours"] - p["rgb_net"]), abs=0.11)
+    for name in ("workspace_map", "samples", "depth_hha", "examples", "accuracy"):
+        assert (workdir / "figures" / f"{name}.png").stat().st_size > 1000
+
+
+def test_smoke_accuracies_are_real(smoke):
+    """Accuracies recomputed independently from the cached network outputs and the saved grid."""
+    workdir, results = smoke
+    grid = PlaceGrid.load(workdir / "grid.json")
+    caches = workdir / "cache"
+    labels = {}
+    for s in SEASONS:
+        (rgb,) = [d for d in caches.iterdir() if re.fullmatch(rf"{s}-rgb32x32-[0-9a-f]{{16}}", d.name)]
+        labels[s] = grid.label(open_array_cache(rgb).extras["poses"])
+    c = results["num_classes"]
+    for p in results["pairs"]:
+        assert len(labels[p["test"]]) == p["n_test"]
+        for m in ("rgb", "hha", "depth1"):
+            (d,) = [d for d in caches.iterdir() if d.name.startswith(f"{p['train']}-{m}-on-{p['test']}-")]
+            logits = np.asarray(open_array_cache(d).data)[:, :c]
+            assert p[f"{m}_net"] == pytest.approx(np.mean(logits.argmax(1) == labels[p["test"]]))
+        seen = np.isin(labels[p["test"]], np.unique(labels[p["train"]]))
+        assert p["seen_class_fraction"] == pytest.approx(seen.mean())
+        for m in ("ours", "rgb_net", "hha_net", "depth1_net", "average"):
+            # Frames of classes the training session never visited can only be errors.
+            assert 0.0 <= p[m] <= p["seen_class_fraction"] + 1e-9
+            assert p[m] * p["n_test"] == pytest.approx(round(p[m] * p["n_test"]))
+    for m, v in results["mean"].items():
+        assert v == pytest.approx(np.mean([p[m] for p in results["pairs"]]))
+
+
+def _cli(workdir: Path, *extra: str) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "experiments.cross_season",
+        "--preset",
+        "smoke",
+        "--workdir",
+        str(workdir),
+        "progress=False",
+        "figures=False",
+        *extra,
+    ]
+
+
+def test_killed_run_resumes_to_the_same_accuracies(smoke, tmp_path):
+    """SIGKILL during network training, rerun the same command: same accuracies as the uninterrupted run."""
+    _, uninterrupted = smoke
+    workdir = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache")}
+    proc = subprocess.Popen(_cli(workdir), cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    nets = workdir / "nets"
+    deadline = time.monotonic() + 400
+    try:
+        # Kill once the second network has its first checkpoint: mid-stage, caches complete, one net finished.
+        while time.monotonic() < deadline and proc.poll() is None:
+            steps = [p for p in nets.glob("*/*") if p.name.isdigit()] if nets.exists() else []
+            if len({p.parent for p in steps}) >= 2:
+                break
+            time.sleep(0.2)
+        assert proc.poll() is None, f"run ended before it could be killed: {proc.stderr.read().decode()[-2000:]}"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert not (workdir / "results.json").exists()
+    done = subprocess.run(_cli(workdir), cwd=REPO, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    resumed = json.loads((workdir / "results.json").read_text())
+    assert _accuracies(resumed) == _accuracies(uninterrupted)
+
+
+def test_paper_path_on_fake_nclt(tmp_path, shared_dir):
+    """The paper preset's code path (NCLT reader, official-format MiDaS and VGG16 files, frozen convs with
+    cached features, MLP) on a tiny fake NCLT tree with random weights."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fake_nclt import make_fake_nclt
+
+    dates = ["2012-01-22", "2012-03-31", "2012-08-04", "2012-11-17"]
+    fake = make_fake_nclt(tmp_path / "nclt", dates, n_frames=12, stored_hw=(40, 32))
+    weights = tmp_path / "weights"
+    script = Path(__file__).parent / "torch_refs" / "make_random_official_weights.py"
+    fixture = shared_dir / "fixtures" / "midas_small" / "weights_fp16.npz"
+    subprocess.run([sys.executable, str(script), str(weights), str(fixture), "0.0625"], check=True)
+    cfg = get_config("paper")
+    apply_overrides(
+        cfg,
+        [
+            f"data.nclt_root={fake.root}",
+            "data.image_size=(32, 32)",
+            f"depth.midas_weights={weights / 'midas_random.pt'}",
+            "depth.batch_size=8",
+            "vgg.width=0.0625",
+            f"vgg.weights={weights / 'vgg16_random.pth'}",
+            "grid.n=3",
+            "train.epochs=2",
+            "train.batch_size=4",
+            "mlp.hidden=16",
+            "mlp.epochs=2",
+            "mlp.batch_size=4",
+            "eval.batch_size=4",
+            "progress=False",
+            "figures=False",
+        ],
+    )
+    results = run(cfg, tmp_path / "work")
+    assert results["preset"] == "paper" and results["config"]["data"]["source"] == "nclt"
+    assert sorted(p["test"] for p in results["pairs"]) == sorted(d for d in dates for _ in range(3))
+    assert {s: v["frames"] for s, v in results["sessions"].items()} == {d: fake.sessions[d].n_kept for d in dates}
+    feats = [d for d in (tmp_path / "work" / "cache").iterdir() if "-convfeat-" in d.name and d.is_dir()]
+    assert len(feats) == 4 * 3  # sessions × (rgb, hha, depth1), frozen ImageNet-style trunk
+    assert open_array_cache(feats[0]).data.shape[1:] == (7, 7, 32)
+    for p in results["pairs"]:
+        assert 0.0 <= p["ours"] <= p["seen_class_fraction"] + 1e-9
+
+
+def test_bad_overrides_are_explained():
+    cfg = get_config("smoke")
+    with pytest.raises(ValueError, match=r"unknown config key 'train\.epoch'.*train\.epochs"):
+        apply_overrides(cfg, ["train.epoch=3"])
+    with pytest.raises(ValueError, match=r"train\.epochs: expected int, got float"):
+        apply_overrides(cfg, ["train.epochs=1.5"])
+    with pytest.raises(ValueError, match="cannot parse 'three'"):
+        apply_overrides(cfg, ["train.epochs=three"])
+    with pytest.raises(ValueError, match="not key=value"):
+        apply_overrides(cfg, ["train.epochs"])
+    done = subprocess.run(
+        [sys.executable, "-m", "experiments.cross_season", "--help"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    assert done.returncode == 0 and "depth.source" in done.stdout and "--preset" in done.stdout
