@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import sys
 import time
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from placejax import depth
+from placejax.data._atomic import write_bytes, write_json
 
 _PLACEJAX_CACHE = "PLACEJAX_CACHE"
 
@@ -91,8 +91,8 @@ def write_report(trained: depth.TrainedDepth, workdir: Path, *, progress: bool =
         "per_season": report,
         "eval_seconds": time.perf_counter() - t0,
     }
-    _atomic_write(workdir / "depth_eval.json", json.dumps(payload, indent=2))
-    _atomic_write(workdir / "depth_eval.md", report_markdown(report))
+    write_json(workdir / "depth_eval.json", payload)
+    write_bytes(workdir / "depth_eval.md", report_markdown(report).encode())
     _figure(trained, frames, workdir / "depth_eval.png")
     return payload
 
@@ -145,12 +145,6 @@ def _figure(trained: depth.TrainedDepth, frames: dict, path: Path, n_examples: i
     tmp = path.with_suffix(".tmp.png")
     fig.savefig(tmp, dpi=80)
     plt.close(fig)
-    os.replace(tmp, path)
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
     os.replace(tmp, path)
 
 

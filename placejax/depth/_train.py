@@ -24,12 +24,11 @@ import optax
 import orbax.checkpoint as ocp
 import tqdm
 from flax import struct
-from jax.sharding import Mesh, NamedSharding
-from jax.sharding import PartitionSpec as P
 
 from placejax.depth._inference import IMAGENET_MEAN, IMAGENET_STD
 from placejax.depth._losses import midas_loss
 from placejax.models import MidasSmall
+from placejax.training import data_mesh, replicate, shard_batch
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,10 +253,9 @@ def train(
     devices = list(jax.local_devices()) if devices is None else devices
     if cfg.batch_size % len(devices):
         raise ValueError(f"batch_size {cfg.batch_size} must be divisible by the {len(devices)} devices")
-    mesh = Mesh(np.asarray(devices), ("data",))
-    replicated, sharded = NamedSharding(mesh, P()), NamedSharding(mesh, P("data"))
+    mesh = data_mesh(devices)
 
-    state = jax.device_put(init_state(cfg), replicated)
+    state = replicate(init_state(cfg), mesh)
     mngr = _checkpoint_manager(workdir, cfg)
     start = mngr.latest_step()
     if start is not None:
@@ -272,7 +270,7 @@ def train(
     with tqdm.trange(start, last, desc="depth training", unit="step", disable=not progress) as bar:
         for step in bar:
             idx = batch_indices(cfg, step)
-            batch = {k: jax.device_put(frames[k][idx], sharded) for k in ("rgb", "depth", "sky")}
+            batch = shard_batch({k: frames[k][idx] for k in ("rgb", "depth", "sky")}, mesh)
             state, metrics = train_step(state, batch, jax.random.fold_in(root_key, step), cfg)
             if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == last:
                 mngr.save(step + 1, args=ocp.args.StandardSave(state))
