@@ -83,6 +83,28 @@ def test_smoke_accuracies_are_real(smoke):
         assert v == pytest.approx(np.mean([p[m] for p in results["pairs"]]))
 
 
+def test_shuffled_labels_score_at_chance(smoke, tmp_path):
+    """Control: the same run with every training label permuted across its session's frames (histogram kept,
+    image–label link broken) is scored against the true labels: it must fall to chance where the real run has
+    learnt its training sessions, so the accuracies come from what the networks learnt from the images."""
+    _, real = smoke
+    cfg = get_config("smoke")
+    apply_overrides(cfg, ["train.shuffle_labels=True", "ablations.depth1=False", "progress=False", "figures=False"])
+    shuffled = run(cfg, tmp_path / "shuffled")
+    grid = PlaceGrid.load(tmp_path / "shuffled" / "grid.json")
+    for method in ("rgb_net", "hha_net", "ours"):
+        real_acc = np.mean([r[method] for r in real["same_session"]])
+        shuffled_acc = np.mean([r[method] for r in shuffled["same_session"]])
+        assert real_acc > shuffled_acc + 0.2, (method, real_acc, shuffled_acc)
+    for r in shuffled["same_session"]:
+        # Chance for a net that ignores the image: at most the share of the session's most frequent class.
+        caches = tmp_path / "shuffled" / "cache"
+        (d,) = [d for d in caches.iterdir() if re.fullmatch(rf"{r['train']}-rgb32x32-[0-9a-f]{{16}}", d.name)]
+        labels = grid.label(open_array_cache(d).extras["poses"])
+        majority = np.bincount(labels[labels >= 0]).max() / len(labels)
+        assert r["rgb_net"] <= majority + 0.1, (r, majority)
+
+
 def _cli(workdir: Path, *extra: str) -> list[str]:
     return [
         sys.executable,

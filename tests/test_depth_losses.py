@@ -112,3 +112,12 @@ def test_metrics_perfect_and_baseline(batch):
     constant = M.depth_metrics(jnp.ones_like(target_inv), depth, mask)
     assert np.all(np.asarray(constant["abs_rel"]) > 0.1)
     assert np.all(np.asarray(constant["delta1"]) < 0.9)
+
+
+def test_midas_loss_passes_the_trim_share(batch):
+    pred, target, mask = batch
+    grad = L.gradient_matching(pred, target, mask, 4, robust=True)
+    for trim in (0.0, 0.2, 0.5):
+        want = L.ssi_trimmed_mae(pred, target, mask, trim) + 0.5 * grad
+        np.testing.assert_allclose(L.midas_loss(pred, target, mask, trim=trim), want, rtol=1e-6)
+    assert L.midas_loss(pred, target, mask, trim=0.5) < L.midas_loss(pred, target, mask, trim=0.0)

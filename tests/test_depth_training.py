@@ -85,3 +85,18 @@ def test_baselines_and_overrides():
         train_depth.parse_overrides(CFG, ["nonsense=1"])
     with pytest.raises(ValueError, match="multiple of 32"):
         dataclasses.replace(CFG, image_size=40)
+
+
+def test_targets_put_sky_at_infinite_distance():
+    from placejax.depth._train import targets
+
+    d = np.array([[[2.0, 100.0, np.inf, 4.0, 0.0]]], np.float32)
+    sky = np.array([[[False, False, False, True, False]]])
+    inv, mask = targets(d, sky, 80.0, sky_in_loss=True)
+    np.testing.assert_allclose(inv, [[[0.5, 0.01, 0.0, 0.0, 0.0]]], rtol=1e-6)
+    np.testing.assert_array_equal(mask, [[[1, 1, 0, 1, 0]]])
+    inv, mask = targets(d, sky, 80.0, sky_in_loss=False)  # sky and beyond max_depth_m masked out
+    np.testing.assert_allclose(inv, [[[0.5, 0.0, 0.0, 0.0, 0.0]]])
+    np.testing.assert_array_equal(mask, [[[1, 0, 0, 0, 0]]])
+    with pytest.raises(ValueError, match="trim"):
+        dataclasses.replace(CFG, trim=1.0)

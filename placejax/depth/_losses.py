@@ -148,6 +148,7 @@ def midas_loss(
     variant: str = "trimmed",
     alpha: float = 0.5,
     scales: int = 4,
+    trim: float = 0.2,
 ) -> jax.Array:
     """The full training objective L = L_ssi + α·L_reg (eq. 3), α = 0.5 and 4 scales as in the paper.
 
@@ -156,9 +157,10 @@ def midas_loss(
         variant: ``"trimmed"`` (ssitrim, robust normalisation) or ``"mse"`` (ssimse, least-squares alignment).
         alpha: weight of the gradient-matching term.
         scales: number of scales of the gradient-matching term.
+        trim: share of the largest residuals left out of the ``"trimmed"`` data term (0 gives ssimae).
     """
     if variant == "trimmed":
-        data = ssi_trimmed_mae(pred, target, mask)
+        data = ssi_trimmed_mae(pred, target, mask, trim)
     elif variant == "mse":
         data = ssi_mse(pred, target, mask)
     else:

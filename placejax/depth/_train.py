@@ -48,7 +48,12 @@ class DepthTrainConfig:
         weight_decay: AdamW weight decay.
         loss: ``"trimmed"`` (ssitrim) or ``"mse"`` (ssimse); plus the gradient-matching term.
         alpha: weight of the gradient-matching term (0.5 in the paper).
-        max_depth_m: pixels farther than this (and sky) are masked out of the loss.
+        trim: share of each image's largest residuals left out of the "trimmed" loss (MiDaS: 0.2, for noisy
+            ground truth). Rendered depth is exact, and trimming then discards exactly the pixels the net gets
+            most wrong — at CPU scale, every object above the horizon, which it learns to flatten into the sky.
+        sky_in_loss: sky pixels enter the loss with inverse depth 0 (infinitely far), so the net must tell sky
+            from objects; otherwise sky and pixels beyond ``max_depth_m`` are masked out.
+        max_depth_m: with ``sky_in_loss=False``, pixels farther than this (and sky) are masked out of the loss.
         seed: data order, augmentation and initialisation.
         checkpoint_every: steps between checkpoints.
         eval_frames: evaluation-campus frames per season for the report.
@@ -66,6 +71,8 @@ class DepthTrainConfig:
     warmup_steps: int = 50
     weight_decay: float = 1e-4
     loss: str = "trimmed"
+    trim: float = 0.0
+    sky_in_loss: bool = True
     alpha: float = 0.5
     max_depth_m: float = 80.0
     seed: int = 0
@@ -78,6 +85,8 @@ class DepthTrainConfig:
             raise ValueError(f"image_size must be a multiple of 32, got {self.image_size}")
         if self.loss not in ("trimmed", "mse"):
             raise ValueError(f"loss must be 'trimmed' or 'mse', got {self.loss!r}")
+        if not 0.0 <= self.trim < 1.0:
+            raise ValueError(f"trim must be in [0, 1), got {self.trim}")
         if self.steps < 1 or self.batch_size < 1 or self.frames < self.batch_size:
             raise ValueError("need steps >= 1, batch_size >= 1 and frames >= batch_size")
 
@@ -150,10 +159,21 @@ def normalise(rgb_uint8: jax.Array) -> jax.Array:
     return (x - mean) / std
 
 
-def targets(depth_m: jax.Array, sky: jax.Array, max_depth_m: float) -> tuple[jax.Array, jax.Array]:
-    """Inverse-depth targets and the loss mask (sky, non-finite and too-far pixels out)."""
-    mask = (~sky) & jnp.isfinite(depth_m) & (depth_m > 0) & (depth_m < max_depth_m)
-    inv = jnp.where(mask, 1.0 / jnp.where(mask, depth_m, 1.0), 0.0)
+def targets(
+    depth_m: jax.Array, sky: jax.Array, max_depth_m: float, sky_in_loss: bool = False
+) -> tuple[jax.Array, jax.Array]:
+    """Inverse-depth targets and the loss mask.
+
+    ``sky_in_loss=False``: sky, non-finite and too-far pixels are masked out. ``sky_in_loss=True``: sky is a
+    target at inverse depth 0 and every finite positive depth counts (non-finite depth stays out).
+    """
+    finite = jnp.isfinite(depth_m) & (depth_m > 0)
+    if sky_in_loss:
+        mask = sky | finite
+        hit = (~sky) & finite
+    else:
+        mask = hit = (~sky) & finite & (depth_m < max_depth_m)
+    inv = jnp.where(hit, 1.0 / jnp.where(hit, depth_m, 1.0), 0.0)
     return inv, mask.astype(jnp.float32)
 
 
@@ -175,7 +195,7 @@ def train_step(state: TrainState, batch: dict[str, jax.Array], key: jax.Array, c
     """One AdamW step on L = L_ssi + α·L_grad. ``batch``: ``rgb`` uint8 (B,H,W,3), ``depth`` (B,H,W), ``sky``."""
     model = cfg.model()
     x = normalise(batch["rgb"])
-    inv, mask = targets(batch["depth"], batch["sky"], cfg.max_depth_m)
+    inv, mask = targets(batch["depth"], batch["sky"], cfg.max_depth_m, cfg.sky_in_loss)
     # Horizontal flips: a scene and its mirror image have mirrored depth.
     flip = jax.random.bernoulli(key, 0.5, (x.shape[0],))
     x = jnp.where(flip[:, None, None, None], x[:, :, ::-1], x)
@@ -186,7 +206,7 @@ def train_step(state: TrainState, batch: dict[str, jax.Array], key: jax.Array, c
         pred, updates = model.apply(
             {"params": params, "batch_stats": state.batch_stats}, x, train=True, mutable=["batch_stats"]
         )
-        return midas_loss(pred, inv, mask, variant=cfg.loss, alpha=cfg.alpha), updates["batch_stats"]
+        return midas_loss(pred, inv, mask, variant=cfg.loss, alpha=cfg.alpha, trim=cfg.trim), updates["batch_stats"]
 
     (loss, batch_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
     updates, opt_state = _optimizer(cfg).update(grads, state.opt_state, state.params)
