@@ -92,10 +92,11 @@ def test_shuffled_labels_score_at_chance(smoke, tmp_path):
     apply_overrides(cfg, ["train.shuffle_labels=True", "ablations.depth1=False", "progress=False", "figures=False"])
     shuffled = run(cfg, tmp_path / "shuffled")
     grid = PlaceGrid.load(tmp_path / "shuffled" / "grid.json")
-    for method in ("rgb_net", "hha_net", "ours"):
+    # Measured (same-session top-1, mean over the 4 seasons): real 0.86 / 0.46 / 0.77, shuffled 0.18 / 0.19 / 0.19.
+    for method, margin in (("rgb_net", 0.4), ("hha_net", 0.15), ("ours", 0.4)):
         real_acc = np.mean([r[method] for r in real["same_session"]])
         shuffled_acc = np.mean([r[method] for r in shuffled["same_session"]])
-        assert real_acc > shuffled_acc + 0.2, (method, real_acc, shuffled_acc)
+        assert real_acc > shuffled_acc + margin, (method, real_acc, shuffled_acc)
     for r in shuffled["same_session"]:
         # Chance for a net that ignores the image: at most the share of the session's most frequent class.
         caches = tmp_path / "shuffled" / "cache"
