@@ -3,7 +3,7 @@ CPU inference compiler options."""
 
 from placejax.models._cpu import cpu_compiler_options
 from placejax.models._fusion import FusionMLP
-from placejax.models._midas import EfficientNetLite3Encoder, MidasSmall
+from placejax.models._midas import EfficientNetLite3Encoder, MidasSmall, fold_batch_norm
 from placejax.models._resize import interpolation_matrix, resize, upsample2x_align_corners
 from placejax.models._vgg import VGG16, VGG16Head, VGG16Trunk, adaptive_avg_pool
 
@@ -16,6 +16,7 @@ __all__ = [
     "VGG16Trunk",
     "adaptive_avg_pool",
     "cpu_compiler_options",
+    "fold_batch_norm",
     "interpolation_matrix",
     "resize",
     "upsample2x_align_corners",
