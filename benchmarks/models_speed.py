@@ -8,6 +8,11 @@ ratio PyTorch time / Flax time: > 1 means Flax is faster) and writes ``benchmark
 Both frameworks run the same random weights (the PyTorch state dict goes through placejax's converter), and
 the largest output difference is reported as a sanity check. PyTorch runs under ``no_grad`` with as many
 threads as XLA uses (all cores), NCHW (its default) and, for MiDaS, also ``channels_last``.
+
+The ``flax`` column is placejax's fast inference path: MiDaS with its encoder BatchNorms folded into the convs
+(``fold_batch_norm`` + ``MidasSmall(folded_bn=True)``, as ``placejax.depth.predict`` runs it), VGG16 jitted with
+``cpu_compiler_options("vgg16")`` (YNNPACK convolutions and dots). ``flax_plain`` is the same network as
+``Model().apply`` under a plain ``jax.jit`` (unfolded variables, default compiler options), for reference.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax.models import VGG16, MidasSmall
+from placejax.models import VGG16, MidasSmall, cpu_compiler_options, fold_batch_norm
 from placejax.weights import convert_midas_small, convert_vgg16
 
 RESULTS = Path(__file__).parent / "results"
@@ -74,13 +79,16 @@ def _random_torch_state(model, seed: int):
     return {k: v.numpy().copy() for k, v in model.state_dict().items()}
 
 
-def _case(name, batch, hw, flax_fn, flax_vars, torch_fns, repeats, rng):
+def _case(name, batch, hw, flax_fns, torch_fns, repeats, rng):
+    """``flax_fns``: label → (jitted fn, variables); the first is the reference output ("flax")."""
     x = rng.normal(size=(batch, *hw, 3)).astype(np.float32)
     xj = jnp.asarray(x)
-    flax_run = lambda: np.asarray(jax.block_until_ready(flax_fn(flax_vars, xj)))
-    fns: dict[str, Callable[[], object]] = {"flax": flax_run}
-    ref = flax_run()
+    fns: dict[str, Callable[[], object]] = {}
     outputs = {}
+    for label, (fn, variables) in flax_fns.items():
+        fns[label] = lambda fn=fn, variables=variables: np.asarray(jax.block_until_ready(fn(variables, xj)))
+        outputs[label] = fns[label]()
+    ref = outputs.pop("flax")
     if torch_fns:
         torch = _torch()
         xt = torch.from_numpy(x.transpose(0, 3, 1, 2).copy())
@@ -137,14 +145,20 @@ def main() -> None:
             variables = jax.tree.map(fill, shapes)
             torch_fns, state = {}, None
         variables = convert_midas_small(state) if state is not None else variables
-        midas = jax.jit(MidasSmall().apply)
+        fast = jax.jit(MidasSmall(folded_bn=True).apply, compiler_options=cpu_compiler_options("midas_small"))
+        flax_fns = {
+            "flax": (fast, fold_batch_norm(variables)),
+            "flax_plain": (jax.jit(MidasSmall().apply), variables),
+        }
         for batch in (1, 8):
-            row = _case("midas_small", batch, (256, 256), midas, variables, torch_fns, args.repeats, rng)
+            row = _case("midas_small", batch, (256, 256), flax_fns, torch_fns, args.repeats, rng)
             rows.append(row)
             _print_row(rows[-1])
 
     if args.only in (None, "vgg"):
-        fc7 = jax.jit(lambda v, x: VGG16(num_classes=1000).apply(v, x)[1]["fc7"])
+        def fc7(v, x):
+            return VGG16(num_classes=1000).apply(v, x)[1]["fc7"]
+
         if torch is not None:
             tv = TorchVGG16().eval()
             variables = convert_vgg16(_random_torch_state(tv, 1))
@@ -154,7 +168,11 @@ def main() -> None:
             variables = jax.tree.map(lambda s: np.asarray(rng.normal(0, 0.01, s.shape), np.float32), shapes)
             torch_fns = {}
         for hw in ((224, 224), (64, 64)):
-            rows.append(_case("vgg16_fc7", 8, hw, fc7, variables, torch_fns, args.repeats, rng))
+            flax_fns = {
+                "flax": (jax.jit(fc7, compiler_options=cpu_compiler_options("vgg16")), variables),
+                "flax_plain": (jax.jit(fc7), variables),
+            }
+            rows.append(_case("vgg16_fc7", 8, hw, flax_fns, torch_fns, args.repeats, rng))
             _print_row(rows[-1])
 
     meta = {
@@ -179,7 +197,7 @@ def main() -> None:
 def _print_row(row: dict) -> None:
     parts = [f"{row['case']:<12} b={row['batch']:<2} {row['input_hw'][0]}x{row['input_hw'][1]:<4}"]
     parts.append(f"flax {row['flax_ms_per_image']:8.1f} ms/img ({1e3 / row['flax_ms_per_image']:6.1f} img/s)")
-    for label in ("torch", "torch_channels_last"):
+    for label in ("flax_plain", "torch", "torch_channels_last"):
         if f"{label}_ms_per_image" in row:
             parts.append(
                 f"{label} {row[f'{label}_ms_per_image']:8.1f} ms/img  ×{row[f'{label}_over_flax']:.2f}"

@@ -11,7 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from placejax.models import MidasSmall, interpolation_matrix, resize, upsample2x_align_corners
+from placejax.models import (
+    EfficientNetLite3Encoder,
+    MidasSmall,
+    fold_batch_norm,
+    interpolation_matrix,
+    resize,
+    upsample2x_align_corners,
+)
 from placejax.weights import convert_midas_small
 
 
@@ -74,6 +81,48 @@ def test_parity_non_square(fixture_io, fixture_variables):
     ref = fixture_io["output_128x256"]
     assert out.shape == ref.shape == (1, 128, 256)
     assert _rel_err(out, ref) <= 1e-4
+
+
+def test_folded_batch_norm_parity(fixture_io, fixture_variables):
+    """The inference fast path (BatchNorms folded into the encoder convs) against the original model's output."""
+    folded = fold_batch_norm(fixture_variables)
+    assert sorted(folded) == ["params"]
+    assert sorted(folded["params"]["encoder"]["blocks_1_0"]) == ["conv_dw", "conv_pw", "conv_pwl"]
+    assert sorted(folded["params"]["encoder"]["blocks_1_0"]["conv_dw"]) == ["bias", "kernel"]
+    model = MidasSmall(folded_bn=True)
+    for key in ("", "_128x256"):
+        x = jnp.asarray(fixture_io[f"input_nchw{key}"].transpose(0, 2, 3, 1))
+        out = jax.jit(model.apply)(folded, x)
+        ref = fixture_io[f"output{key}"]
+        assert out.shape == ref.shape and float(out.min()) >= 0.0
+        assert _rel_err(out, ref) <= 1e-4
+    # fold_batch_norm is pure: the input keeps its BatchNorms.
+    assert "batch_stats" in fixture_variables and "bn1" in fixture_variables["params"]["encoder"]["blocks_1_0"]
+
+
+def test_fold_batch_norm_matches_unfolded_and_is_inference_only():
+    model = MidasSmall(features=8, encoder_width=0.25)
+    x = jax.random.normal(jax.random.key(2), (2, 64, 64, 3))
+    variables = _random_variables(model, x, seed=3)
+    folded = jax.jit(fold_batch_norm)(variables)
+    # Same tree as the folded model's own init.
+    shapes = jax.eval_shape(model.clone(folded_bn=True).init, jax.random.key(0), x)
+    assert jax.tree.structure(shapes) == jax.tree.structure(folded)
+    assert jax.tree.map(lambda a: a.shape, shapes) == jax.tree.map(lambda a: a.shape, folded)
+    ref = model.apply(variables, x)
+    out = model.clone(folded_bn=True).apply(folded, x)
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-5 * float(jnp.ptp(ref)))
+    # Encoder variables alone fold too.
+    enc = EfficientNetLite3Encoder(width=0.25)
+    enc_vars = {k: v["encoder"] for k, v in variables.items()}
+    taps = enc.apply(enc_vars, x)
+    taps_f = EfficientNetLite3Encoder(width=0.25, folded_bn=True).apply(fold_batch_norm(enc_vars), x)
+    for a, b in zip(taps, taps_f, strict=True):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-5 * float(jnp.abs(a).max()))
+    with pytest.raises(ValueError, match="inference only"):
+        model.clone(folded_bn=True).apply(folded, x, train=True)
+    with pytest.raises(ValueError, match="batch_stats"):
+        fold_batch_norm(folded)
 
 
 def test_official_parameter_count(fixture_state_dict, fixture_variables):

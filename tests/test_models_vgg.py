@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from placejax.models import VGG16, FusionMLP, adaptive_avg_pool
+from placejax.models import VGG16, FusionMLP, adaptive_avg_pool, cpu_compiler_options
 from placejax.models._vgg import adaptive_avg_pool_matrix
 from placejax.weights import convert_vgg16, read_torch_checkpoint
 
@@ -43,6 +43,34 @@ def test_parity_with_torch_vgg16_file(vgg16_reference):
     np.testing.assert_allclose(logits, ref["logits"], atol=1e-5 * scale)
     np.testing.assert_allclose(feats["fc7"], ref["fc7"], atol=1e-5 * np.abs(ref["fc7"]).max())
     assert float(feats["fc6"].min()) >= 0.0  # post-ReLU
+    # The CPU fast path (YNNPACK convs and dots where available) gives the same outputs to float rounding.
+    fast = jax.jit(VGG16(num_classes=1000).apply, compiler_options=cpu_compiler_options("vgg16"))
+    logits_fast, feats_fast = fast(variables, x)
+    np.testing.assert_allclose(logits_fast, ref["logits"], atol=1e-5 * scale)
+    np.testing.assert_allclose(logits_fast, logits, atol=1e-5 * scale)
+    np.testing.assert_allclose(feats_fast["fc7"], feats["fc7"], atol=1e-5 * np.abs(ref["fc7"]).max())
+
+
+def test_cpu_compiler_options(monkeypatch):
+    opts = cpu_compiler_options("vgg16")
+    if jax.default_backend() == "cpu":
+        assert set(opts) <= {"xla_cpu_experimental_ynn_fusion_type"}  # {} where this jaxlib lacks YNNPACK
+    assert cpu_compiler_options("midas_small") == {}
+    opts["mutated"] = "1"
+    assert "mutated" not in cpu_compiler_options("vgg16")  # a fresh dict each call
+    with pytest.raises(ValueError, match="unknown kind"):
+        cpu_compiler_options("resnet")
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert cpu_compiler_options("vgg16") == {}  # GPU/TPU users keep XLA's defaults
+
+
+def test_cpu_compiler_options_same_result_small_vgg(tiny_vgg):
+    model, variables = tiny_vgg
+    x = jax.random.normal(jax.random.key(5), (3, 48, 40, 3))
+    ref = jax.jit(model.apply)(variables, x)
+    out = jax.jit(model.apply, compiler_options=cpu_compiler_options("vgg16"))(variables, x)
+    for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(out), strict=True):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-5 * float(jnp.abs(a).max()))
 
 
 def test_converter_reports_every_problem():

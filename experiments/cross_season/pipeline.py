@@ -40,7 +40,7 @@ from placejax.data import (
 )
 from placejax.data._atomic import write_json
 from placejax.data.cache import cache_digest
-from placejax.models import VGG16, FusionMLP
+from placejax.models import VGG16, FusionMLP, cpu_compiler_options
 from placejax.training import (
     Checkpointer,
     apply_fn,
@@ -398,7 +398,10 @@ def _conv_features(ctx: Context, sessions: list[SessionData], modality: str, tru
     """Frozen ImageNet conv features of every session for one modality, cached as float16."""
     model = _vgg(ctx, 2)
     c = ctx.config
-    fn = jax.jit(lambda p, x: model.apply({"params": {"trunk": p}}, x, method=VGG16.conv_features))
+    fn = jax.jit(
+        lambda p, x: model.apply({"params": {"trunk": p}}, x, method=VGG16.conv_features),
+        compiler_options=cpu_compiler_options("vgg16"),  # YNNPACK convs on CPU: ~1.8x faster; {} elsewhere
+    )
     p = replicate(trunk_params, ctx.mesh)
     out = {}
     for s in sessions:

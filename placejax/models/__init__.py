@@ -1,7 +1,9 @@
-"""Flax Linen models: MiDaS v2.1 small, VGG16 (torchvision layout) and the fusion MLP, plus exact resizes."""
+"""Flax Linen models: MiDaS v2.1 small, VGG16 (torchvision layout) and the fusion MLP, plus exact resizes and
+CPU inference compiler options."""
 
+from placejax.models._cpu import cpu_compiler_options
 from placejax.models._fusion import FusionMLP
-from placejax.models._midas import EfficientNetLite3Encoder, MidasSmall
+from placejax.models._midas import EfficientNetLite3Encoder, MidasSmall, fold_batch_norm
 from placejax.models._resize import interpolation_matrix, resize, upsample2x_align_corners
 from placejax.models._vgg import VGG16, VGG16Head, VGG16Trunk, adaptive_avg_pool
 
@@ -13,6 +15,8 @@ __all__ = [
     "VGG16Head",
     "VGG16Trunk",
     "adaptive_avg_pool",
+    "cpu_compiler_options",
+    "fold_batch_norm",
     "interpolation_matrix",
     "resize",
     "upsample2x_align_corners",
