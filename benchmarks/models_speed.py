@@ -86,6 +86,9 @@ def _case(name, batch, hw, flax_fns, torch_fns, repeats, rng):
     fns: dict[str, Callable[[], object]] = {}
     outputs = {}
     for label, (fn, variables) in flax_fns.items():
+        # Weights live on the device once, as in real use; NumPy weights would be copied in on every call
+        # (0.55 GB for VGG16, ~25 ms/image at batch 8).
+        variables = jax.device_put(variables)
         fns[label] = lambda fn=fn, variables=variables: np.asarray(jax.block_until_ready(fn(variables, xj)))
         outputs[label] = fns[label]()
     ref = outputs.pop("flax")

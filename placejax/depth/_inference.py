@@ -116,8 +116,8 @@ def predict(
     Preprocessing runs in NumPy/OpenCV (as the original does); the network and the bicubic upsampling back to
     ``(H, W)`` run in one function jitted per (model, image size): repeated calls with same-sized batches do
     not recompile. The encoder's BatchNorms are folded into its convolutions first (``fold_batch_norm``, same
-    result up to float rounding, ~10 % faster on CPU); the folded weights of the last ``variables`` are
-    cached, so only a new set of weights is folded again.
+    result up to float rounding; in ``benchmarks.models_speed`` within noise of the unfolded network); the
+    folded weights of the last ``variables`` are cached, so only a new set of weights is folded again.
 
     Args:
         variables: ``MidasSmall`` variables, e.g. ``placejax.weights.load("midas_v21_small_256")``, or
