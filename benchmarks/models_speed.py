@@ -10,7 +10,7 @@ the largest output difference is reported as a sanity check. PyTorch runs under 
 threads as XLA uses (all cores), NCHW (its default) and, for MiDaS, also ``channels_last``.
 
 The ``flax`` column is placejax's fast inference path: MiDaS with its encoder BatchNorms folded into the convs
-(``fold_batch_norm`` + ``MidasSmall(folded_bn=True)``, as ``placejax.depth.predict`` runs it), VGG16 jitted with
+(``fold_batch_norm`` + ``MidasSmall(folded_bn=True)``), VGG16 jitted with
 ``cpu_compiler_options("vgg16")`` (YNNPACK convolutions and dots). ``flax_plain`` is the same network as
 ``Model().apply`` under a plain ``jax.jit`` (unfolded variables, default compiler options), for reference.
 """

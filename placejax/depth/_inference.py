@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax.models import MidasSmall, fold_batch_norm, resize
+from placejax.models import MidasSmall, resize
 
 __all__ = ["network_size", "predict", "preprocess"]
 
@@ -87,22 +87,6 @@ def _forward(model: MidasSmall, variables: Any, x: jax.Array, out_hw: tuple[int,
     return resize(depth[..., None], out_hw, "bicubic", align_corners=False)[..., 0]
 
 
-# The last (variables' leaves, folded variables) pair: predict folds the encoder's BatchNorms once per set of
-# weights, not per call. Keyed on the identity of every leaf, holding the leaves so that ids stay unique.
-_FOLDED: list[tuple[list[Any], Any]] = []
-
-
-def _folded(variables: Any) -> Any:
-    leaves = jax.tree.leaves(variables)
-    if _FOLDED:
-        cached, folded = _FOLDED[0]
-        if len(cached) == len(leaves) and all(a is b for a, b in zip(cached, leaves, strict=True)):
-            return folded
-    folded = jax.tree.map(jnp.asarray, fold_batch_norm(variables))
-    _FOLDED[:] = [(leaves, folded)]
-    return folded
-
-
 def predict(
     variables: Any,
     images: np.ndarray,
@@ -115,9 +99,7 @@ def predict(
 
     Preprocessing runs in NumPy/OpenCV (as the original does); the network and the bicubic upsampling back to
     ``(H, W)`` run in one function jitted per (model, image size): repeated calls with same-sized batches do
-    not recompile. The encoder's BatchNorms are folded into its convolutions first (``fold_batch_norm``, same
-    result up to float rounding; in ``benchmarks.models_speed`` within noise of the unfolded network); the
-    folded weights of the last ``variables`` are cached, so only a new set of weights is folded again.
+    not recompile.
 
     Args:
         variables: ``MidasSmall`` variables, e.g. ``placejax.weights.load("midas_v21_small_256")``, or
@@ -137,8 +119,6 @@ def predict(
     if images.ndim != 4 or images.shape[-1] != 3 or 0 in images.shape:
         raise ValueError(f"predict expects (N, H, W, 3) or (H, W, 3) RGB images, got shape {images.shape}")
     model = MidasSmall() if model is None else model
-    if not model.folded_bn:
-        model, variables = model.clone(folded_bn=True), _folded(variables)
     x = np.stack([preprocess(im, size=size, square=square) for im in images])
     depth = np.asarray(_forward(model, variables, jnp.asarray(x), tuple(images.shape[1:3])))
     return depth[0] if single else depth

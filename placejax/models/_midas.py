@@ -294,7 +294,7 @@ class MidasSmall(nn.Module):
         encoder_width: encoder channel multiplier (1.0 official). Smaller values give CPU-sized models with
             the same topology (they cannot load the official weights).
         folded_bn: the encoder's BatchNorms are folded into its convs (inference only; variables from
-            ``fold_batch_norm``, same outputs up to float rounding, faster on CPU).
+            ``fold_batch_norm``, same outputs up to float rounding).
         dtype: computation dtype (``None``: follow inputs/params).
         param_dtype: parameter dtype.
 
