@@ -1,4 +1,4 @@
-"""Test configuration: strict JAX, two host CPU devices, and the shared reference fixtures."""
+"""Test configuration: strict JAX, two host CPU devices, and the reference fixtures in ``tests/fixtures``."""
 
 import os
 
@@ -8,6 +8,7 @@ os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
 from pathlib import Path
 
 import jax
+import numpy as np
 import pytest
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
@@ -16,12 +17,21 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 _JAX_CACHE = os.environ.get("PLACEJAX_TEST_JAX_CACHE", "/tmp/placejax-test-jax-cache")
 jax.config.update("jax_compilation_cache_dir", _JAX_CACHE)
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
+FIXTURES = Path(__file__).resolve().parent / "fixtures"
 
 
 @pytest.fixture(scope="session")
-def shared_dir() -> Path:
-    """`../shared` beside the project root (reference fixtures and specs); a missing one is an error, not a skip."""
-    if not (SHARED / "fixtures").is_dir():
-        raise FileNotFoundError(f"reference fixtures not found at {SHARED}/fixtures (../shared beside the repo)")
-    return SHARED
+def fixtures_dir() -> Path:
+    """``tests/fixtures``: reference outputs of the original implementations (provenance in its README)."""
+    return FIXTURES
+
+
+@pytest.fixture(scope="session")
+def midas_recipe_npz(tmp_path_factory) -> Path:
+    """The MiDaS recipe weights as an ``.npz`` of the official state dict (keys, order, ``num_batches_tracked``),
+    for the scripts that write official-format ``torch.save`` files from it."""
+    from midas_recipe import recipe_state_dict
+
+    path = tmp_path_factory.mktemp("midas_recipe") / "midas_recipe_state_dict.npz"
+    np.savez(path, **recipe_state_dict(with_num_batches_tracked=True))
+    return path

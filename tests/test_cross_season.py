@@ -147,7 +147,7 @@ def test_killed_run_resumes_to_the_same_accuracies(smoke, tmp_path):
     assert _accuracies(resumed) == _accuracies(uninterrupted)
 
 
-def test_paper_path_on_fake_nclt(tmp_path, shared_dir):
+def test_paper_path_on_fake_nclt(tmp_path, midas_recipe_npz):
     """The paper preset's code path (NCLT reader, official-format MiDaS and VGG16 files, frozen convs with
     cached features, MLP) on a tiny fake NCLT tree with random weights."""
     sys.path.insert(0, str(Path(__file__).parent))
@@ -157,8 +157,7 @@ def test_paper_path_on_fake_nclt(tmp_path, shared_dir):
     fake = make_fake_nclt(tmp_path / "nclt", dates, n_frames=12, stored_hw=(40, 32))
     weights = tmp_path / "weights"
     script = Path(__file__).parent / "torch_refs" / "make_random_official_weights.py"
-    fixture = shared_dir / "fixtures" / "midas_small" / "weights_fp16.npz"
-    subprocess.run([sys.executable, str(script), str(weights), str(fixture), "0.0625"], check=True)
+    subprocess.run([sys.executable, str(script), str(weights), str(midas_recipe_npz), "0.0625"], check=True)
     cfg = get_config("paper")
     apply_overrides(
         cfg,

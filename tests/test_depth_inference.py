@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from midas_recipe import recipe_io, recipe_state_dict
 
 from placejax.depth import network_size, predict, preprocess
 from placejax.depth._inference import _forward
@@ -60,14 +61,12 @@ def test_preprocess_uses_cv2_bicubic_and_float_input():
         preprocess(img.astype(np.int32))
 
 
-def test_predict_matches_original_model_end_to_end(shared_dir):
+def test_predict_matches_original_model_end_to_end():
     """At 256×256 the resizes are identities, so predict on the de-normalised fixture input must reproduce the
     original PyTorch output."""
-    fixtures = shared_dir / "fixtures" / "midas_small"
-    with np.load(fixtures / "weights_fp16.npz") as f:
-        variables = convert_midas_small({k: f[k] for k in f.files})
-    with np.load(fixtures / "io.npz") as f:
-        x, ref = f["input_nchw"], f["output"]
+    variables = convert_midas_small(recipe_state_dict())
+    io = recipe_io()
+    x, ref = io["input_nchw"], io["output"]
     images = x.transpose(0, 2, 3, 1) * STD + MEAN  # float RGB (not confined to [0, 1]: random inputs)
     depth = predict(variables, images)
     assert depth.shape == (2, 256, 256) and depth.dtype == np.float32

@@ -11,8 +11,8 @@ from placejax.hha._reference import box_sum
 from placejax.hha.scenes import ground_and_wall
 
 
-def load_fixture(shared_dir, name):
-    d = np.load(shared_dir / "fixtures" / "hha_reference" / f"{name}.npz")
+def load_fixture(fixtures_dir, name):
+    d = np.load(fixtures_dir / "hha_reference" / f"{name}.npz")
     k = d["camera_1based"].copy()
     k[0, 2] -= 1.0  # the references count pixels from 1; our convention is 0-based
     k[1, 2] -= 1.0
@@ -23,8 +23,8 @@ def load_fixture(shared_dir, name):
 # Parity with the original implementation.
 
 
-def test_dense_fixture_parity(shared_dir):
-    d, k = load_fixture(shared_dir, "nyu_480x640_nomask")
+def test_dense_fixture_parity(fixtures_dir):
+    d, k = load_fixture(fixtures_dir, "nyu_480x640_nomask")
     out = hha.encode_full(d["depth_m"], k)
     diff = np.abs(np.asarray(out.hha, int) - d["hha_rgb_uint8"])
     assert diff.max() <= 1
@@ -35,8 +35,8 @@ def test_dense_fixture_parity(shared_dir):
     assert (np.asarray(same) == np.asarray(out.hha)).mean() > 0.9999
 
 
-def test_fixture_with_holes_parity(shared_dir):
-    d, k = load_fixture(shared_dir, "nyu_480x640_rawmask")
+def test_fixture_with_holes_parity(fixtures_dir):
+    d, k = load_fixture(fixtures_dir, "nyu_480x640_rawmask")
     out = hha.encode_full(d["depth_m"], k, d["rawdepth_m"])
     ours, ref = np.asarray(out.hha, int), d["hha_rgb_uint8"].astype(int)
     diff = np.abs(ours - ref)
@@ -48,8 +48,8 @@ def test_fixture_with_holes_parity(shared_dir):
     np.testing.assert_allclose(np.asarray(out.gravity), d["gravity"], atol=1e-3)
 
 
-def test_numpy_reference_reproduces_fixture_exactly(shared_dir):
-    d, k = load_fixture(shared_dir, "nyu_480x640_nomask")
+def test_numpy_reference_reproduces_fixture_exactly(fixtures_dir):
+    d, k = load_fixture(fixtures_dir, "nyu_480x640_nomask")
     ours, g = hha.encode_reference(d["depth_m"], k)
     np.testing.assert_array_equal(ours, d["hha_rgb_uint8"])
     np.testing.assert_allclose(g, d["gravity"], atol=1e-12)

@@ -1,4 +1,4 @@
-"""MiDaS v2.1 small: parity with the original PyTorch model (shared fixture), resize exactness, invariants."""
+"""MiDaS v2.1 small: parity with the original PyTorch model (recipe fixture), resize exactness, invariants."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from midas_recipe import recipe_io, recipe_state_dict
 
 from placejax.models import (
     EfficientNetLite3Encoder,
@@ -23,13 +24,14 @@ from placejax.weights import convert_midas_small
 
 
 @pytest.fixture(scope="module")
-def fixture_io(shared_dir):
-    return dict(np.load(shared_dir / "fixtures" / "midas_small" / "io.npz"))
+def fixture_io():
+    return recipe_io()
 
 
 @pytest.fixture(scope="module")
-def fixture_state_dict(shared_dir):
-    return dict(np.load(shared_dir / "fixtures" / "midas_small" / "weights_fp16.npz"))
+def fixture_state_dict():
+    # The exact weights of the fixture's original-model run, rebuilt from its seed (tests/fixtures/README.md).
+    return recipe_state_dict(with_num_batches_tracked=True)
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +71,7 @@ def test_parity_square_with_intermediates(fixture_io, fixture_variables):
     inter = state["intermediates"]
     for name in ("layer_1", "layer_2", "layer_3", "layer_4", "path_4", "path_3", "path_2", "path_1"):
         ours = np.asarray(inter[name][0][0]).transpose(2, 0, 1)
-        theirs = fixture_io[f"intermediate_{name}"][0].astype(np.float32)
+        theirs = fixture_io[f"intermediate_{name.replace('layer_', 'layer')}"][0].astype(np.float32)
         assert ours.shape == theirs.shape, name
         # The stored intermediates are float16: allow a few float16 ulps of the tensor's magnitude.
         assert np.abs(ours - theirs).max() <= 2e-3 * np.abs(theirs).max(), name
@@ -137,8 +139,8 @@ def test_official_parameter_count(fixture_state_dict, fixture_variables):
 def test_converter_fails_loudly(fixture_state_dict):
     sd = dict(fixture_state_dict)
     del sd["pretrained.layer2.0.1.conv_dw.weight"]
-    sd["scratch.layer5_rn.weight"] = np.zeros((3, 3, 3, 3), np.float16)
-    sd["scratch.output_conv.0.bias"] = np.zeros((31,), np.float16)
+    sd["scratch.layer5_rn.weight"] = np.zeros((3, 3, 3, 3), np.float32)
+    sd["scratch.output_conv.0.bias"] = np.zeros((31,), np.float32)
     with pytest.raises(ValueError) as err:
         convert_midas_small(sd)
     msg = str(err.value)

@@ -35,10 +35,10 @@ REFS = Path(__file__).parent / "torch_refs"
 
 
 @pytest.fixture(scope="session")
-def samples(tmp_path_factory, shared_dir):
+def samples(tmp_path_factory, midas_recipe_npz):
     """Real torch.save outputs written by torch in a subprocess (placejax itself never imports torch)."""
     out = tmp_path_factory.mktemp("torch_samples")
-    fixture = shared_dir / "fixtures" / "midas_small" / "weights_fp16.npz"
+    fixture = midas_recipe_npz
     script = REFS / "make_checkpoint_samples.py"
     subprocess.run([sys.executable, str(script), str(out), "--midas-fixture", str(fixture)], check=True)
     return out
@@ -131,8 +131,8 @@ def test_not_a_checkpoint_and_missing_file(tmp_path):
 # --- registry: explicit file, converted cache ---------------------------------------------------------------
 
 
-def test_load_explicit_midas_file_and_converted_cache(samples, shared_dir, cache, monkeypatch):
-    with np.load(shared_dir / "fixtures" / "midas_small" / "weights_fp16.npz") as f:
+def test_load_explicit_midas_file_and_converted_cache(samples, midas_recipe_npz, cache, monkeypatch):
+    with np.load(midas_recipe_npz) as f:
         want = convert_midas_small({k: f[k] for k in f.files})
     got = load("midas_v21_small_256", path=samples / "midas_fixture.pt")
     _assert_trees_equal(got, want)
