@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import resource
@@ -11,6 +10,8 @@ import time
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
+
+from placejax import io
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
@@ -71,7 +72,5 @@ def write_json(name: str, payload: dict) -> Path:
         **payload,
     }
     path = RESULTS_DIR / f"{name}.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(payload, indent=2))
-    os.replace(tmp, path)
+    io.write_json(path, payload)
     return path

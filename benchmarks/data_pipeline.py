@@ -29,7 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from placejax.data import Augment, _atomic, cache_session, nclt, train_dataset
+from placejax import io
+from placejax.data import Augment, cache_session, nclt, train_dataset
 
 RAW_HW = (1232, 1616)  # stored sideways, like NCLT
 DATE = "2012-01-22"
@@ -155,7 +156,7 @@ def main() -> None:
         )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     meta = {"frames": n, "repeats": reps, "batch": args.batch, "cpus": os.cpu_count(), "machine": platform.platform()}
-    _atomic.write_json(args.out, {"meta": meta, "results": results})
+    io.write_json(args.out, {"meta": meta, "results": results})
     print(f"wrote {args.out}")
 
 

@@ -18,11 +18,9 @@ The ``flax`` column is placejax's fast inference path: MiDaS with its encoder Ba
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -31,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from placejax import io
 from placejax.models import VGG16, MidasSmall, cpu_compiler_options, fold_batch_norm
 from placejax.weights import convert_midas_small, convert_vgg16
 
@@ -189,11 +188,7 @@ def main() -> None:
         # Shared machines: a load average above the core count means the timings are contended.
         "load_average_1_5_15min": list(os.getloadavg()),
     }
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=RESULTS, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump({"meta": meta, "rows": rows}, f, indent=2)
-    os.replace(tmp, RESULTS / "models_speed.json")
+    io.write_json(RESULTS / "models_speed.json", {"meta": meta, "rows": rows})
     print(f"wrote {RESULTS / 'models_speed.json'}")
 
 

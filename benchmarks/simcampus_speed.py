@@ -11,11 +11,9 @@ second (less sensitive to other processes sharing the cores). Prints a table and
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
-import tempfile
 import time
 from pathlib import Path
 
@@ -23,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from placejax import io
 from placejax.data import simcampus
 from placejax.data.simcampus import _render
 from placejax.data.simcampus._session import _scene
@@ -113,11 +112,7 @@ def main() -> None:
         "platform": platform.platform(),
         "cases": rows,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    # Atomic write: a killed run never leaves a half-written result.
-    with tempfile.NamedTemporaryFile("w", dir=args.out.parent, delete=False, suffix=".tmp") as f:
-        json.dump(result, f, indent=2)
-    os.replace(f.name, args.out)
+    io.write_json(args.out, result)
     print(f"wrote {args.out}")
 
 

@@ -11,14 +11,12 @@ matrix and writes ``runs/simcampus_sanity.json``. A check of the benchmark, not 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import tqdm
 
+from placejax import io
 from placejax.data import simcampus
 
 
@@ -93,10 +91,7 @@ def main() -> None:
         "mean_within": same,
         "mean_cross": cross,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=args.out.parent, suffix=".tmp", delete=False) as f:
-        json.dump(result, f, indent=2)
-    os.replace(f.name, args.out)
+    io.write_json(args.out, result)
     print(f"wrote {args.out}")
 
 

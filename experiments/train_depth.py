@@ -27,8 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from placejax import depth
-from placejax.data._atomic import write_bytes, write_json
+from placejax import depth, io
 
 _PLACEJAX_CACHE = "PLACEJAX_CACHE"
 
@@ -91,8 +90,8 @@ def write_report(trained: depth.TrainedDepth, workdir: Path, *, progress: bool =
         "per_season": report,
         "eval_seconds": time.perf_counter() - t0,
     }
-    write_json(workdir / "depth_eval.json", payload)
-    write_bytes(workdir / "depth_eval.md", report_markdown(report).encode())
+    io.write_json(workdir / "depth_eval.json", payload)
+    io.write_text(workdir / "depth_eval.md", report_markdown(report))
     _figure(trained, frames, workdir / "depth_eval.png")
     return payload
 
@@ -142,10 +141,8 @@ def _figure(trained: depth.TrainedDepth, frames: dict, path: Path, n_examples: i
     for a, title in zip(axes[0], ("RGB", "predicted depth (aligned)", "true depth"), strict=True):
         a.set_title(title, fontsize=9)
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=80)
+    io.save_figure(fig, path, dpi=80)
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -31,6 +31,7 @@ import ml_collections
 import numpy as np
 
 from placejax import hha as _hha
+from placejax import io
 from placejax.data import (
     PlaceGrid,
     build_array_cache,
@@ -38,7 +39,6 @@ from placejax.data import (
     eval_dataset,
     session_identity,
 )
-from placejax.data._atomic import write_json
 from placejax.data.cache import cache_digest
 from placejax.models import VGG16, FusionMLP, cpu_compiler_options
 from placejax.training import (
@@ -631,7 +631,7 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
         if b % mesh.size:
             raise ValueError(f"{name}={b} must be divisible by the {mesh.size} devices of the mesh")
     ctx = Context(config=config, workdir=workdir, mesh=mesh)
-    write_json(workdir / "config.json", config.to_dict())
+    io.write_json(workdir / "config.json", config.to_dict())
 
     with ctx.timed("sessions"):
         sessions = load_sessions(ctx)
@@ -700,7 +700,7 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
     from experiments.cross_season import report
 
     if jax.process_index() == 0:
-        write_json(workdir / "results.json", results)
+        io.write_json(workdir / "results.json", results)
         report.write_table(results, workdir / "table.md")
         if config.figures:
             with ctx.timed("figures"):

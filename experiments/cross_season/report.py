@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from placejax.data._atomic import write_bytes
+from placejax import io
 
 _METHOD_NAMES = {
     "ours": "Ours",
@@ -52,16 +52,14 @@ def table_markdown(results: dict) -> str:
 
 
 def write_table(results: dict, path: str | os.PathLike) -> None:
-    write_bytes(path, table_markdown(results).encode())
+    io.write_text(path, table_markdown(results))
 
 
 # ---------------------------------------------------------------------------------------------------- figures
 
 
 def _save(fig, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    os.replace(tmp, path)
+    io.save_figure(fig, path, dpi=110, bbox_inches="tight")
 
 
 def _depth_vis(depth_m: np.ndarray) -> np.ndarray:

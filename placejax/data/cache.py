@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from placejax.data import _atomic
+from placejax import io
 from placejax.data import camera as _camera
 from placejax.data.session import Session
 
@@ -270,7 +270,7 @@ def build_array_cache(
                 mm[start:stop] = block
                 # Data reaches the file before the marker that claims it, so a marker never overstates progress.
                 mm.flush()
-                _atomic.write_json(partial / _PROGRESS, {"digest": digest, "rows_done": stop})
+                io.write_json(partial / _PROGRESS, {"digest": digest, "rows_done": stop})
                 bar.update(stop - start)
         mm.flush()
         del mm
@@ -279,7 +279,7 @@ def build_array_cache(
             np.save(partial / f"{k}.npy", v)
         # The manifest is written last inside the folder and the folder appears under its final name by an
         # atomic rename, so a complete-looking cache is always a complete one.
-        _atomic.write_json(partial / _MANIFEST, _manifest(full_key, n, shape, dtype, extras))
+        io.write_json(partial / _MANIFEST, _manifest(full_key, n, shape, dtype, extras))
         (partial / _PROGRESS).unlink()
         _fsync_dir(partial)
         os.replace(partial, final)

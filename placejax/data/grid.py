@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from placejax.data import _atomic
+from placejax import io
 
 _FORMAT = "placejax.PlaceGrid"
 _VERSION = 1
@@ -167,7 +167,7 @@ class PlaceGrid:
 
     def save(self, path: str | os.PathLike) -> None:
         """Writes the grid as JSON, atomically. Floats round-trip exactly (JSON keeps ``repr`` digits)."""
-        _atomic.write_json(path, self.to_dict())
+        io.write_json(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> PlaceGrid:

@@ -15,14 +15,15 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from flax import traverse_util
 
+from placejax import io
 from placejax.weights._convert import convert_midas_small, convert_vgg16
 from placejax.weights._torch_checkpoint import read_torch_checkpoint
 
@@ -226,37 +227,12 @@ def fetch(name: str, path: str | os.PathLike | None = None, *, timeout_s: float 
     return Path(got)
 
 
-def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, np.ndarray]:
-    out: dict[str, np.ndarray] = {}
-    for k, v in tree.items():
-        if isinstance(v, Mapping):
-            out.update(_flatten(v, f"{prefix}{k}/"))
-        else:
-            out[f"{prefix}{k}"] = np.asarray(v)
-    return out
+def _flatten(tree: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    return {k: np.asarray(v) for k, v in traverse_util.flatten_dict(tree, sep="/").items()}
 
 
 def _unflatten(flat: Mapping[str, np.ndarray]) -> Variables:
-    out: Variables = {}
-    for key, v in flat.items():
-        *parents, leaf = key.split("/")
-        node = out
-        for k in parents:
-            node = node.setdefault(k, {})
-        node[leaf] = v
-    return out
-
-
-def _write_npz_atomic(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    return traverse_util.unflatten_dict(dict(flat), sep="/")
 
 
 def load(name: str, path: str | os.PathLike | None = None) -> Variables:
@@ -294,5 +270,5 @@ def load(name: str, path: str | os.PathLike | None = None) -> Variables:
             converted.unlink(missing_ok=True)
             del err
     variables = entry.converter(read_torch_checkpoint(source))
-    _write_npz_atomic(converted, _flatten(variables))
+    io.write_npz(converted, _flatten(variables))
     return variables

@@ -6,8 +6,6 @@ python -m placejax.data.simcampus docs/simcampus_seasons.png [--world-seed 0] [-
 from __future__ import annotations
 
 import argparse
-import os
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -16,6 +14,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from placejax import io
 from placejax.data import simcampus
 
 
@@ -66,10 +65,7 @@ def main() -> None:
         f"(x={x:.0f} m, y={y:.0f} m, heading {np.degrees(yaw):.0f}°)"
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    # Atomic: write a temporary file beside the target, then rename.
-    with tempfile.NamedTemporaryFile(dir=args.out.parent, suffix=".png", delete=False) as f:
-        fig.savefig(f, format="png")
-    os.replace(f.name, args.out)
+    io.save_figure(fig, args.out)
     print(f"wrote {args.out} (SU frame {i})")
 
 

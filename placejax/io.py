@@ -1,0 +1,94 @@
+"""Atomic file writes: a reader sees either the old file or the complete new one, never a half-written one.
+
+Every file placejax writes (results, configs, grids, caches' manifests, converted weights, figures, benchmark
+reports) goes through :func:`atomic_write`: the content is written to a temporary file in the target's folder,
+flushed to disk, given ordinary permissions (``0o666`` minus the process umask, as ``open()`` would), then
+renamed over the target. The temporary file lives beside the target because a rename is only atomic within one
+filesystem; after a crash it is a dot-file ending in ``.tmp`` that no reader looks at.
+
+Example::
+
+    from placejax import io
+    io.write_json("run/results.json", {"top1": 0.42})
+    with io.atomic_write("run/table.md", "w") as f:
+        f.write("| a | b |\\n")
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+__all__ = ["atomic_write", "save_figure", "write_bytes", "write_json", "write_npz", "write_text"]
+
+
+def _umask() -> int:
+    # os.umask can only be read by setting it; restore it at once (no thread in placejax changes it).
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
+    """Opens a temporary file that replaces ``path`` when the ``with`` block ends without an exception.
+
+    Args:
+        path: the target (its folder is created).
+        mode: ``"wb"`` (default) or ``"w"`` (UTF-8 text).
+
+    Yields:
+        The open temporary file. On an exception it is removed and ``path`` is left as it was.
+    """
+    if mode not in ("wb", "w"):
+        raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode, **({"encoding": "utf-8"} if mode == "w" else {})) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        # mkstemp creates the file 0600; a result file should be readable like any other file the user writes.
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Atomically writes ``data`` to ``path``."""
+    with atomic_write(path) as f:
+        f.write(data)
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+    """Atomically writes ``text`` (UTF-8) to ``path``."""
+    write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+    """Atomically writes ``obj`` as indented, key-sorted JSON (equal objects give equal bytes)."""
+    write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+
+
+def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> None:
+    """Atomically writes ``arrays`` as an uncompressed ``.npz``."""
+    with atomic_write(path) as f:
+        np.savez(f, **arrays)
+
+
+def save_figure(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> None:
+    """Atomically saves a matplotlib figure; the format comes from ``path``'s suffix."""
+    fmt = Path(path).suffix.lstrip(".") or "png"
+    with atomic_write(path) as f:
+        fig.savefig(f, format=fmt, **savefig_kwargs)
