@@ -42,8 +42,13 @@ def test_smoke_table_and_results(smoke):
     assert sorted((p["train"], p["test"]) for p in results["pairs"]) == sorted(itertools.permutations(SEASONS, 2))
     for key in ("config", "versions", "seeds", "timings_s", "mean", "grid"):
         assert key in results
-    for stage in ("sessions", "depth", "hha", "nets", "outputs", "mlp", "evaluate"):
-        assert results["timings_s"][stage] >= 0
+    t = results["timings_s"]
+    stages = ("sessions", "grid", "depth", "hha", "nets", "outputs", "mlp", "evaluate")
+    assert set(stages) <= set(t)
+    for stage in ("sessions", "depth", "hha", "nets", "outputs", "mlp"):
+        assert t[stage] > 0, stage  # each did real work in this fresh run
+    assert t["nets"] > t["evaluate"]  # training dominates evaluation
+    assert sum(t[s] for s in stages) <= t["total"] * 1.01 + 1.0  # stages are disjoint parts of the run
     table = (workdir / "table.md").read_text().splitlines()
     assert table[0].split("|")[1:8] == [" train ", " test ", " Ours ", " RGB-Net ", " gain ", " HHA-Net ", " gain "]
     rows = [r for r in table[2:] if r.startswith("|")]
@@ -186,8 +191,56 @@ def test_paper_path_on_fake_nclt(tmp_path, midas_recipe_npz):
     feats = [d for d in (tmp_path / "work" / "cache").iterdir() if "-convfeat-" in d.name and d.is_dir()]
     assert len(feats) == 4 * 3  # sessions × (rgb, hha, depth1), frozen ImageNet-style trunk
     assert open_array_cache(feats[0]).data.shape[1:] == (7, 7, 32)
+    _assert_net_accuracies_recomputed(tmp_path / "work", results, dates, "32x32")
+
+
+def _assert_net_accuracies_recomputed(workdir: Path, results: dict, sessions, size: str) -> None:
+    """Every net column of every pair equals top-1 recomputed from the cached logits and the saved grid."""
+    grid = PlaceGrid.load(workdir / "grid.json")
+    caches = workdir / "cache"
+    labels = {}
+    for s in sessions:
+        (rgb,) = [d for d in caches.iterdir() if re.fullmatch(rf"{re.escape(s)}-rgb{size}-[0-9a-f]{{16}}", d.name)]
+        labels[s] = grid.label(open_array_cache(rgb).extras["poses"])
+    c = results["num_classes"]
     for p in results["pairs"]:
-        assert 0.0 <= p["ours"] <= p["seen_class_fraction"] + 1e-9
+        for m in ("rgb", "hha", "depth1"):
+            (d,) = [d for d in caches.iterdir() if d.name.startswith(f"{p['train']}-{m}-on-{p['test']}-")]
+            logits = np.asarray(open_array_cache(d).data)[:, :c]
+            assert p[f"{m}_net"] == pytest.approx(np.mean(logits.argmax(1) == labels[p["test"]]))
+
+
+def test_bool_overrides_are_bools():
+    cfg = get_config("smoke")
+    apply_overrides(cfg, ["figures=False", "progress=false", "ablations.depth1=True"])
+    assert cfg.figures is False and cfg.progress is False and cfg.ablations.depth1 is True
+    for bad in ("figures=0", "figures=no", "train.epochs=True"):
+        with pytest.raises(ValueError, match="override"):
+            apply_overrides(get_config("smoke"), [bad])
+
+
+def test_whole_config_is_validated_before_any_stage(tmp_path):
+    from experiments.cross_season import validate
+
+    cfg = get_config("smoke")
+    apply_overrides(
+        cfg,
+        [
+            "data.sessions=('WI',)",
+            "train.epochs=0",
+            "train.learning_rate=1e999",
+            "depth.source=bogus",
+            "train.batch_size=15",
+        ],
+    )
+    with pytest.raises(ValueError) as err:
+        run(cfg, tmp_path / "never")
+    msg = str(err.value)
+    for key in ("data.sessions", "train.epochs", "train.learning_rate", "depth.source", "train.batch_size=15"):
+        assert key in msg, key
+    assert not (tmp_path / "never").exists()  # failed before the first stage wrote anything
+    for preset in ("smoke", "default", "paper"):
+        validate(get_config(preset), 2)
 
 
 def test_bad_overrides_are_explained():

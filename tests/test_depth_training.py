@@ -37,11 +37,11 @@ def test_resumed_training_equals_uninterrupted(uninterrupted, tmp_path):
     ):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
     # Training changed the weights (the comparison above is not between two untouched initialisations).
-    init = depth._train.init_state(CFG)
+    init = depth._train.init_variables(CFG)
     moved = [
         not np.allclose(np.asarray(a), np.asarray(b))
         for a, b in zip(
-            jax.tree_util.tree_leaves(init.params),
+            jax.tree_util.tree_leaves(init["params"]),
             jax.tree_util.tree_leaves(uninterrupted.variables["params"]),
             strict=True,
         )
@@ -49,20 +49,54 @@ def test_resumed_training_equals_uninterrupted(uninterrupted, tmp_path):
     assert np.mean(moved) > 0.9
 
 
-def test_batches_are_a_function_of_the_step():
-    np.testing.assert_array_equal(depth._train.batch_indices(CFG, 3), depth._train.batch_indices(CFG, 3))
-    per_epoch = CFG.frames // CFG.batch_size
-    epoch = np.concatenate([depth._train.batch_indices(CFG, s) for s in range(per_epoch)])
-    assert len(np.unique(epoch)) == len(epoch)
+def test_depth_network_trains_on_the_engine_and_its_loss_falls(tmp_path):
+    """The one engine with the depth objective: BatchNorm statistics move, the loss falls on a fixed batch."""
+    from placejax import training
+    from placejax.data import FrameSource, train_dataset
+
+    cfg = dataclasses.replace(CFG, steps=12, learning_rate=5e-3, warmup_steps=1, frames=16)
+    frames = depth._train.training_frames(cfg, progress=False)
+    source = FrameSource(frames["rgb"], extras={"depth": frames["depth"], "sky": frames["sky"]})
+    ds = train_dataset(source, batch_size=8, seed=0, num_epochs=6)
+    variables = jax.device_get(depth._train.init_variables(cfg))  # host copies: the state's buffers are donated
+    mesh = training.data_mesh(None)
+    state = training.replicate(
+        training.create_state(
+            training.apply_fn(cfg.model()),
+            variables["params"],
+            training.make_optimizer("adamw", clip_norm=1.0),
+            learning_rate=cfg.learning_rate,
+            total_steps=cfg.steps,
+            batch_stats=variables["batch_stats"],
+        ),
+        mesh,
+    )
+    state, hist = training.fit(
+        state,
+        ds,
+        num_steps=cfg.steps,
+        key=jax.random.key(0),
+        mesh=mesh,
+        prepare=depth._train._prepare,
+        objective=depth.DepthObjective.of(cfg),
+        progress=False,
+    )
+    losses = [h["loss"] for h in hist]
+    assert np.mean(losses[-3:]) < 0.8 * np.mean(losses[:3])
+    stats_before = jax.tree_util.tree_leaves(variables["batch_stats"])
+    stats_after = jax.tree_util.tree_leaves(jax.device_get(state.batch_stats))
+    assert np.mean([not np.allclose(a, b) for a, b in zip(stats_before, stats_after, strict=True)]) > 0.9
 
 
 def test_ensure_depth_model_trains_once_and_reports(uninterrupted_dir, tmp_path, monkeypatch):
     # Seed the cache with the finished run: ensure_depth_model must reuse it, not train again.
-    workdir = train_depth.run_dir(CFG, "smoke", tmp_path)
+    workdir = depth.run_dir(CFG, "smoke", tmp_path)
     shutil.copytree(uninterrupted_dir, workdir)
+    from placejax.training import _loop
+
     calls = []
-    monkeypatch.setattr(depth._train, "train_step", lambda *a, **k: calls.append(1))
-    trained = train_depth.ensure_depth_model("smoke", tmp_path, config=CFG, progress=False)
+    monkeypatch.setattr(_loop, "train_step", lambda *a, **k: calls.append(1))
+    trained = depth.ensure_trained("smoke", tmp_path, config=CFG, progress=False)
     assert not calls
     report = json.loads((workdir / "depth_eval.json").read_text())
     assert set(report["per_season"]) == {"WI", "SP", "SU", "AU"}
@@ -81,7 +115,7 @@ def test_baselines_and_overrides():
     cfg = train_depth.parse_overrides(CFG, ["steps=7", "learning_rate=0.5", "loss=mse"])
     assert (cfg.steps, cfg.learning_rate, cfg.loss) == (7, 0.5, "mse")
     assert cfg.fingerprint() != CFG.fingerprint()
-    with pytest.raises(SystemExit, match="expected key=value"):
+    with pytest.raises(ValueError, match="unknown config key 'nonsense'"):
         train_depth.parse_overrides(CFG, ["nonsense=1"])
     with pytest.raises(ValueError, match="multiple of 32"):
         dataclasses.replace(CFG, image_size=40)
@@ -100,3 +134,19 @@ def test_targets_put_sky_at_infinite_distance():
     np.testing.assert_array_equal(mask, [[[1, 0, 0, 0, 0]]])
     with pytest.raises(ValueError, match="trim"):
         dataclasses.replace(CFG, trim=1.0)
+
+
+def test_bool_overrides_are_bools_and_change_the_fingerprint():
+    """``sky_in_loss=False`` must be False (the old parser's ``bool("False")`` was True and, the fingerprint
+    unchanged, silently reused a cached network trained with the sky in the loss)."""
+    assert CFG.sky_in_loss is True
+    for text in ("False", "false"):
+        cfg = train_depth.parse_overrides(CFG, [f"sky_in_loss={text}"])
+        assert cfg.sky_in_loss is False
+        assert cfg.fingerprint() != CFG.fingerprint()
+    assert train_depth.parse_overrides(CFG, ["sky_in_loss=True"]).sky_in_loss is True
+    for bad in ("sky_in_loss=0", "sky_in_loss=yes", "steps=True", "steps=2.5"):
+        with pytest.raises(ValueError, match="override"):
+            train_depth.parse_overrides(CFG, [bad])
+    with pytest.raises(ValueError, match="positive int"):
+        train_depth.parse_overrides(CFG, ["steps=0"])

@@ -24,9 +24,7 @@ def vgg16_reference(tmp_path_factory):
 
     Generated once per session (~10 s, ~553 MB in a tmp dir) by a script outside the library."""
     out = tmp_path_factory.mktemp("vgg16_ref")
-    subprocess.run(
-        [sys.executable, str(REFS / "make_vgg16_reference.py"), str(out), "--size", "64"], check=True
-    )
+    subprocess.run([sys.executable, str(REFS / "make_vgg16_reference.py"), str(out), "--size", "64"], check=True)
     return out / "vgg16.pth", dict(np.load(out / "vgg16_reference.npz"))
 
 
@@ -53,8 +51,14 @@ def test_parity_with_torch_vgg16_file(vgg16_reference):
 
 def test_cpu_compiler_options(monkeypatch):
     opts = cpu_compiler_options("vgg16")
-    if jax.default_backend() == "cpu":
-        assert set(opts) <= {"xla_cpu_experimental_ynn_fusion_type"}  # {} where this jaxlib lacks YNNPACK
+    # The pinned jaxlib has YNNPACK: the fast path must be active here, so that a jaxlib that drops or renames
+    # the option fails this test instead of silently running VGG16 ~1.8x slower.
+    assert jax.default_backend() == "cpu"
+    assert opts == {
+        "xla_cpu_experimental_ynn_fusion_type": (
+            "LIBRARY_FUSION_TYPE_INDIVIDUAL_CONVOLUTION,LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"
+        )
+    }
     assert cpu_compiler_options("midas_small") == {}
     opts["mutated"] = "1"
     assert "mutated" not in cpu_compiler_options("vgg16")  # a fresh dict each call
@@ -66,6 +70,7 @@ def test_cpu_compiler_options(monkeypatch):
 
 def test_cpu_compiler_options_same_result_small_vgg(tiny_vgg):
     model, variables = tiny_vgg
+    assert cpu_compiler_options("vgg16"), "the YNNPACK fast path is not active on this jaxlib"
     x = jax.random.normal(jax.random.key(5), (3, 48, 40, 3))
     ref = jax.jit(model.apply)(variables, x)
     out = jax.jit(model.apply, compiler_options=cpu_compiler_options("vgg16"))(variables, x)
@@ -80,9 +85,7 @@ def test_converter_reports_every_problem():
     # A torchvision-keyed state dict for the narrow model, built from the Flax shapes.
     sd = {}
     convs = (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28)
-    for index, (_, p) in zip(
-        convs, sorted(shapes["trunk"].items(), key=lambda kv: _conv_order(kv[0])), strict=True
-    ):
+    for index, (_, p) in zip(convs, sorted(shapes["trunk"].items(), key=lambda kv: _conv_order(kv[0])), strict=True):
         kh, kw, cin, cout = p["kernel"].shape
         sd[f"features.{index}.weight"] = rng.normal(size=(cout, cin, kh, kw)).astype(np.float32)
         sd[f"features.{index}.bias"] = rng.normal(size=(cout,)).astype(np.float32)

@@ -61,7 +61,7 @@ def test_deterministic_given_seed(cached):
     aug = Augment(crop_hw=(6, 5), brightness=0.2, contrast=0.3)
     a = list(train_dataset(c, labels, batch_size=5, seed=7, num_epochs=2, augment=aug))
     b = list(train_dataset(c, labels, batch_size=5, seed=7, num_epochs=2, augment=aug))
-    assert len(a) == len(b) == 8
+    assert len(a) == len(b) == 9  # 2 × 23 frames in batches of 5, the last partial one dropped
     for x, y in zip(a, b, strict=True):
         for key in x:
             np.testing.assert_array_equal(x[key], y[key])
@@ -107,9 +107,19 @@ def test_shards_come_from_one_global_permutation(cached):
 def test_drop_remainder(cached):
     _, c, labels = cached
     ds = train_dataset(c, labels, batch_size=5, seed=0, num_epochs=2)
-    assert len(ds) == 8 and all(len(b["index"]) == 5 for b in ds)
+    assert len(ds) == 9 and all(len(b["index"]) == 5 for b in ds)
+    # Batches span epoch boundaries: batch 4 holds the last 3 frames of epoch 0 and the first 2 of epoch 1.
+    idx = _indices(list(ds))
+    assert sorted(idx[:23].tolist()) == list(range(23)) and len(set(idx[23:45].tolist())) == 22
+    # Random access: batch k read alone equals batch k of the iteration (what a resumed run reads).
+    np.testing.assert_array_equal(ds[6]["index"], list(ds)[6]["index"])
     with pytest.raises(ValueError, match="exceeds"):
         train_dataset(c, labels, batch_size=30, seed=0)
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="positive int"):
+            train_dataset(c, labels, batch_size=bad, seed=0)
+        with pytest.raises(ValueError, match="positive int"):
+            train_dataset(c, labels, batch_size=4, seed=0, num_epochs=bad)
 
 
 def test_augmentation(cached):

@@ -44,13 +44,22 @@ def main(argv: list[str] | None = None) -> int:
     cfg = _config.get_config(args.preset)
     try:
         _config.apply_overrides(cfg, args.overrides)
+        _config.validate(cfg)
     except ValueError as e:
         parser.error(str(e))
     from experiments.cross_season.pipeline import run
     from experiments.cross_season.report import table_markdown
 
     workdir = args.workdir or f"runs/cross_season-{args.preset}"
-    results = run(cfg, workdir)
+    try:
+        results = run(cfg, workdir)
+    except KeyboardInterrupt:
+        # Every finished stage is cached and every training checkpointed: nothing is lost.
+        print(
+            f"\ninterrupted: rerun the same command to resume where it stopped (work directory {workdir})",
+            file=sys.stderr,
+        )
+        return 130
     print(table_markdown(results))
     print(f"results in {workdir}/results.json; stage times (s): {results['timings_s']}")
     return 0

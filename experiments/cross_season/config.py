@@ -7,7 +7,7 @@ Presets:
     default: SimCampus, 4 seasons at 48×48 (a frame every 2 m of travel, ~900–1200 per season), the 10×10
         grid, VGG16 at 1/8 width trained from scratch (He init, AdamW 3e-4, 12 epochs; the learning rate was
         chosen on held-out frames of the training session — 68% vs 65% at 1e-3 on WI — never on cross-season
-        results), the placejax-trained depth network (issue 5) as depth source.
+        results), the placejax-trained depth network as depth source.
     paper: NCLT 2012-01-22 / 03-31 / 08-04 / 11-17, Cam5, 256×256, ImageNet VGG16 at full width with frozen
         convolutions (features cached, fc6–fc8 trained), the official MiDaS v2.1 small, 100 classes, fusion MLP
         8192 → 1024 → 100 (paper §IV).
@@ -15,9 +15,13 @@ Presets:
 
 from __future__ import annotations
 
-import ast
+import math
 
 import ml_collections
+
+from experiments.overrides import apply_overrides, get, leaf_keys
+
+__all__ = ["HELP", "PRESETS", "apply_overrides", "get_config", "leaf_keys", "validate"]
 
 PRESETS = ("smoke", "default", "paper")
 
@@ -37,7 +41,7 @@ HELP: dict[str, str] = {
     "depth.midas_weights": "path of midas_v21_small_256.pt ('' = placejax.weights registry / download)",
     "depth.midas_features": "MiDaS decoder width (64 official; smaller only for tests)",
     "depth.midas_encoder_width": "MiDaS encoder channel multiplier (1.0 official)",
-    "depth.trained_preset": "preset of experiments.train_depth for depth.source='trained'",
+    "depth.trained_preset": "preset of the placejax depth network (experiments.train_depth) for depth.source='trained'",
     "depth.trained_cache": "cache folder of the trained depth network ('' = its default)",
     "depth.near_m": "metric depth assigned to the 98th percentile of inverse depth (m)",
     "depth.far_m": "metric depth assigned to the 2nd percentile of inverse depth (m)",
@@ -52,14 +56,17 @@ HELP: dict[str, str] = {
     "train.optimizer": "'sgd' (momentum 0.9) or 'adamw'",
     "train.warmup_steps": "linear warmup steps",
     "train.weight_decay": "L2 / decoupled weight decay",
-    "train.save_every": "steps between orbax checkpoints",
+    "train.save_every": "steps between orbax checkpoints (changes no result)",
     "train.shuffle_labels": "control: train every net and MLP on its session's labels permuted across frames",
     "mlp.hidden": "hidden units of the fusion MLP (1024 in the paper)",
     "mlp.dropout": "dropout on the MLP hidden layer",
     "mlp.epochs": "epochs of the fusion MLP",
     "mlp.batch_size": "fusion MLP batch",
-    "mlp.learning_rate": "fusion MLP peak learning rate (AdamW)",
-    "mlp.save_every": "MLP steps between orbax checkpoints",
+    "mlp.learning_rate": "fusion MLP peak learning rate",
+    "mlp.optimizer": "fusion MLP optimiser: 'adamw' or 'sgd' (momentum 0.9)",
+    "mlp.weight_decay": "fusion MLP weight decay",
+    "mlp.warmup_steps": "fusion MLP linear warmup steps",
+    "mlp.save_every": "MLP steps between orbax checkpoints (changes no result)",
     "eval.batch_size": "inference batch (divisible by the device count)",
     "ablations.depth1": "also train a net on the 1-channel depth image (the HHA disparity channel ×3)",
     "ablations.average": "also report equal-weight averaging of RGB-Net and HHA-Net softmax outputs",
@@ -107,7 +114,17 @@ def _base() -> ml_collections.ConfigDict:
         save_every=50,
         shuffle_labels=False,
     )
-    c.mlp = dict(hidden=1024, dropout=0.0, epochs=20, batch_size=64, learning_rate=1e-3, save_every=200)
+    c.mlp = dict(
+        hidden=1024,
+        dropout=0.0,
+        epochs=20,
+        batch_size=64,
+        learning_rate=1e-3,
+        optimizer="adamw",
+        weight_decay=1e-4,
+        warmup_steps=0,
+        save_every=200,
+    )
     c.eval = dict(batch_size=128)
     c.ablations = dict(depth1=True, average=True)
     c.seed = 0
@@ -149,62 +166,91 @@ def get_config(preset: str = "default") -> ml_collections.ConfigDict:
     return c
 
 
-def _leaf_keys(c: ml_collections.ConfigDict, prefix: str = "") -> list[str]:
-    keys = []
-    for k, v in c.items():
-        if isinstance(v, ml_collections.ConfigDict):
-            keys += _leaf_keys(v, f"{prefix}{k}.")
-        else:
-            keys.append(f"{prefix}{k}")
-    return keys
 
 
-def leaf_keys(c: ml_collections.ConfigDict) -> list[str]:
-    """Dotted names of every overridable value."""
-    return _leaf_keys(c)
+_CHOICES = {
+    "data.source": ("simcampus", "nclt"),
+    "depth.source": ("trained", "midas", "true"),
+    "train.optimizer": ("sgd", "adamw"),
+    "mlp.optimizer": ("sgd", "adamw"),
+}
 
 
-def _parse(text: str, old):
-    if isinstance(old, str):
-        return text
-    try:
-        value = ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        raise ValueError(f"cannot parse {text!r} as a Python literal") from None
-    if isinstance(old, bool):
-        if not isinstance(value, bool):
-            raise ValueError(f"expected True or False, got {text!r}")
-    elif isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
-        value = float(value)
-    elif isinstance(old, tuple):
-        value = tuple(value) if isinstance(value, list | tuple) else (value,)
-    elif type(value) is not type(old):
-        raise ValueError(f"expected {type(old).__name__}, got {type(value).__name__} {text!r}")
-    return value
+def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None:
+    """Checks the whole configuration before the first stage runs, so that a bad value fails in a second with a
+    message naming the key, not an hour later inside a stage.
 
-
-def apply_overrides(c: ml_collections.ConfigDict, overrides: list[str]) -> ml_collections.ConfigDict:
-    """Applies ``key=value`` overrides (``train.epochs=3``, ``data.sessions=('WI','SU')``) in place.
-
-    Values are Python literals checked against the type of the preset's value; strings need no quotes.
+    Args:
+        c: the configuration.
+        n_devices: devices of the data mesh, when known: every global batch must divide over them.
 
     Raises:
-        ValueError: a malformed override, an unknown key (the message lists the known ones) or a wrong type.
+        ValueError: naming the offending key(s).
     """
-    known = leaf_keys(c)
-    for item in overrides:
-        if "=" not in item:
-            raise ValueError(f"override {item!r} is not key=value")
-        key, text = item.split("=", 1)
-        key = key.strip()
-        if key not in known:
-            raise ValueError(f"unknown config key {key!r}; known keys: {', '.join(known)}")
-        *parents, leaf = key.split(".")
-        node = c
-        for p in parents:
-            node = node[p]
-        try:
-            node[leaf] = _parse(text, node[leaf])
-        except ValueError as e:
-            raise ValueError(f"override {key}: {e}") from None
-    return c
+    errors = []
+    for key, choices in _CHOICES.items():
+        if get(c, key) not in choices:
+            errors.append(f"{key}={get(c, key)!r}: expected one of {choices}")
+    positive_ints = [
+        "grid.n",
+        "depth.batch_size",
+        "train.epochs",
+        "train.batch_size",
+        "train.save_every",
+        "mlp.hidden",
+        "mlp.epochs",
+        "mlp.batch_size",
+        "mlp.save_every",
+        "eval.batch_size",
+    ]
+    for key in positive_ints:
+        v = get(c, key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            errors.append(f"{key}={v!r}: expected a positive int")
+    for key in ("train.warmup_steps", "mlp.warmup_steps", "data.max_frames", "devices"):
+        v = get(c, key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            errors.append(f"{key}={v!r}: expected an int >= 0")
+    for key in ("train.learning_rate", "mlp.learning_rate", "vgg.width", "depth.near_m", "depth.far_m"):
+        v = get(c, key)
+        if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+            errors.append(f"{key}={v!r}: expected a finite positive number")
+    for key in ("train.weight_decay", "mlp.weight_decay", "vgg.dropout", "mlp.dropout"):
+        v = get(c, key)
+        if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+            errors.append(f"{key}={v!r}: expected a finite number >= 0")
+    for key in ("vgg.dropout", "mlp.dropout"):
+        if isinstance(get(c, key), int | float) and get(c, key) >= 1:
+            errors.append(f"{key}={get(c, key)!r}: a dropout rate must be < 1")
+    if not get(c, "depth.near_m") < get(c, "depth.far_m"):
+        errors.append(f"depth.near_m={c.depth.near_m!r} must be below depth.far_m={c.depth.far_m!r}")
+    sessions = tuple(c.data.sessions)
+    if len(sessions) < 2 or len(set(sessions)) != len(sessions):
+        errors.append(f"data.sessions={sessions!r}: need two or more distinct sessions (train on one, test on others)")
+    size = tuple(c.data.image_size)
+    if len(size) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 16 for v in size):
+        errors.append(f"data.image_size={size!r}: expected (H, W), ints >= 16")
+    if c.data.source == "simcampus":
+        from placejax.data.simcampus import SEASONS
+
+        unknown = [x for x in sessions if x not in SEASONS]
+        if unknown:
+            errors.append(f"data.sessions: {unknown} are not SimCampus seasons {tuple(SEASONS)}")
+    if c.data.source == "nclt" and not c.data.nclt_root:
+        errors.append("data.source='nclt' needs data.nclt_root=/path/to/nclt (layout: docs/nclt.md)")
+    if c.depth.source == "true" and c.data.source != "simcampus":
+        errors.append("depth.source='true' needs rendered depth: only data.source='simcampus' has it")
+    if c.depth.source == "trained":
+        from placejax.depth import PRESETS as DEPTH_PRESETS
+
+        if c.depth.trained_preset not in DEPTH_PRESETS:
+            errors.append(f"depth.trained_preset={c.depth.trained_preset!r}: expected one of {sorted(DEPTH_PRESETS)}")
+    if c.vgg.pretrained and not c.vgg.weights and c.vgg.width != 1.0:
+        errors.append("vgg.pretrained with the registry's ImageNet weights needs vgg.width=1.0 (or vgg.weights=PATH)")
+    if n_devices:
+        for key in ("train.batch_size", "eval.batch_size", "mlp.batch_size"):
+            v = get(c, key)
+            if isinstance(v, int) and v % n_devices:
+                errors.append(f"{key}={v} must be divisible by the {n_devices} devices of the mesh")
+    if errors:
+        raise ValueError("invalid configuration:\n  " + "\n  ".join(errors))

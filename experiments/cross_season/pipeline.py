@@ -19,7 +19,8 @@ rerun ends with the same accuracies as an uninterrupted run.
 from __future__ import annotations
 
 import dataclasses
-import json
+import functools
+import hashlib
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -30,33 +31,13 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from experiments.cross_season import config as _config
 from placejax import hha as _hha
 from placejax import io
-from placejax.data import (
-    PlaceGrid,
-    build_array_cache,
-    cache_session,
-    eval_dataset,
-    session_identity,
-)
+from placejax.data import PlaceGrid, build_array_cache, cache_session, eval_dataset, train_dataset, truncated
 from placejax.data.cache import cache_digest
-from placejax.models import VGG16, FusionMLP, cpu_compiler_options
-from placejax.training import (
-    Checkpointer,
-    apply_fn,
-    create_state,
-    data_mesh,
-    epoch_batches,
-    fit,
-    make_optimizer,
-    predict,
-    replicate,
-)
-
-# torchvision's ImageNet statistics; HHA images go through the same normalisation (paper §III: the HHA net
-# is the same VGG16 recipe, so HHA is treated as an ordinary 3-channel image).
-_MEAN = np.array([0.485, 0.456, 0.406], np.float32) * 255.0
-_STD = np.array([0.229, 0.224, 0.225], np.float32) * 255.0
+from placejax.models import VGG16, FusionMLP, cpu_compiler_options, he_init, imagenet_normalise
+from placejax.training import apply_fn, data_mesh, make_optimizer, map_batches, predict, replicate, train
 
 MODALITIES = ("rgb", "hha", "depth1")
 
@@ -130,38 +111,16 @@ def load_sessions(ctx: Context) -> list[SessionData]:
             if not c.nclt_root or not Path(c.nclt_root).is_dir():
                 raise FileNotFoundError(
                     f"data.nclt_root={c.nclt_root!r} is not a folder; pass data.nclt_root=/path/to/nclt holding "
-                    "images/, ground_truth/ and ladybug3_calib/ (see specs/nclt.md)"
+                    "images/, ground_truth/ and ladybug3_calib/ (layout: docs/nclt.md)"
                 )
             src = nclt.load_session(c.nclt_root, name, camera=c.camera, undistort=c.undistort, progress=ctx.progress)
             if c.max_frames:
-                src = _Truncated(src, c.max_frames)
+                src = truncated(src, c.max_frames)
         else:
             raise ValueError(f"data.source must be 'simcampus' or 'nclt', got {c.source!r}")
         cached = cache_session(src, ctx.cache_root, image_size=tuple(c.image_size), progress=ctx.progress)
         out.append(SessionData(name=name, cached=cached, source=src))
     return out
-
-
-class _Truncated:
-    """The first ``n`` frames of a session (``data.max_frames``)."""
-
-    def __init__(self, session, n: int):
-        self._s, n = session, min(n, len(session))
-        self.name = session.name
-        self.utimes, self.poses = session.utimes[:n], session.poses[:n]
-        self.intrinsics, self.image_shape = session.intrinsics, session.image_shape
-        self._n = n
-
-    def __len__(self) -> int:
-        return self._n
-
-    def image(self, i: int) -> np.ndarray:
-        if not 0 <= i < self._n:
-            raise IndexError(i)
-        return self._s.image(i)
-
-    def fingerprint(self) -> dict:
-        return {"truncated": self._n, "of": session_identity(self._s)}
 
 
 def fit_grid(ctx: Context, sessions: list[SessionData]) -> PlaceGrid:
@@ -174,22 +133,6 @@ def fit_grid(ctx: Context, sessions: list[SessionData]) -> PlaceGrid:
 
 
 # ---------------------------------------------------------------------------------------------------- depth, HHA
-
-
-def _padded_batches(fn: Callable[[np.ndarray], np.ndarray], batch: int) -> Callable[[np.ndarray], np.ndarray]:
-    """``fn`` on fixed-size batches (the last padded), so a jitted ``fn`` compiles once per stage."""
-
-    def run(x: np.ndarray) -> np.ndarray:
-        outs = []
-        for lo in range(0, len(x), batch):
-            part = x[lo : lo + batch]
-            pad = batch - len(part)
-            if pad:
-                part = np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])
-            outs.append(np.asarray(fn(part))[: batch - pad])
-        return np.concatenate(outs)
-
-    return run
 
 
 def _depth_source(ctx: Context) -> tuple[dict, Callable[[SessionData, int, int], np.ndarray]]:
@@ -216,29 +159,23 @@ def _depth_source(ctx: Context) -> tuple[dict, Callable[[SessionData, int, int],
         model = MidasSmall(features=c.midas_features, encoder_width=c.midas_encoder_width)
         if c.midas_weights:
             variables = convert_midas_small(read_torch_checkpoint(c.midas_weights), model)
-            ident = {"file": str(Path(c.midas_weights).resolve()), "bytes": Path(c.midas_weights).stat().st_size}
         else:
             variables = load("midas_v21_small_256")
-            ident = {"registry": "midas_v21_small_256"}
-        run = _padded_batches(lambda x: _depth.predict(variables, x, model=model), c.batch_size)
+        ident = weights_identity(c.midas_weights, "midas_v21_small_256")
 
         def midas(s: SessionData, a: int, b: int) -> np.ndarray:
-            return to_metric(run(np.asarray(s.cached.images[a:b])))
+            x = np.asarray(s.cached.images[a:b])
+            return to_metric(map_batches(lambda x: _depth.predict(variables, x, model=model), x, c.batch_size))
 
         key = {"source": "midas", "weights": ident, "model": [c.midas_features, c.midas_encoder_width], **metric}
         return key, midas
     if c.source == "trained":
-        # The placejax-trained depth network (issue 5), imported lazily: it trains once and caches itself.
-        try:
-            from experiments.train_depth import ensure_depth_model
-        except ImportError as e:
-            raise RuntimeError(
-                "depth.source='trained' needs experiments.train_depth (the depth-network training, issue 5), "
-                f"which is not importable here ({e}); use depth.source=true (SimCampus rendered depth) or "
-                "depth.source=midas"
-            ) from e
+        # The placejax-trained depth network: trained once per machine into the cache, then reused.
+        from placejax import depth as _depth
 
-        trained = ensure_depth_model(c.trained_preset, cache_root=Path(c.trained_cache) if c.trained_cache else None)
+        trained = _depth.ensure_trained(
+            c.trained_preset, Path(c.trained_cache) if c.trained_cache else None, progress=ctx.progress
+        )
 
         def trained_depth(s: SessionData, a: int, b: int) -> np.ndarray:
             return to_metric(trained.predict(np.asarray(s.cached.images[a:b])))
@@ -269,12 +206,15 @@ def compute_depth_and_hha(ctx: Context, sessions: list[SessionData]) -> None:
     with ctx.timed("hha"):
         for s in sessions:
             k = np.asarray(s.cached.intrinsics)
-            encode = _padded_batches(lambda d, k=k: _hha.encode(d, k), c.batch_size)
+
+            def encode(a: int, b: int, s=s, k=k) -> np.ndarray:
+                return map_batches(lambda d: _hha.encode(d, k), np.asarray(s.depth.data[a:b]), c.batch_size)
+
             s.hha = build_array_cache(
                 ctx.cache_root,
                 f"{s.name}-hha-{c.source}",
                 len(s),
-                lambda a, b, s=s, encode=encode: encode(np.asarray(s.depth.data[a:b])),
+                encode,
                 (*s.cached.image_shape, 3),
                 np.uint8,
                 key={"kind": "hha", "depth": s.depth.key},
@@ -293,16 +233,18 @@ def modality_images(s: SessionData, modality: str) -> np.ndarray:
     raise ValueError(f"unknown modality {modality!r}; expected one of {MODALITIES}")
 
 
-def normalise(images: np.ndarray, modality: str) -> np.ndarray:
-    """uint8 ``(B, H, W, 3)`` → float32 network input. ``depth1``: the HHA disparity channel, repeated ×3.
+def network_input(images: np.ndarray, modality: str) -> np.ndarray:
+    """uint8 ``(B, H, W, 3)`` → float32 network input (ImageNet normalisation, as the VGG16 recipe).
 
-    The 1-channel ablation (paper §IV) uses the disparity channel of the same HHA image, so the two differ only
-    in the height and angle channels and share quantisation and metric scaling.
+    HHA images go through the same normalisation as RGB (paper §III: the HHA net is the same VGG16 recipe, so HHA
+    is treated as an ordinary 3-channel image). ``depth1``, the 1-channel ablation (paper §IV), is the disparity
+    channel of the same HHA image repeated ×3, so the two differ only in the height and angle channels and share
+    quantisation and metric scaling.
     """
-    x = np.asarray(images, np.float32)
+    x = np.asarray(images)
     if modality == "depth1":
         x = np.repeat(x[..., :1], 3, axis=-1)
-    return (x - _MEAN) / _STD
+    return imagenet_normalise(x)
 
 
 # ---------------------------------------------------------------------------------------------------- networks
@@ -313,34 +255,26 @@ def _vgg(ctx: Context, num_classes: int) -> VGG16:
     return VGG16(num_classes=num_classes, width=c.width, dropout_rate=c.dropout)
 
 
-def scratch_init(params: dict, key: jax.Array) -> dict:
-    """Initialises VGG16 parameters for training from scratch with He (Kaiming) normal weights and zero biases.
+@functools.lru_cache(maxsize=8)
+def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
+    del size, mtime_ns  # part of the cache key only: a replaced file is hashed again
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
-    Convs: ``std = sqrt(2 / fan_out)`` as torchvision (``kaiming_normal_(mode="fan_out", nonlinearity="relu")``);
-    fc6 and fc7: ``std = sqrt(2 / fan_in)`` (they feed ReLUs); fc8: ``std = sqrt(1 / fan_in)``. Flax's default
-    LeCun init halves the signal's variance at each of VGG16's 15 ReLUs (no batch norm). torchvision's N(0, 0.01²)
-    for the fully connected layers scales the variance by 10⁻⁴·fan_in per layer, ×0.31 at fc6 and ×0.05 at fc7
-    of the 1/8-width net: logits start ~10⁻³ of the features' scale and training sits on a plateau (measured on
-    SimCampus WI, 48×48, 12 epochs: 18% training accuracy with it, 85% with this init).
-    """
-    flat = jax.tree_util.tree_flatten_with_path(params)[0]
-    keys = jax.random.split(key, len(flat))
-    out = {}
-    for (path, leaf), k in zip(flat, keys, strict=True):
-        names = [p.key for p in path]
-        if names[-1] == "bias":
-            value = jnp.zeros_like(leaf)
-        elif leaf.ndim == 4:  # conv kernel (kh, kw, in, out)
-            fan_out = leaf.shape[0] * leaf.shape[1] * leaf.shape[3]
-            value = jax.random.normal(k, leaf.shape, leaf.dtype) * jnp.sqrt(2.0 / fan_out)
-        else:  # dense kernel (in, out)
-            gain = 1.0 if names[-2] == "fc8" else 2.0
-            value = jax.random.normal(k, leaf.shape, leaf.dtype) * jnp.sqrt(gain / leaf.shape[0])
-        node = out
-        for n in names[:-1]:
-            node = node.setdefault(n, {})
-        node[names[-1]] = value
-    return out
+
+def weights_identity(path: str, registry_name: str) -> dict:
+    """What identifies a weights file in cache keys: its SHA-256 (not its path: a moved file is the same
+    weights, a replaced one is not), or the registry entry."""
+    if not path:
+        return {"registry": registry_name}
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"weights file {path!r} not found")
+    st = p.stat()
+    return {"sha256": _file_sha256(str(p.resolve()), st.st_size, st.st_mtime_ns)}
 
 
 def _pretrained_vgg(ctx: Context) -> dict:
@@ -370,6 +304,19 @@ def training_labels(config: ml_collections.ConfigDict, s: SessionData, si: int) 
     return np.random.default_rng([config.seed, si, 0x5EED]).permutation(s.labels)
 
 
+def _results_only(section: ml_collections.ConfigDict) -> dict:
+    """A config section without the keys that change no result (checkpoint intervals), for cache keys."""
+    return {k: v for k, v in section.to_dict().items() if k != "save_every"}
+
+
+def _vgg_key(ctx: Context) -> dict:
+    c = ctx.config.vgg
+    out = {k: v for k, v in c.to_dict().items() if k != "weights"}
+    if c.pretrained:
+        out["weights"] = weights_identity(c.weights, "vgg16_imagenet")
+    return out
+
+
 def _net_key(ctx: Context, s: SessionData, labels: np.ndarray, modality: str, num_classes: int) -> dict:
     cfg = ctx.config
     return {
@@ -377,8 +324,8 @@ def _net_key(ctx: Context, s: SessionData, labels: np.ndarray, modality: str, nu
         "images": s.cached.key if modality == "rgb" else s.hha.key,
         "labels": cache_digest({"labels": labels.tolist()}),
         "num_classes": num_classes,
-        "vgg": cfg.vgg.to_dict(),
-        "train": cfg.train.to_dict(),
+        "vgg": _vgg_key(ctx),
+        "train": _results_only(cfg.train),
         "seed": cfg.seed,
     }
 
@@ -406,7 +353,10 @@ def _conv_features(ctx: Context, sessions: list[SessionData], modality: str, tru
     out = {}
     for s in sessions:
         images = modality_images(s, modality)
-        run = _padded_batches(lambda x: fn(p, jnp.asarray(normalise(x, modality))), c.eval.batch_size)
+
+        def run(x, modality=modality):
+            return map_batches(lambda b: fn(p, jnp.asarray(network_input(b, modality))), x, c.eval.batch_size)
+
         shape = jax.eval_shape(fn, trunk_params, jax.ShapeDtypeStruct((1, *images.shape[1:]), jnp.float32)).shape
         out[s.name] = build_array_cache(
             ctx.cache_root,
@@ -419,13 +369,64 @@ def _conv_features(ctx: Context, sessions: list[SessionData], modality: str, tru
                 "kind": "vgg_conv_features",
                 "modality": modality,
                 "images": s.cached.key if modality == "rgb" else s.hha.key,
-                "vgg": {"width": c.vgg.width, "weights": c.vgg.weights or "registry:vgg16_imagenet"},
+                "vgg": {"width": c.vgg.width, "weights": weights_identity(c.vgg.weights, "vgg16_imagenet")},
             },
             chunk=c.eval.batch_size,
             progress=ctx.progress,
             desc=f"conv features {s.name} {modality}",
         )
     return out
+
+
+def train_classifier(
+    ctx: Context,
+    name: str,
+    fn: Callable[..., Any],
+    params: dict,
+    frames: Any,
+    labels: np.ndarray,
+    prepare: Callable[[dict], dict],
+    hp: ml_collections.ConfigDict,
+    *,
+    seed: int,
+    key: jax.Array,
+    folder: Path,
+) -> Any:
+    """Trains one place classifier (a VGG16, its head on cached features, or the fusion MLP) on the engine.
+
+    Args:
+        name: for the progress bar.
+        fn: ``placejax.training.apply_fn`` of the model.
+        params: initial parameters.
+        frames: per-frame inputs (images, cached features or embeddings).
+        labels: int ``(N,)``.
+        prepare: raw batch → ``{"x", "label", "valid"}``.
+        hp: a config section with ``epochs``, ``batch_size``, ``learning_rate``, ``optimizer``, ``weight_decay``,
+            ``warmup_steps``, ``save_every``.
+        seed: data order.
+        key: dropout keys.
+        folder: orbax checkpoints (resumed from when present).
+    """
+    ds = train_dataset(frames, labels, batch_size=hp.batch_size // jax.process_count(), seed=seed, num_epochs=hp.epochs)
+    return train(
+        fn,
+        params,
+        make_optimizer(hp.optimizer, weight_decay=hp.weight_decay),
+        ds,
+        key=key,
+        mesh=ctx.mesh,
+        prepare=prepare,
+        learning_rate=hp.learning_rate,
+        warmup_steps=hp.warmup_steps,
+        checkpoint_dir=folder,
+        save_every=hp.save_every,
+        desc=f"train {name}",
+        progress=ctx.progress,
+    )
+
+
+def _features_prepare(b: dict) -> dict:
+    return {"x": np.asarray(b["image"], np.float32), "label": b["label"], "valid": b["valid"]}
 
 
 def train_nets(ctx: Context, sessions: list[SessionData], num_classes: int) -> dict[tuple[str, str], TrainedNet]:
@@ -446,9 +447,7 @@ def train_nets(ctx: Context, sessions: list[SessionData], num_classes: int) -> d
             def inputs(s, feats=feats):
                 return feats[s.name].data
 
-            def prepare(b):
-                return {"x": np.asarray(b["image"], np.float32), "label": b["label"], "valid": b["valid"]}
-
+            prepare = _features_prepare
             fn = apply_fn(model, "head")
         else:
 
@@ -456,7 +455,7 @@ def train_nets(ctx: Context, sessions: list[SessionData], num_classes: int) -> d
                 return modality_images(s, modality)
 
             def prepare(b, modality=modality):
-                return {"x": normalise(b["image"], modality), "label": b["label"], "valid": b["valid"]}
+                return {"x": network_input(b["image"], modality), "label": b["label"], "valid": b["valid"]}
 
             fn = apply_fn(model)
         for si, s in enumerate(sessions):
@@ -465,44 +464,27 @@ def train_nets(ctx: Context, sessions: list[SessionData], num_classes: int) -> d
                 labels = training_labels(cfg, s, si)
                 net_key = _net_key(ctx, s, labels, modality, num_classes)
                 init_key, run_key = jax.random.split(jax.random.fold_in(key, 1000 * mi + si))
-                params = scratch_init(init(init_key, jnp.zeros((1, h, w, 3)))["params"], init_key)
+                params = he_init(init(init_key, jnp.zeros((1, h, w, 3)))["params"], init_key)
                 if pretrained is not None:
                     # Paper §IV: ImageNet convs frozen (features cached), fc6/fc7 fine-tuned, fc8 new.
                     cls = dict(params["classifier"])
                     cls["fc6"], cls["fc7"] = pretrained["classifier"]["fc6"], pretrained["classifier"]["fc7"]
                     params = {"classifier": cls}
-                ds = epoch_batches(
-                    inputs(s),
-                    labels,
-                    batch_size=cfg.train.batch_size // jax.process_count(),
-                    seed=cfg.seed + si,
-                    epochs=cfg.train.epochs,
-                )
-                tx = make_optimizer(cfg.train.optimizer, weight_decay=cfg.train.weight_decay)
-                state = create_state(
+                folder = ctx.workdir / "nets" / f"{name}-{cache_digest(net_key)}"
+                state = train_classifier(
+                    ctx,
+                    name,
                     fn,
                     params,
-                    tx,
-                    learning_rate=cfg.train.learning_rate,
-                    total_steps=len(ds),
-                    warmup_steps=cfg.train.warmup_steps,
+                    inputs(s),
+                    labels,
+                    prepare,
+                    cfg.train,
+                    seed=cfg.seed + si,
+                    key=run_key,
+                    folder=folder,
                 )
-                state = replicate(state, ctx.mesh)
-                ckdir = ctx.workdir / "nets" / f"{name}-{cache_digest(net_key)}"
-                with Checkpointer(ckdir) as ck:
-                    state, _ = fit(
-                        state,
-                        ds,
-                        num_steps=len(ds),
-                        key=run_key,
-                        mesh=ctx.mesh,
-                        prepare=prepare,
-                        checkpointer=ck,
-                        save_every=cfg.train.save_every,
-                        desc=f"train {name}",
-                        progress=ctx.progress,
-                    )
-                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, {**net_key, "ckpt": ckdir.name})
+                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, {**net_key, "ckpt": folder.name})
     return nets
 
 
@@ -519,7 +501,7 @@ def net_outputs(ctx: Context, net: TrainedNet, s: SessionData, num_classes: int)
             ds,
             b - a,
             mesh=ctx.mesh,
-            prepare=lambda batch: net.prepare({**batch, "label": batch["label"]}),
+            prepare=net.prepare,
             features=("fc7",),
             progress=False,
         )
@@ -551,36 +533,23 @@ def train_mlp(ctx: Context, s: SessionData, embeddings: np.ndarray, num_classes:
     key = jax.random.fold_in(jax.random.key(cfg.seed), 10_000 + si)
     init_key, run_key = jax.random.split(key)
     params = model.init(init_key, jnp.zeros((1, embeddings.shape[1])))["params"]
-    ds = epoch_batches(
+    mlp_key = {"mlp": _results_only(cfg.mlp), "upstream": upstream, "seed": cfg.seed}
+    folder = ctx.workdir / "mlp" / f"{s.name}-{cache_digest(mlp_key)}"
+    labels = training_labels(cfg, s, si)
+    state = train_classifier(
+        ctx,
+        f"MLP {s.name}",
+        apply_fn(model),
+        params,
         embeddings,
-        training_labels(cfg, s, si),
-        batch_size=cfg.mlp.batch_size // jax.process_count(),
+        labels,
+        _features_prepare,
+        cfg.mlp,
         seed=cfg.seed + 100 + si,
-        epochs=cfg.mlp.epochs,
+        key=run_key,
+        folder=folder,
     )
-    tx = make_optimizer("adamw", weight_decay=1e-4)
-    state = create_state(apply_fn(model), params, tx, learning_rate=cfg.mlp.learning_rate, total_steps=len(ds))
-    state = replicate(state, ctx.mesh)
-    mlp_key = {"mlp": cfg.mlp.to_dict(), "upstream": upstream, "seed": cfg.seed}
-    ckdir = ctx.workdir / "mlp" / f"{s.name}-{cache_digest(mlp_key)}"
-
-    def prepare(b):
-        return {"x": np.asarray(b["image"], np.float32), "label": b["label"], "valid": b["valid"]}
-
-    with Checkpointer(ckdir) as ck:
-        state, _ = fit(
-            state,
-            ds,
-            num_steps=len(ds),
-            key=run_key,
-            mesh=ctx.mesh,
-            prepare=prepare,
-            checkpointer=ck,
-            save_every=cfg.mlp.save_every,
-            desc=f"train MLP {s.name}",
-            progress=ctx.progress,
-        )
-    return state, prepare
+    return state, _features_prepare
 
 
 def _softmax(logits: np.ndarray) -> np.ndarray:
@@ -620,16 +589,10 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
         The ``results.json`` content.
     """
     workdir = Path(workdir).absolute()
-    workdir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     mesh = data_mesh(config.devices or None)
-    for name, b in (
-        ("train.batch_size", config.train.batch_size),
-        ("eval.batch_size", config.eval.batch_size),
-        ("mlp.batch_size", config.mlp.batch_size),
-    ):
-        if b % mesh.size:
-            raise ValueError(f"{name}={b} must be divisible by the {mesh.size} devices of the mesh")
+    _config.validate(config, mesh.size)  # every key checked before the first stage
+    workdir.mkdir(parents=True, exist_ok=True)
     ctx = Context(config=config, workdir=workdir, mesh=mesh)
     io.write_json(workdir / "config.json", config.to_dict())
 
@@ -710,7 +673,3 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
 
 def nets_modalities(nets: dict, session: str) -> list[str]:
     return [m for (s, m) in nets if s == session]
-
-
-def results_json(workdir: str | Path) -> dict:
-    return json.loads((Path(workdir) / "results.json").read_text())

@@ -22,7 +22,7 @@ from placejax.data.cache import (
 )
 from placejax.data.grid import PlaceGrid
 from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dataset
-from placejax.data.session import Session
+from placejax.data.session import Session, truncated
 
 __all__ = [
     "ArrayCache",
@@ -41,4 +41,5 @@ __all__ = [
     "open_session_cache",
     "session_identity",
     "train_dataset",
+    "truncated",
 ]

@@ -40,3 +40,39 @@ class Session(Protocol):
     def image(self, i: int) -> np.ndarray:
         """Upright RGB ``uint8 (H, W, 3)`` image of frame ``i``."""
         ...
+
+
+class _Truncated:
+    """The first ``n`` frames of a session (see :func:`truncated`)."""
+
+    def __init__(self, session: Session, n: int):
+        self._s, n = session, min(n, len(session))
+        self.name = session.name
+        self.utimes, self.poses = session.utimes[:n], session.poses[:n]
+        self.intrinsics, self.image_shape = session.intrinsics, session.image_shape
+        self._n = n
+
+    def __len__(self) -> int:
+        return self._n
+
+    def image(self, i: int) -> np.ndarray:
+        if not 0 <= i < self._n:
+            raise IndexError(f"frame {i} of {self.name!r} truncated to {self._n} frames")
+        return self._s.image(i)
+
+    def fingerprint(self) -> dict:
+        from placejax.data.cache import session_identity
+
+        return {"truncated": self._n, "of": session_identity(self._s)}
+
+
+def truncated(session: Session, n: int) -> Session:
+    """The first ``n`` frames of ``session`` as a session of its own (its cache identity names the cut).
+
+    Args:
+        session: any session.
+        n: frames to keep (positive; more than the session has keeps all of them).
+    """
+    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
+        raise ValueError(f"truncated: n must be a positive int, got {n!r}")
+    return _Truncated(session, int(n))

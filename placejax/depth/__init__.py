@@ -1,8 +1,10 @@
 """Monocular depth: MiDaS preprocessing and inference, the scale- and shift-invariant training objective,
-training of MidasSmall on the depth-training worlds, and depth-quality metrics."""
+training of MidasSmall on the depth-training worlds (on ``placejax.training``'s engine), its train-once-and-cache
+lifecycle (:func:`ensure_trained`), and depth-quality metrics."""
 
 from placejax.depth._evaluate import baseline_predictions, evaluate, evaluation_frames
 from placejax.depth._inference import network_size, predict, preprocess
+from placejax.depth._lifecycle import ensure_trained, report_markdown, run_dir, write_report
 from placejax.depth._losses import (
     align_least_squares,
     gradient_matching,
@@ -12,16 +14,18 @@ from placejax.depth._losses import (
     ssi_trimmed_mae,
 )
 from placejax.depth._metrics import aligned_depth, depth_metrics
-from placejax.depth._train import PRESETS, DepthTrainConfig, TrainedDepth, load_trained, train, train_step
+from placejax.depth._train import PRESETS, DepthObjective, DepthTrainConfig, TrainedDepth, load_trained, train
 
 __all__ = [
     "PRESETS",
+    "DepthObjective",
     "DepthTrainConfig",
     "TrainedDepth",
     "align_least_squares",
     "aligned_depth",
     "baseline_predictions",
     "depth_metrics",
+    "ensure_trained",
     "evaluate",
     "evaluation_frames",
     "gradient_matching",
@@ -31,8 +35,10 @@ __all__ = [
     "normalise_median_mad",
     "predict",
     "preprocess",
+    "report_markdown",
+    "run_dir",
     "ssi_mse",
     "ssi_trimmed_mae",
     "train",
-    "train_step",
+    "write_report",
 ]

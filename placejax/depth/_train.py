@@ -1,10 +1,11 @@
-"""Training MidasSmall with the scale- and shift-invariant objective, data-parallel, checkpointed and resumable.
+"""Training MidasSmall with the scale- and shift-invariant objective on ``placejax.training``'s engine.
 
 The data are SimCampus's domain-randomised depth-training worlds (other seeds than the evaluation campus, random
 appearance per object and frame), the analogue of MiDaS being trained on other datasets and used frozen.
-The training step is a pure function of (state, batch, key), jitted once per model and optimiser; the batch axis
-is sharded over all local devices with a `jax.sharding.Mesh`, parameters are replicated, and XLA inserts the
-gradient all-reduce — so 1 and N devices compute the same update (BatchNorm statistics are over the global batch).
+What is specific to depth is only :class:`DepthObjective` (targets, flips, the MiDaS loss, BatchNorm statistics)
+and the config; the step, schedule, optimiser, batch order (``placejax.data.train_dataset``), mesh and orbax
+checkpoints are the engine's, shared with every other network. The batch axis is sharded over the mesh, so 1
+and N devices compute the same update (BatchNorm statistics are over the global batch).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import dataclasses
 import functools
 import hashlib
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -20,15 +22,15 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
-import orbax.checkpoint as ocp
-import tqdm
-from flax import struct
 
+from placejax import training
 from placejax.depth._inference import IMAGENET_MEAN, IMAGENET_STD
 from placejax.depth._losses import midas_loss
 from placejax.models import MidasSmall
-from placejax.training import data_mesh, replicate, shard_batch
+
+# Bumped whenever the training recipe changes in a way the config does not show, so that a cached network of an
+# older recipe is never mistaken for this one (2: trained on placejax.training's engine and checkpoint layout).
+_RECIPE_VERSION = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,8 +89,18 @@ class DepthTrainConfig:
             raise ValueError(f"loss must be 'trimmed' or 'mse', got {self.loss!r}")
         if not 0.0 <= self.trim < 1.0:
             raise ValueError(f"trim must be in [0, 1), got {self.trim}")
-        if self.steps < 1 or self.batch_size < 1 or self.frames < self.batch_size:
-            raise ValueError("need steps >= 1, batch_size >= 1 and frames >= batch_size")
+        for name in ("image_size", "features", "frames", "n_worlds", "batch_size", "steps", "checkpoint_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        if self.frames < self.batch_size:
+            raise ValueError(f"frames ({self.frames}) must be at least batch_size ({self.batch_size})")
+        for name in ("learning_rate", "encoder_width", "max_depth_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0 and math.isfinite(self.alpha)):
+            raise ValueError("weight_decay must be finite and >= 0, alpha finite")
 
     def model(self) -> MidasSmall:
         return MidasSmall(features=self.features, encoder_width=self.encoder_width)
@@ -98,6 +110,7 @@ class DepthTrainConfig:
         fields = dataclasses.asdict(self)
         fields.pop("eval_frames")
         fields.pop("checkpoint_every")
+        fields["recipe_version"] = _RECIPE_VERSION
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -134,23 +147,6 @@ PRESETS = {
 }
 
 
-@struct.dataclass
-class TrainState:
-    step: jax.Array
-    params: Any
-    batch_stats: Any
-    opt_state: Any
-
-
-@functools.cache
-def _optimizer(cfg: DepthTrainConfig) -> optax.GradientTransformation:
-    # Cached per config so that repeated runs in one process reuse the compiled step (its static argument).
-    schedule = optax.warmup_cosine_decay_schedule(
-        0.0, cfg.learning_rate, cfg.warmup_steps, max(cfg.steps, cfg.warmup_steps + 1)
-    )
-    return optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=cfg.weight_decay))
-
-
 def normalise(rgb_uint8: jax.Array) -> jax.Array:
     """uint8 RGB → ImageNet-normalised float32 (MiDaS's input convention)."""
     x = rgb_uint8.astype(jnp.float32) / 255.0
@@ -177,49 +173,50 @@ def targets(
     return inv, mask.astype(jnp.float32)
 
 
-def init_state(cfg: DepthTrainConfig) -> TrainState:
-    return _init_state(cfg)
+@dataclasses.dataclass(frozen=True)
+class DepthObjective:
+    """The depth network's objective for ``placejax.training.train_step``: L = L_ssi + α·L_grad (MiDaS) on
+    random horizontal flips, with BatchNorm statistics updated over the global batch.
+
+    Reads ``batch["image"]`` uint8 ``(B, H, W, 3)``, ``batch["depth"]`` metres ``(B, H, W)``, ``batch["sky"]``.
+    A frozen dataclass: hashable, so each configuration compiles one step.
+    """
+
+    loss: str = "trimmed"
+    alpha: float = 0.5
+    trim: float = 0.0
+    max_depth_m: float = 80.0
+    sky_in_loss: bool = True
+
+    @classmethod
+    def of(cls, cfg: DepthTrainConfig) -> DepthObjective:
+        return cls(cfg.loss, cfg.alpha, cfg.trim, cfg.max_depth_m, cfg.sky_in_loss)
+
+    def __call__(self, state, params, batch, key):
+        x = normalise(batch["image"])
+        inv, mask = targets(batch["depth"], batch["sky"], self.max_depth_m, self.sky_in_loss)
+        # Horizontal flips: a scene and its mirror image have mirrored depth.
+        flip = jax.random.bernoulli(key, 0.5, (x.shape[0],))
+        x = jnp.where(flip[:, None, None, None], x[:, :, ::-1], x)
+        inv = jnp.where(flip[:, None, None], inv[:, :, ::-1], inv)
+        mask = jnp.where(flip[:, None, None], mask[:, :, ::-1], mask)
+        pred, updates = state.apply_fn(
+            {"params": params, "batch_stats": state.batch_stats}, x, train=True, mutable=["batch_stats"]
+        )
+        loss = midas_loss(pred, inv, mask, variant=self.loss, alpha=self.alpha, trim=self.trim)
+        return loss, ({"loss": loss}, updates["batch_stats"])
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
-def _init_state(cfg: DepthTrainConfig) -> TrainState:
-    # Jitted: initialising the deep EfficientNet op by op costs more than compiling it.
+def init_variables(cfg: DepthTrainConfig) -> dict[str, Any]:
+    """The untrained network's ``{"params", "batch_stats"}`` (jitted: initialising the deep EfficientNet op by
+    op costs more than compiling it)."""
     s = cfg.image_size
-    variables = cfg.model().init(jax.random.key(cfg.seed), jnp.zeros((1, s, s, 3)), train=False)
-    params = variables["params"]
-    return TrainState(jnp.zeros((), jnp.int32), params, variables["batch_stats"], _optimizer(cfg).init(params))
+    return cfg.model().init(jax.random.key(cfg.seed), jnp.zeros((1, s, s, 3)), train=False)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",), donate_argnums=0)
-def train_step(state: TrainState, batch: dict[str, jax.Array], key: jax.Array, cfg: DepthTrainConfig):
-    """One AdamW step on L = L_ssi + α·L_grad. ``batch``: ``rgb`` uint8 (B,H,W,3), ``depth`` (B,H,W), ``sky``."""
-    model = cfg.model()
-    x = normalise(batch["rgb"])
-    inv, mask = targets(batch["depth"], batch["sky"], cfg.max_depth_m, cfg.sky_in_loss)
-    # Horizontal flips: a scene and its mirror image have mirrored depth.
-    flip = jax.random.bernoulli(key, 0.5, (x.shape[0],))
-    x = jnp.where(flip[:, None, None, None], x[:, :, ::-1], x)
-    inv = jnp.where(flip[:, None, None], inv[:, :, ::-1], inv)
-    mask = jnp.where(flip[:, None, None], mask[:, :, ::-1], mask)
-
-    def loss_fn(params):
-        pred, updates = model.apply(
-            {"params": params, "batch_stats": state.batch_stats}, x, train=True, mutable=["batch_stats"]
-        )
-        return midas_loss(pred, inv, mask, variant=cfg.loss, alpha=cfg.alpha, trim=cfg.trim), updates["batch_stats"]
-
-    (loss, batch_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
-    updates, opt_state = _optimizer(cfg).update(grads, state.opt_state, state.params)
-    params = optax.apply_updates(state.params, updates)
-    return TrainState(state.step + 1, params, batch_stats, opt_state), {"loss": loss}
-
-
-def batch_indices(cfg: DepthTrainConfig, step: int) -> np.ndarray:
-    """Frame indices of step ``step``: epochs are seeded permutations, so any step can be recomputed on resume."""
-    per_epoch = cfg.frames // cfg.batch_size
-    epoch, pos = divmod(step, per_epoch)
-    perm = np.random.default_rng([cfg.seed, epoch]).permutation(cfg.frames)
-    return perm[pos * cfg.batch_size : (pos + 1) * cfg.batch_size]
+def _optimizer(cfg: DepthTrainConfig):
+    return training.make_optimizer("adamw", weight_decay=cfg.weight_decay, clip_norm=1.0)
 
 
 def training_frames(cfg: DepthTrainConfig, progress: bool = True) -> dict[str, np.ndarray]:
@@ -237,11 +234,12 @@ def training_frames(cfg: DepthTrainConfig, progress: bool = True) -> dict[str, n
     )
 
 
-def _checkpoint_manager(workdir: Path, cfg: DepthTrainConfig) -> ocp.CheckpointManager:
-    return ocp.CheckpointManager(
-        (workdir / "checkpoints").absolute(),
-        options=ocp.CheckpointManagerOptions(max_to_keep=2, save_interval_steps=cfg.checkpoint_every),
-    )
+def _checkpoint_dir(workdir: Path) -> Path:
+    return Path(workdir).absolute() / "checkpoints"
+
+
+def _prepare(batch: dict) -> dict[str, np.ndarray]:
+    return {"image": batch["image"], "depth": batch["depth"], "sky": batch["sky"]}
 
 
 def train(
@@ -251,7 +249,7 @@ def train(
     devices: list[jax.Device] | None = None,
     stop_after: int | None = None,
     progress: bool = True,
-) -> TrainState:
+) -> training.TrainState:
     """Trains (or resumes training of) the depth network in ``workdir``.
 
     Checkpoints go to ``workdir/checkpoints`` every ``cfg.checkpoint_every`` steps and at the end; a rerun after a
@@ -261,43 +259,51 @@ def train(
     Args:
         cfg: the run's configuration.
         workdir: the run's folder (created).
-        devices: devices of the data-parallel mesh (default: all local devices).
+        devices: devices of the data-parallel mesh (default: all devices).
         stop_after: stop (after checkpointing) once this step is reached — to simulate an interruption.
         progress: show a progress bar.
 
     Returns:
         The final train state (replicated on the mesh).
     """
+    from placejax.data import FrameSource, train_dataset
+
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    devices = list(jax.local_devices()) if devices is None else devices
-    if cfg.batch_size % len(devices):
-        raise ValueError(f"batch_size {cfg.batch_size} must be divisible by the {len(devices)} devices")
-    mesh = data_mesh(devices)
-
-    state = replicate(init_state(cfg), mesh)
-    mngr = _checkpoint_manager(workdir, cfg)
-    start = mngr.latest_step()
-    if start is not None:
-        state = mngr.restore(start, args=ocp.args.StandardRestore(state))
-    start = int(state.step)
-    if start >= cfg.steps:
-        mngr.close()
-        return state
-    frames = training_frames(cfg, progress=progress)
-    last = cfg.steps if stop_after is None else min(cfg.steps, stop_after)
-    root_key = jax.random.key(cfg.seed + 1)
-    with tqdm.trange(start, last, desc="depth training", unit="step", disable=not progress) as bar:
-        for step in bar:
-            idx = batch_indices(cfg, step)
-            batch = shard_batch({k: frames[k][idx] for k in ("rgb", "depth", "sky")}, mesh)
-            state, metrics = train_step(state, batch, jax.random.fold_in(root_key, step), cfg)
-            if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == last:
-                mngr.save(step + 1, args=ocp.args.StandardSave(state))
-                bar.set_postfix(loss=f"{float(metrics['loss']):.4f}")
-    mngr.wait_until_finished()
-    mngr.close()
-    return state
+    mesh = training.data_mesh(devices)
+    if cfg.batch_size % mesh.size:
+        raise ValueError(f"batch_size {cfg.batch_size} must be divisible by the {mesh.size} devices")
+    variables = init_variables(cfg)
+    with training.Checkpointer(_checkpoint_dir(workdir)) as ck:
+        latest = ck.latest_step()
+    if latest is not None and latest >= cfg.steps:
+        batches = [None] * cfg.steps  # finished: the engine restores the last checkpoint and reads no batch
+    else:
+        frames = training_frames(cfg, progress=progress)
+        source = FrameSource(frames["rgb"], extras={"depth": frames["depth"], "sky": frames["sky"]})
+        epochs = math.ceil(cfg.steps * cfg.batch_size / cfg.frames)
+        batches = train_dataset(
+            source, batch_size=cfg.batch_size // jax.process_count(), seed=cfg.seed, num_epochs=epochs
+        )
+    return training.train(
+        training.apply_fn(cfg.model()),
+        variables["params"],
+        _optimizer(cfg),
+        batches,
+        key=jax.random.key(cfg.seed + 1),
+        mesh=mesh,
+        prepare=_prepare,
+        learning_rate=cfg.learning_rate,
+        warmup_steps=cfg.warmup_steps,
+        num_steps=cfg.steps,
+        batch_stats=variables["batch_stats"],
+        objective=DepthObjective.of(cfg),
+        checkpoint_dir=_checkpoint_dir(workdir),
+        save_every=cfg.checkpoint_every,
+        stop_after=stop_after,
+        desc="depth training",
+        progress=progress,
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -327,10 +333,20 @@ class TrainedDepth:
 
 def load_trained(workdir: str | os.PathLike, cfg: DepthTrainConfig) -> TrainedDepth:
     """The network of a finished run in ``workdir`` (its final checkpoint)."""
-    mngr = _checkpoint_manager(Path(workdir), cfg)
-    step = mngr.latest_step()
-    if step is None or step < cfg.steps:
-        raise FileNotFoundError(f"no finished depth-training run in {workdir} (latest step {step} of {cfg.steps})")
-    state = mngr.restore(step, args=ocp.args.StandardRestore(init_state(cfg)))
-    mngr.close()
-    return TrainedDepth(cfg, {"params": state.params, "batch_stats": state.batch_stats})
+    with training.Checkpointer(_checkpoint_dir(Path(workdir))) as ck:
+        step = ck.latest_step()
+        if step is None or step < cfg.steps:
+            raise FileNotFoundError(
+                f"no finished depth-training run in {workdir} (latest step {step} of {cfg.steps})"
+            )
+        variables = init_variables(cfg)
+        template = training.create_state(
+            training.apply_fn(cfg.model()),
+            variables["params"],
+            _optimizer(cfg),
+            learning_rate=cfg.learning_rate,
+            total_steps=cfg.steps,
+            batch_stats=variables["batch_stats"],
+        )
+        state = ck.restore(template, step)
+    return TrainedDepth(cfg, jax.device_get(state.variables))

@@ -1,8 +1,9 @@
-"""Flax Linen models: MiDaS v2.1 small, VGG16 (torchvision layout) and the fusion MLP, plus exact resizes and
-CPU inference compiler options."""
+"""Flax Linen models: MiDaS v2.1 small, VGG16 (torchvision layout) and the fusion MLP, plus exact resizes,
+CPU inference compiler options, from-scratch initialisation and the ImageNet input normalisation."""
 
 from placejax.models._cpu import cpu_compiler_options
 from placejax.models._fusion import FusionMLP
+from placejax.models._init import he_init, imagenet_normalise
 from placejax.models._midas import EfficientNetLite3Encoder, MidasSmall, fold_batch_norm
 from placejax.models._resize import interpolation_matrix, resize, upsample2x_align_corners
 from placejax.models._vgg import VGG16, VGG16Head, VGG16Trunk, adaptive_avg_pool
@@ -17,6 +18,8 @@ __all__ = [
     "adaptive_avg_pool",
     "cpu_compiler_options",
     "fold_batch_norm",
+    "he_init",
+    "imagenet_normalise",
     "interpolation_matrix",
     "resize",
     "upsample2x_align_corners",

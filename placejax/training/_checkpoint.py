@@ -13,7 +13,8 @@ from placejax.training._state import TrainState, abstract_like
 class Checkpointer:
     """A thin ``orbax.checkpoint.CheckpointManager`` for one training run.
 
-    Saves ``{"params", "opt_state", "step"}`` (the static ``apply_fn``/``tx`` are rebuilt by the caller). orbax
+    Saves ``{"params", "opt_state", "step"}`` and ``batch_stats`` when the state has them (the static
+    ``apply_fn``/``tx`` are rebuilt by the caller). orbax
     writes each step to a temporary folder and renames it when complete, so a kill mid-save leaves the previous
     step as the latest. Saving is synchronous: the next step may donate the state's buffers.
 
@@ -35,6 +36,8 @@ class Checkpointer:
         if self._manager.latest_step() == step:
             return
         item = {"params": state.params, "opt_state": state.opt_state, "step": state.step}
+        if state.batch_stats is not None:
+            item["batch_stats"] = state.batch_stats
         self._manager.save(step, args=ocp.args.StandardSave(item), force=True)
         self._manager.wait_until_finished()
 
@@ -45,8 +48,15 @@ class Checkpointer:
             raise FileNotFoundError(f"no checkpoint under {self.directory}")
         abstract = abstract_like(template)
         target = {"params": abstract.params, "opt_state": abstract.opt_state, "step": abstract.step}
+        if template.batch_stats is not None:
+            target["batch_stats"] = abstract.batch_stats
         item = self._manager.restore(step, args=ocp.args.StandardRestore(target))
-        return template.replace(params=item["params"], opt_state=item["opt_state"], step=item["step"])
+        return template.replace(
+            params=item["params"],
+            opt_state=item["opt_state"],
+            step=item["step"],
+            batch_stats=item.get("batch_stats", template.batch_stats),
+        )
 
     def close(self) -> None:
         self._manager.close()

@@ -1,8 +1,14 @@
-"""The training loop and batched inference at the edge: I/O, sharding, checkpoints and progress around the steps."""
+"""The training loop and batched inference at the edge: I/O, sharding, checkpoints and progress around the steps.
+
+:func:`train` is the one way placejax trains a network — the place classifiers, the fusion MLP and the depth
+network alike: a fresh state, replicated on the mesh, resumed from its checkpoints, run by :func:`fit`.
+"""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import jax
 import numpy as np
@@ -11,9 +17,9 @@ from jax.sharding import Mesh
 from tqdm import tqdm
 
 from placejax.training._checkpoint import Checkpointer
-from placejax.training._sharding import shard_batch
-from placejax.training._state import TrainState
-from placejax.training._steps import predict_step, train_step
+from placejax.training._sharding import replicate, shard_batch
+from placejax.training._state import TrainState, create_state
+from placejax.training._steps import Objective, classification_loss, predict_step, train_step
 
 Batch = Mapping[str, np.ndarray]
 
@@ -28,6 +34,8 @@ def fit(
     prepare: Callable[[Batch], dict[str, np.ndarray]],
     checkpointer: Checkpointer | None = None,
     save_every: int = 100,
+    objective: Objective = classification_loss,
+    stop_after: int | None = None,
     desc: str = "train",
     progress: bool = True,
 ) -> tuple[TrainState, list[dict[str, float]]]:
@@ -43,9 +51,12 @@ def fit(
         num_steps: total steps of the run.
         key: base PRNG key of the run.
         mesh: the data mesh; batches are sharded along its ``"data"`` axis.
-        prepare: host-side map from a raw batch to ``{"x", "label", "valid"}`` NumPy arrays.
+        prepare: host-side map from a raw batch to what ``objective`` reads (for classifiers ``{"x", "label",
+            "valid"}``), NumPy arrays.
         checkpointer: where to save every ``save_every`` steps and at the end; ``None``: no checkpoints.
         save_every: steps between checkpoints.
+        objective: the loss (``placejax.training.train_step``).
+        stop_after: stop (after a checkpoint) once this many steps are done, as an interruption would.
         desc: progress bar label.
         progress: show a tqdm bar.
 
@@ -57,23 +68,114 @@ def fit(
     if checkpointer is not None and checkpointer.latest_step() is not None:
         state = checkpointer.restore(state)
     start = int(state.step)
+    last = num_steps if stop_after is None else min(num_steps, stop_after)
     history: list[dict[str, float]] = []
     pending: list[dict[str, jax.Array]] = []
     with tqdm(total=num_steps, initial=start, desc=desc, unit="step", disable=not progress) as bar:
-        for k in range(start, num_steps):
+        for k in range(start, last):
             batch = shard_batch(prepare(batches[k]), mesh)
-            state, metrics = train_step(state, batch, key)
+            state, metrics = train_step(state, batch, key, objective)
             pending.append(metrics)
             done = k + 1
-            if checkpointer is not None and (done % save_every == 0 or done == num_steps):
+            if checkpointer is not None and (done % save_every == 0 or done == last):
                 checkpointer.save(state)
-            if done % 10 == 0 or done == num_steps:
+            if done % 10 == 0 or done == last:
                 # Reading metrics back syncs with the device: only every few steps, to keep dispatch async.
                 history += [{n: float(v) for n, v in m.items()} for m in jax.device_get(pending)]
                 pending = []
-                bar.set_postfix(loss=f"{history[-1]['loss']:.3f}", acc=f"{history[-1]['accuracy']:.2f}")
+                bar.set_postfix({n: f"{v:.3f}" for n, v in history[-1].items()})
             bar.update(1)
     return state, history
+
+
+def train(
+    apply_fn: Callable[..., Any],
+    params: Any,
+    tx: Any,
+    batches: Sequence[Batch],
+    *,
+    key: jax.Array,
+    mesh: Mesh,
+    prepare: Callable[[Batch], dict[str, np.ndarray]],
+    learning_rate: float,
+    warmup_steps: int = 0,
+    num_steps: int | None = None,
+    batch_stats: Any = None,
+    objective: Objective = classification_loss,
+    checkpoint_dir: str | os.PathLike | None = None,
+    save_every: int = 100,
+    stop_after: int | None = None,
+    desc: str = "train",
+    progress: bool = True,
+) -> TrainState:
+    """Trains a network from ``params`` (or resumes it from ``checkpoint_dir``) and returns the final state.
+
+    Args:
+        apply_fn: from :func:`placejax.training.apply_fn` (one stable function per model).
+        params: initial parameters.
+        tx: from :func:`placejax.training.make_optimizer`.
+        batches: random-access batches (:func:`placejax.data.train_dataset`): batch k is read at step k.
+        key: base key of the run (step keys are folded from it).
+        mesh: the data mesh.
+        prepare: raw batch → what ``objective`` reads.
+        learning_rate: peak of the warmup + cosine schedule, which ends at ``num_steps``.
+        warmup_steps: linear warmup.
+        num_steps: steps of the run (default ``len(batches)``).
+        batch_stats: initial BatchNorm statistics, for models that have them.
+        objective: the loss; default cross-entropy of a classifier.
+        checkpoint_dir: orbax checkpoints (resumed from when present); ``None``: none.
+        save_every: steps between checkpoints (not part of any result: changing it changes no weight).
+        stop_after: stop early after a checkpoint (to simulate an interruption).
+        desc: progress-bar label.
+        progress: show a progress bar.
+    """
+    num_steps = len(batches) if num_steps is None else num_steps
+    state = create_state(
+        apply_fn,
+        params,
+        tx,
+        learning_rate=learning_rate,
+        total_steps=num_steps,
+        warmup_steps=warmup_steps,
+        batch_stats=batch_stats,
+    )
+    state = replicate(state, mesh)
+    run = dict(
+        num_steps=num_steps,
+        key=key,
+        mesh=mesh,
+        prepare=prepare,
+        save_every=save_every,
+        objective=objective,
+        stop_after=stop_after,
+        desc=desc,
+        progress=progress,
+    )
+    if checkpoint_dir is None:
+        return fit(state, batches, **run)[0]
+    with Checkpointer(checkpoint_dir) as ck:
+        return fit(state, batches, checkpointer=ck, **run)[0]
+
+
+def map_batches(fn: Callable[[np.ndarray], Any], x: np.ndarray, batch: int) -> np.ndarray:
+    """``fn`` applied to ``x`` in fixed-size batches (the last one padded by repeating its last row) and
+    concatenated, so that a jitted ``fn`` compiles once whatever ``len(x)`` is.
+
+    Args:
+        fn: ``(batch, ...) → (batch, ...)``.
+        x: ``(N, ...)`` inputs, N ≥ 1.
+        batch: rows per call.
+    """
+    if len(x) == 0:
+        raise ValueError("map_batches needs at least one row")
+    outs = []
+    for lo in range(0, len(x), batch):
+        part = np.asarray(x[lo : lo + batch])
+        pad = batch - len(part)
+        if pad:
+            part = np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])
+        outs.append(np.asarray(fn(part))[: batch - pad])
+    return np.concatenate(outs)
 
 
 def predict(

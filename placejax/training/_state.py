@@ -15,6 +15,7 @@ from typing import Any
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 from flax.training import train_state
@@ -30,12 +31,15 @@ def lr_schedule(step: jax.Array, peak: jax.Array, warmup: jax.Array, total: jax.
 
 
 class TrainState(train_state.TrainState):
-    """``step``, ``params``, ``opt_state`` and the schedule (``lr_peak``, ``warmup_steps``, ``total_steps``).
+    """``step``, ``params``, ``opt_state``, BatchNorm statistics and the schedule (``lr_peak``, ``warmup_steps``,
+    ``total_steps``).
 
-    ``apply_fn(variables, x, train=..., rngs=...)`` must return logits ``(N, C)`` or ``(logits, features)``;
-    ``apply_fn`` and ``tx`` are static (part of the jit cache key), everything else is data.
+    ``apply_fn`` and ``tx`` are static (part of the jit cache key), everything else is data. ``batch_stats`` is
+    ``None`` for models without BatchNorm (VGG16, the fusion MLP) and the ``"batch_stats"`` collection otherwise
+    (MidasSmall), updated by the objective on every step.
     """
 
+    batch_stats: Any = None
     lr_peak: jax.Array = struct.field(default_factory=lambda: jnp.float32(0.0))
     warmup_steps: jax.Array = struct.field(default_factory=lambda: jnp.float32(0.0))
     total_steps: jax.Array = struct.field(default_factory=lambda: jnp.float32(1.0))
@@ -43,6 +47,13 @@ class TrainState(train_state.TrainState):
     @property
     def learning_rate(self) -> jax.Array:
         return lr_schedule(self.step, self.lr_peak, self.warmup_steps, self.total_steps)
+
+    @property
+    def variables(self) -> dict[str, Any]:
+        """The model's variables for ``apply_fn``: ``{"params", ["batch_stats"]}``."""
+        if self.batch_stats is None:
+            return {"params": self.params}
+        return {"params": self.params, "batch_stats": self.batch_stats}
 
     def apply_gradients(self, *, grads, **kwargs):
         updates, opt_state = self.tx.update(grads, self.opt_state, self.params)
@@ -56,22 +67,24 @@ class TrainState(train_state.TrainState):
 
 @functools.lru_cache(maxsize=16)
 def make_optimizer(
-    optimizer: str = "sgd", *, momentum: float = 0.9, weight_decay: float = 0.0
+    optimizer: str = "sgd", *, momentum: float = 0.9, weight_decay: float = 0.0, clip_norm: float | None = None
 ) -> optax.GradientTransformation:
-    """The update direction of every network of the experiment (the learning rate is applied by the state).
+    """The update direction of every network placejax trains (the learning rate is applied by the state).
 
     Args:
         optimizer: ``"sgd"`` (heavy-ball momentum, L2 added to the gradient, the VGG recipe) or ``"adamw"``
             (decoupled weight decay).
         momentum: SGD momentum.
         weight_decay: L2 coefficient (SGD) or decoupled decay (AdamW, scaled by the learning rate as in optax).
+        clip_norm: clip the gradient to this global norm first (``None``: no clipping).
 
     Equal arguments return the same object, so states built from it share compiled steps.
     """
+    clip = [] if clip_norm is None else [optax.clip_by_global_norm(clip_norm)]
     if optimizer == "sgd":
-        return optax.chain(optax.add_decayed_weights(weight_decay), optax.trace(decay=momentum))
+        return optax.chain(*clip, optax.add_decayed_weights(weight_decay), optax.trace(decay=momentum))
     if optimizer == "adamw":
-        return optax.chain(optax.scale_by_adam(), optax.add_decayed_weights(weight_decay))
+        return optax.chain(*clip, optax.scale_by_adam(), optax.add_decayed_weights(weight_decay))
     raise ValueError(f"optimizer must be 'sgd' or 'adamw', got {optimizer!r}")
 
 
@@ -96,6 +109,7 @@ def create_state(
     learning_rate: float,
     total_steps: int,
     warmup_steps: int = 0,
+    batch_stats: Any = None,
 ) -> TrainState:
     """A fresh state at step 0.
 
@@ -106,6 +120,7 @@ def create_state(
         learning_rate: peak learning rate.
         total_steps: steps of the whole run; the cosine reaches 0 there.
         warmup_steps: linear warmup steps.
+        batch_stats: initial BatchNorm statistics (``None``: the model has none).
     """
     if total_steps < 1:
         raise ValueError(f"total_steps must be >= 1, got {total_steps}")
@@ -116,11 +131,16 @@ def create_state(
         lr_peak=jnp.float32(learning_rate),
         warmup_steps=jnp.float32(min(warmup_steps, total_steps - 1)),
         total_steps=jnp.float32(total_steps),
+        batch_stats=batch_stats,
     )
 
 
 def abstract_like(state: TrainState) -> TrainState:
     """Shape/dtype/sharding skeleton of a state, the restore target of a checkpoint."""
-    return jax.tree_util.tree_map(
-        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None)), state
-    )
+
+    def skeleton(x):
+        if not hasattr(x, "shape"):  # a Python scalar (a fresh state's step) is restored as a 0-d array
+            x = np.asarray(x)
+        return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None))
+
+    return jax.tree_util.tree_map(skeleton, state)

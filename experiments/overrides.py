@@ -1,0 +1,89 @@
+"""The one override parser of placejax's experiments: ``key=value`` on the command line, typed by the preset.
+
+Both experiments (``experiments.cross_season`` and ``experiments.train_depth``) describe their configuration as an
+``ml_collections.ConfigDict`` and apply command-line overrides with :func:`apply_overrides`: values are Python
+literals checked against the type of the preset's value (``sky_in_loss=False`` is the bool False, never the
+truthy string ``"False"``), strings need no quotes, unknown keys are refused with the list of known ones.
+"""
+
+from __future__ import annotations
+
+import ast
+from typing import Any
+
+import ml_collections
+
+__all__ = ["apply_overrides", "get", "leaf_keys"]
+
+
+def _leaf_keys(c: ml_collections.ConfigDict, prefix: str = "") -> list[str]:
+    keys = []
+    for k, v in c.items():
+        if isinstance(v, ml_collections.ConfigDict):
+            keys += _leaf_keys(v, f"{prefix}{k}.")
+        else:
+            keys.append(f"{prefix}{k}")
+    return keys
+
+
+def leaf_keys(c: ml_collections.ConfigDict) -> list[str]:
+    """Dotted names of every overridable value."""
+    return _leaf_keys(c)
+
+
+def get(c: ml_collections.ConfigDict, key: str) -> Any:
+    """The value at a dotted key (``"train.epochs"``)."""
+    node = c
+    for part in key.split("."):
+        node = node[part]
+    return node
+
+
+def _parse(text: str, old):
+    if isinstance(old, str):
+        return text
+    if isinstance(old, bool) and text.strip().lower() in ("true", "false"):
+        return text.strip().lower() == "true"  # also the lower-case spelling of shells and YAML
+    try:
+        value = ast.literal_eval(text)
+    except (ValueError, SyntaxError, MemoryError, RecursionError):
+        raise ValueError(f"cannot parse {text!r} as a Python literal") from None
+    if isinstance(old, bool):
+        if not isinstance(value, bool):
+            raise ValueError(f"expected True or False, got {text!r}")
+    elif isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    elif isinstance(old, int) and isinstance(value, bool):
+        raise ValueError(f"expected int, got bool {text!r}")
+    elif isinstance(old, tuple):
+        value = tuple(value) if isinstance(value, list | tuple) else (value,)
+    elif type(value) is not type(old):
+        raise ValueError(f"expected {type(old).__name__}, got {type(value).__name__} {text!r}")
+    return value
+
+
+def apply_overrides(c: ml_collections.ConfigDict, overrides: list[str]) -> ml_collections.ConfigDict:
+    """Applies ``key=value`` overrides (``train.epochs=3``, ``data.sessions=('WI','SU')``) in place.
+
+    Values are Python literals checked against the type of the preset's value; strings need no quotes.
+
+    Raises:
+        ValueError: a malformed override, an unknown key (the message lists the known ones) or a wrong type.
+    """
+    known = leaf_keys(c)
+    for item in overrides:
+        if "=" not in item:
+            raise ValueError(f"override {item!r} is not key=value")
+        key, text = item.split("=", 1)
+        key = key.strip()
+        if key not in known:
+            raise ValueError(f"unknown config key {key!r}; known keys: {', '.join(known)}")
+        *parents, leaf = key.split(".")
+        node = c
+        for p in parents:
+            node = node[p]
+        try:
+            node[leaf] = _parse(text, node[leaf])
+        except ValueError as e:
+            raise ValueError(f"override {key}: {e}") from None
+    return c
