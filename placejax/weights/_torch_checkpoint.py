@@ -18,8 +18,9 @@ What it promises, for any file whatsoever:
     bytes of the storages they come from; tensors whose strides make elements overlap (stride 0 over a
     dimension longer than 1, ...) are refused rather than expanded. The pickle itself is bounded in size
     (64 MiB), memo, stack, MARK nesting and objects created (``PickleLimits``), and the state dict in depth
-    (64 levels), entries (2**20) and key text (64 Mi characters). Nothing recurses on file content, and all
-    this happens before ``max_bytes`` of memory is reached.
+    (64 levels), entries (2**20) and key text (64 Mi characters), and a sub-dict may appear in it only once.
+    Compressed zip records (torch.save writes none) may expand at most 64× (records up to 1 MiB excepted).
+    Nothing recurses on file content.
   * **One error contract.** Every problem with the file's content raises ``TorchCheckpointError`` naming the
     file and what is wrong; ``UnsafeCheckpointError`` (a subclass) when the file asks for something that
     could run code or change objects outside it. Tensor kinds that torch writes but this reader does not
@@ -74,6 +75,9 @@ _MAX_DEPTH = 64
 _MAX_ENTRIES = 1 << 20
 _MAX_KEY_CHARS = 64 << 20
 _COPY_FACTOR = 2  # returned bytes ≤ _COPY_FACTOR × storage bytes read
+# torch.save never compresses records; re-zipped float weights shrink by ~1.1×. A deflate bomb reaches ~1000×.
+_MAX_RATIO = 64
+_MAX_RATIO_FREE = 1 << 20  # small records (a few zero buffers) may compress better than _MAX_RATIO
 _CHUNK = 16 << 20  # read granularity: bounds the temporary buffer of each read
 _STORAGE_KEY = re.compile(r"[0-9A-Za-z_]{1,64}")
 
@@ -444,6 +448,14 @@ def _read_member(archive: zipfile.ZipFile, name: str, limit: int, source: str) -
         raise TorchCheckpointError(
             f"{source}: record {_short(name)} declares {info.file_size} bytes, more than the {limit} expected"
         )
+    if info.compress_type != zipfile.ZIP_STORED and info.file_size > max(
+        _MAX_RATIO_FREE, _MAX_RATIO * info.compress_size
+    ):
+        raise TorchCheckpointError(
+            f"{source}: compressed record {_short(name)} would expand from {info.compress_size} to "
+            f"{info.file_size} bytes, more than {_MAX_RATIO}×: refused as a likely decompression bomb "
+            "(torch.save writes uncompressed records; re-save the file with torch or store it uncompressed)"
+        )
     try:
         with archive.open(info) as f:
             data = _read_exact(f, info.file_size)
@@ -617,14 +629,13 @@ def _flatten_state_dict(obj: dict, tensors: _Tensors, path: str) -> dict[str, np
     """``{dotted key: array}`` in the file's order; iterative, with depth, entry and key-length bounds."""
     out: dict[str, np.ndarray] = {}
     entries = key_chars = 0
-    stack: list[tuple[str, Any, int]] = [("", iter(obj.items()), id(obj))]
-    ancestors = {id(obj)}
+    stack: list[tuple[str, Any]] = [("", iter(obj.items()))]
+    seen = {id(obj)}  # every dict walked: a state dict never holds the same sub-dict twice
     while stack:
-        prefix, items, dict_id = stack[-1]
+        prefix, items = stack[-1]
         item = next(items, None)
         if item is None:
             stack.pop()
-            ancestors.discard(dict_id)
             continue
         k, v = item
         if not (type(k) is str or _int_in(k, -(1 << 63), 1 << 63)):
@@ -640,14 +651,18 @@ def _flatten_state_dict(obj: dict, tensors: _Tensors, path: str) -> dict[str, np
         if isinstance(v, _TensorRef):
             out[key] = tensors.array(v, key)
         elif isinstance(v, dict):
-            if id(v) in ancestors:
-                raise TorchCheckpointError(f"{path}: state dict entry {_short(key)!r} contains itself")
+            if id(v) in seen:
+                # Also what a cycle looks like; refusing shared sub-dicts keeps the walk linear in the file.
+                raise TorchCheckpointError(
+                    f"{path}: state dict entry {_short(key)!r} is a dict already seen (it contains itself or "
+                    "appears twice): corrupt or malicious file"
+                )
             if len(stack) >= _MAX_DEPTH:
                 raise TorchCheckpointError(
                     f"{path}: state dict nested deeper than {_MAX_DEPTH} levels at {_short(key)!r}"
                 )
-            ancestors.add(id(v))
-            stack.append((f"{key}.", iter(v.items()), id(v)))
+            seen.add(id(v))
+            stack.append((f"{key}.", iter(v.items())))
         elif isinstance(v, _Unsupported):
             raise TorchCheckpointError(f"{path}: entry {_short(key)!r} {_unsupported_error(v)}")
         else:
