@@ -237,7 +237,7 @@ class _Hooks:
             unsafe=True,
         )
 
-    def persistent_load(self, pid: Any) -> _StorageRef:
+    def persistent_load(self, pid: Any) -> _StorageRef | _Unsupported:
         # zip: ('storage', type, key, location, numel); legacy: the same plus view_metadata.
         if self.storages is None or type(pid) is not tuple or len(pid) not in (5, 6):
             raise PickleRejected(f"unsupported persistent id ({describe(pid)})")
@@ -245,7 +245,8 @@ class _Hooks:
             raise PickleRejected(f"unsupported persistent id of type {describe(pid[0])}")
         storage_type, key, numel = pid[1], pid[2], pid[4]
         if isinstance(storage_type, _Unsupported):
-            raise _unsupported_error(storage_type)
+            # Not an error yet: the rebuild call it goes into may name the exact dtype (_rebuild_tensor_v3).
+            return storage_type
         if not isinstance(storage_type, _StorageType):
             raise PickleRejected(f"storage of unknown type ({describe(storage_type)})")
         if type(key) is not str or not _STORAGE_KEY.fullmatch(key):
@@ -264,8 +265,10 @@ class _Hooks:
         return known
 
     def call(self, func: Any, args: tuple) -> Any:
-        if isinstance(func, _Unsupported):
-            raise _unsupported_error(func)
+        markers = [a for a in (func, *args) if isinstance(a, _Unsupported)]
+        if markers:
+            # The most specific marker first: a dtype (torch.uint16) says more than an UntypedStorage.
+            raise _unsupported_error(min(markers, key=lambda m: not m.kind.startswith("tensor of dtype")))
         if func is _ORDERED_DICT:
             return _ordered_dict(args)
         if func is _REBUILD_TENSOR:
@@ -315,7 +318,11 @@ def _int_tuple(value: Any, what: str) -> tuple[int, ...]:
         raise PickleRejected(f"tensor {what} is {describe(value)}, not a tuple of at most {_MAX_NDIM} integers")
     for v in value:
         if not _int_in(v, 0, _MAX_ELEMENTS):
-            raise PickleRejected(f"tensor {what} {describe(tuple(value))} holds {describe(v)}")
+            shown = ", ".join(describe(x, 20) for x in value[:8]) + (", …" if len(value) > 8 else "")
+            raise PickleRejected(
+                f"tensor {what} ({shown}{',' if len(value) == 1 else ''}) holds {describe(v)}, "
+                "not an element count in [0, 2**62]"
+            )
     return tuple(value)
 
 
