@@ -71,11 +71,12 @@ _SCALARS = (type(None), bool, int, float, str, bytes)
 
 def describe(obj: Any, limit: int = 60) -> str:
     """A short, non-recursive description of an untrusted object, safe to put in an error message."""
+    if isinstance(obj, int) and not isinstance(obj, bool) and obj.bit_length() > 64:
+        return f"an integer of {obj.bit_length()} bits"  # repr of a huge int is slow, or refused past 4300 digits
+    if isinstance(obj, (str, bytes)) and len(obj) > limit:
+        return repr(obj[:limit]) + "…"
     if isinstance(obj, _SCALARS):
-        text = repr(obj) if not isinstance(obj, (str, bytes)) or len(obj) <= limit else repr(obj[:limit]) + "…"
-        if isinstance(obj, int) and not isinstance(obj, bool) and obj.bit_length() > 64:
-            text = f"an integer of {obj.bit_length()} bits"
-        return text
+        return repr(obj)
     if isinstance(obj, (list, tuple, dict, set, frozenset)):
         return f"a {type(obj).__name__} of {len(obj)} items"
     return f"a {type(obj).__name__}"

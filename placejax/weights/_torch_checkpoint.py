@@ -368,16 +368,18 @@ class _Budget:
 
 
 def _read_exact(f: BinaryIO, n: int) -> bytearray | None:
-    """Reads exactly ``n`` bytes in bounded chunks into a fresh buffer; None if the stream ends first."""
+    """Reads exactly ``n`` bytes in bounded chunks into a fresh buffer; None if the stream ends first.
+
+    Callers check ``n`` against the bytes the file can hold before calling: the buffer is allocated first.
+    """
     buf = bytearray(n)
     view = memoryview(buf)
     got = 0
     while got < n:
-        chunk = f.read(min(_CHUNK, n - got))
-        if not chunk:
+        read = f.readinto(view[got : got + min(_CHUNK, n - got)])
+        if not read:
             return None
-        view[got : got + len(chunk)] = chunk
-        got += len(chunk)
+        got += read
     return buf
 
 
@@ -449,11 +451,24 @@ def _member(archive: zipfile.ZipFile, name: str, source: str) -> zipfile.ZipInfo
 
 
 def _read_member(archive: zipfile.ZipFile, name: str, limit: int, source: str) -> bytearray:
-    """A zip record's bytes, decompressed only up to its declared size, which must not exceed ``limit``."""
+    """A zip record's bytes, decompressed only up to its declared size, which must not exceed ``limit``.
+
+    Before anything is allocated the declared size is checked against what the file can hold: the record's
+    stored bytes must lie inside the file, and may expand at most ``_MAX_RATIO``× if compressed.
+    """
     info = _member(archive, name, source)
     if info.file_size > limit:
         raise TorchCheckpointError(
             f"{source}: record {_short(name)} declares {info.file_size} bytes, more than the {limit} expected"
+        )
+    if info.header_offset + info.compress_size > os.fstat(archive.fp.fileno()).st_size:
+        raise TorchCheckpointError(
+            f"{source}: record {_short(name)} extends past the end of the file: truncated or corrupt file"
+        )
+    if info.compress_type == zipfile.ZIP_STORED and info.file_size != info.compress_size:
+        raise TorchCheckpointError(
+            f"{source}: uncompressed record {_short(name)} declares {info.file_size} bytes but stores "
+            f"{info.compress_size}: corrupt file"
         )
     if info.compress_type != zipfile.ZIP_STORED and info.file_size > max(
         _MAX_RATIO_FREE, _MAX_RATIO * info.compress_size
