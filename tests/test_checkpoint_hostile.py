@@ -298,8 +298,19 @@ def _dict_laughs(levels: int = 9, fan_out: int = 10) -> bytes:
     return out
 
 
-def test_memo_expansion_costs_nothing(tmp_path):
-    """Shared references must stay shared: the 10**9-leaf structures below are a few hundred bytes."""
+def _declare_size(archive: bytes, name: str, size: int) -> bytes:
+    """Rewrites the uncompressed size that the zip central directory declares for record ``name``."""
+    entry = archive.index(b"PK\x01\x02")  # the first central directory entry
+    while True:
+        name_len = struct.unpack_from("<H", archive, entry + 28)[0]
+        if archive[entry + 46 : entry + 46 + name_len] == name.encode():
+            return archive[: entry + 24] + struct.pack("<I", size) + archive[entry + 28 :]
+        entry = archive.index(b"PK\x01\x02", entry + 4)
+
+
+def test_tiny_files_cost_little(tmp_path):
+    """Shared references stay shared (the 10**9-leaf structures below are a few hundred bytes), and sizes a
+    file declares are checked against what it holds before anything is allocated."""
     model = p_odict(("w", p_tensor(p_storage("0", 6), (2, 3), (3, 1))))
     cases = {
         # in a part of the checkpoint that is not the state dict: read past, never expanded
@@ -312,6 +323,12 @@ def test_memo_expansion_costs_nothing(tmp_path):
         "memo_index.pt": p_str("x") + pickle.LONG_BINPUT + b"\xf0\xff\xff\xff" + pickle.POP + model,
     }
     paths = [write_zip(tmp_path / name, p_pickle(body), {"0": W.tobytes()}) for name, body in cases.items()]
+    # an uncompressed record whose directory entry claims ~4 GiB (within max_bytes) while storing 24 bytes
+    numel = (1 << 30) - 4
+    pkl = p_pickle(p_odict(("w", p_tensor(p_storage("0", numel), (numel,), (1,)))))
+    honest = write_zip(tmp_path / "size_lie.pt", pkl, {"0": W.tobytes()}).read_bytes()
+    paths[-1].with_name("size_lie.pt").write_bytes(_declare_size(honest, "archive/data/0", 4 * numel))
+    paths.append(tmp_path / "size_lie.pt")
     assert all(p.stat().st_size < 2048 for p in paths)
     markers = tmp_path / "markers"
     markers.mkdir()
@@ -322,6 +339,8 @@ def test_memo_expansion_costs_nothing(tmp_path):
     assert "entry 'w' is a list of 10 items, not a tensor" in got["laughs_inside.pt"]["message"]
     assert got["dict_laughs.pt"]["outcome"] == "TorchCheckpointError"
     assert "a dict already seen" in got["dict_laughs.pt"]["message"]
+    assert got["size_lie.pt"]["outcome"] == "TorchCheckpointError"
+    assert "declares 4294967280 bytes but stores 24" in got["size_lie.pt"]["message"]
 
 
 def _deep(n: int, open_op: bytes, close_op: bytes) -> bytes:
