@@ -2,38 +2,50 @@
 
 A ``.pt``/``.pth`` file is a pickle, and unpickling an untrusted pickle can call any Python function. This
 reader interprets the pickle itself (``_restricted_pickle``) instead of handing it to ``pickle.Unpickler``,
-and treats the file as hostile input throughout.
+and treats every file as hostile input.
 
-What it promises, for any file whatsoever:
-  * **Nothing in the file runs.** Only ``collections.OrderedDict``, ``torch._utils._rebuild_tensor_v2`` /
-    ``_rebuild_parameter`` and the ``torch.*Storage`` dtype markers are resolved, each to a local stand-in
-    that no pickle can modify (BUILD on anything but a freshly made ``OrderedDict`` is refused, as are
-    INST/OBJ/NEWOBJ, the extension registry and out-of-band buffers). Any other global (``os.system``,
-    ``builtins.eval``, ...) stops the load with ``UnsafeCheckpointError``; nothing it names is called, and
-    no load can change how a later load behaves.
-  * **Bounded cost.** Tensor data held at once (the storages read plus the arrays returned) never exceeds
-    ``max_bytes`` (default ``DEFAULT_MAX_BYTES`` = 4 GiB): declared storage sizes are checked against the
-    archive's record sizes (zip) or the bytes left in the file (legacy) before anything is allocated, and zip
-    members are decompressed only up to their declared size. Returned arrays together hold at most twice the
-    bytes of the storages they come from; tensors whose strides make elements overlap (stride 0 over a
-    dimension longer than 1, ...) are refused rather than expanded. The pickle itself is bounded in size
-    (64 MiB), memo, stack, MARK nesting and objects created (``PickleLimits``), and the state dict in depth
-    (64 levels), entries (2**20) and key text (64 Mi characters), and a sub-dict may appear in it only once.
-    Compressed zip records (torch.save writes none) may expand at most 64× (records up to 1 MiB excepted).
-    Nothing recurses on file content.
-  * **One error contract.** Every problem with the file's content raises ``TorchCheckpointError`` naming the
-    file and what is wrong; ``UnsafeCheckpointError`` (a subclass) when the file asks for something that
-    could run code or change objects outside it. Tensor kinds that torch writes but this reader does not
-    convert (complex, quantized, sparse, uint16/uint32/uint64, float8, tensor subclasses, ...) are named as
-    unsupported, not as malicious.
+Promises, for any file whatsoever:
+  * **Nothing in the file runs, and no file changes the reader.** Only ``collections.OrderedDict``,
+    ``torch._utils._rebuild_tensor_v2`` / ``_rebuild_parameter`` and the ``torch.*Storage`` dtype markers are
+    resolved, each to an immutable local stand-in whose call is interpreted here, never executed. Any other
+    global (``os.system``, ``builtins.eval``, ``copyreg._reconstructor``, ...), calling anything that is not
+    one of those rebuilders, BUILD on anything but a freshly made ``OrderedDict``, INST/OBJ/NEWOBJ(_EX), the
+    extension registry (EXT1/2/4), text persistent ids and out-of-band buffers stop the load with
+    ``UnsafeCheckpointError``. A load leaves no state behind that could change a later load.
+  * **Bounded cost.** The tensor data held at once (storages read + arrays returned) never exceeds
+    ``max_bytes`` (``DEFAULT_MAX_BYTES`` = 4 GiB; a keyword argument of ``read_torch_checkpoint``). Before
+    anything is allocated, each storage's declared size (element count × item size) must equal its zip
+    record's size, the record's stored bytes must lie inside the file (uncompressed records: stored size ==
+    declared size), and a legacy storage must fit in the bytes left in the file. Compressed zip records
+    (``torch.save`` writes none) are inflated only up to their declared size and may expand at most 64×
+    (records up to 1 MiB excepted). Tensors are checked against their storage (offset, size, stride) and
+    tensors whose strides make elements overlap (stride 0 over a dimension longer than 1, ...) are refused
+    rather than expanded; identical views share one array, and the arrays returned hold at most twice the
+    bytes of the storages they come from. The pickle is bounded in size (64 MiB), text-argument length,
+    stack, MARK nesting, memo entries and objects created (``PickleLimits``); the state dict in depth (64),
+    entries (2**20), key text (64 Mi characters), and a sub-dict may appear in it only once. Nothing recurses
+    on file content, so no limit relies on Python's recursion limit.
+  * **One error contract.** Every problem with the file's content raises ``TorchCheckpointError`` (a
+    ``ValueError``) whose message starts with the file's path and says what is wrong;
+    ``UnsafeCheckpointError`` (a subclass) when the file asks for something that could run code or change
+    objects outside it. Tensor kinds that torch writes but this reader does not convert (complex, quantized,
+    sparse, uint16/uint32/uint64, float8, tensor subclasses, ...) raise ``TorchCheckpointError`` naming the
+    kind, not ``UnsafeCheckpointError``. Only a missing file (``FileNotFoundError``) or an invalid
+    ``max_bytes`` (``ValueError``) raise anything else.
 
-Both container formats are read, detected the way ``torch.load`` does (``torch.serialization._is_zipfile``:
-a zip local-file signature at byte 0, otherwise legacy), so a file is never read as the other format:
-  * zip (PyTorch ≥ 1.6): ``<root>/data.pkl`` plus one raw storage per ``<root>/data/<key>``, little-endian
-    unless ``<root>/byteorder`` says ``big`` (any other value is refused, as torch does).
+Limits: the zip central directory is parsed by ``zipfile`` before these checks (memory proportional to the
+file's size); a hostile file can still make the reader allocate up to ``max_bytes`` (it can store that much
+data, or compress it up to 64×), so lower ``max_bytes`` where that is too much.
+
+Both container formats are read, told apart as ``torch.load`` does (``torch.serialization._is_zipfile``: a
+zip local-file signature at byte 0 means zip, anything else legacy), so no file reads as a different
+checkpoint here than in torch:
+  * zip (PyTorch ≥ 1.6): ``<root>/data.pkl`` plus one raw storage per ``<root>/data/<key>``, where ``<root>``
+    is the folder of the first record; little-endian unless ``<root>/byteorder`` is exactly ``big`` (values
+    other than ``little``/``big`` are refused, as torch does). Duplicate record names are refused.
   * legacy (older files such as torchvision's ``vgg16-397923af.pth``): consecutive pickles (magic number,
     protocol, system info, the object, the storage keys) followed by each storage as an int64 element count
-    and raw little-endian bytes. The even older tar-based format is refused as unsupported.
+    and raw little-endian bytes. The older tar-based format (PyTorch < 0.4) is refused as unsupported.
 """
 
 from __future__ import annotations
@@ -704,8 +716,8 @@ def read_torch_checkpoint(path: str | os.PathLike, *, max_bytes: int = DEFAULT_M
     Args:
         path: a ``.pt``/``.pth`` file written by ``torch.save`` (zip or legacy format) holding a state
             dict, or a dict that keeps it under ``"model"`` or ``"state_dict"`` (e.g. next to an
-            ``"optimizer"`` entry, which is not read). Nested dicts of tensors are flattened with ``.``-joined
-            keys.
+            ``"optimizer"`` entry, whose pickle is checked but whose tensors are not read). Nested dicts of
+            tensors are flattened with ``.``-joined keys.
         max_bytes: the most bytes of tensor data held at once, storages read plus arrays returned (default
             ``DEFAULT_MAX_BYTES``, 4 GiB). Raise it for larger trusted checkpoints.
 
@@ -719,6 +731,7 @@ def read_torch_checkpoint(path: str | os.PathLike, *, max_bytes: int = DEFAULT_M
         TorchCheckpointError: truncated, corrupt, unsupported or over-limit file, or entries that are not
             tensors.
         FileNotFoundError: no such file.
+        ValueError: ``max_bytes`` is not a non-negative int.
 
     Example:
         >>> state = read_torch_checkpoint("vgg16-397923af.pth")  # doctest: +SKIP
