@@ -11,12 +11,14 @@ from placejax.weights._registry import (
     load,
 )
 from placejax.weights._torch_checkpoint import (
+    DEFAULT_MAX_BYTES,
     TorchCheckpointError,
     UnsafeCheckpointError,
     read_torch_checkpoint,
 )
 
 __all__ = [
+    "DEFAULT_MAX_BYTES",
     "REGISTRY",
     "Preprocessing",
     "PretrainedWeights",

@@ -1,38 +1,97 @@
 """Reads ``torch.save`` files into NumPy arrays without importing torch and without running their code.
 
-A ``.pt``/``.pth`` file is a pickle, and unpickling an untrusted pickle can call any Python function. Here the
-unpickler resolves only the handful of globals a state dict of tensors needs (``collections.OrderedDict``,
-``torch._utils._rebuild_tensor_v2``/``_rebuild_parameter`` and the ``torch.*Storage`` dtype markers), each
-mapped to a harmless local stand-in; any other global (``os.system``, ``builtins.eval``, ...) stops the load
-with ``UnsafeCheckpointError`` before it is called.
+A ``.pt``/``.pth`` file is a pickle, and unpickling an untrusted pickle can call any Python function. This
+reader interprets the pickle itself (``_restricted_pickle``) instead of handing it to ``pickle.Unpickler``,
+and treats every file as hostile input.
 
-Both container formats are read:
-  * zip (PyTorch ≥ 1.6): ``<root>/data.pkl`` plus one raw little-endian storage per ``<root>/data/<key>``.
+Promises, for any file whatsoever:
+  * **Nothing in the file runs, and no file changes the reader.** Only ``collections.OrderedDict``,
+    ``torch._utils._rebuild_tensor_v2`` / ``_rebuild_parameter`` and the ``torch.*Storage`` dtype markers are
+    resolved, each to an immutable local stand-in whose call is interpreted here, never executed. Any other
+    global (``os.system``, ``builtins.eval``, ``copyreg._reconstructor``, ...), calling anything that is not
+    one of those rebuilders, BUILD on anything but a freshly made ``OrderedDict``, INST/OBJ/NEWOBJ(_EX), the
+    extension registry (EXT1/2/4), text persistent ids and out-of-band buffers stop the load with
+    ``UnsafeCheckpointError``. A load leaves no state behind that could change a later load.
+  * **Bounded cost.** The tensor data held at once (storages read + arrays returned) never exceeds
+    ``max_bytes`` (``DEFAULT_MAX_BYTES`` = 4 GiB; a keyword argument of ``read_torch_checkpoint``). Before
+    anything is allocated, each storage's declared size (element count × item size) must equal its zip
+    record's size, the record's stored bytes must lie inside the file (uncompressed records: stored size ==
+    declared size), and a legacy storage must fit in the bytes left in the file. Compressed zip records
+    (``torch.save`` writes none) are inflated only up to their declared size and may expand at most 64×
+    (records up to 1 MiB excepted). Tensors are checked against their storage (offset, size, stride) and
+    tensors whose strides make elements overlap (stride 0 over a dimension longer than 1, ...) are refused
+    rather than expanded; identical views share one array, and the arrays returned hold at most twice the
+    bytes of the storages they come from. The pickle is bounded in size (64 MiB), text-argument length,
+    stack, MARK nesting, memo entries and objects created (``PickleLimits``); the state dict in depth (64),
+    entries (2**20), key text (64 Mi characters), and a sub-dict may appear in it only once. Nothing recurses
+    on file content, so no limit relies on Python's recursion limit.
+  * **One error contract.** Every problem with the file's content raises ``TorchCheckpointError`` (a
+    ``ValueError``) whose message starts with the file's path and says what is wrong;
+    ``UnsafeCheckpointError`` (a subclass) when the file asks for something that could run code or change
+    objects outside it. Tensor kinds that torch writes but this reader does not convert (complex, quantized,
+    sparse, uint16/uint32/uint64, float8, tensor subclasses, ...) raise ``TorchCheckpointError`` naming the
+    kind, not ``UnsafeCheckpointError``. Only a missing file (``FileNotFoundError``) or an invalid
+    ``max_bytes`` (``ValueError``) raise anything else.
+
+Limits: the zip central directory is parsed by ``zipfile`` before these checks (memory proportional to the
+file's size); a hostile file can still make the reader allocate up to ``max_bytes`` (it can store that much
+data, or compress it up to 64×), so lower ``max_bytes`` where that is too much.
+
+Both container formats are read, told apart as ``torch.load`` does (``torch.serialization._is_zipfile``: a
+zip local-file signature at byte 0 means zip, anything else legacy), so no file reads as a different
+checkpoint here than in torch:
+  * zip (PyTorch ≥ 1.6): ``<root>/data.pkl`` plus one raw storage per ``<root>/data/<key>``, where ``<root>``
+    is the folder of the first record; little-endian unless ``<root>/byteorder`` is exactly ``big`` (values
+    other than ``little``/``big`` are refused, as torch does). Duplicate record names are refused.
   * legacy (older files such as torchvision's ``vgg16-397923af.pth``): consecutive pickles (magic number,
     protocol, system info, the object, the storage keys) followed by each storage as an int64 element count
-    and raw bytes.
+    and raw little-endian bytes. The older tar-based format (PyTorch < 0.4) is refused as unsupported.
 """
 
 from __future__ import annotations
 
 import io
+import math
 import os
-import pickle
+import re
 import struct
 import zipfile
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
 import ml_dtypes
 import numpy as np
 
-__all__ = ["TorchCheckpointError", "UnsafeCheckpointError", "read_torch_checkpoint"]
+from placejax.weights._restricted_pickle import PickleLimits, PickleRejected, describe
+from placejax.weights._restricted_pickle import load as _load_pickle
+
+__all__ = ["DEFAULT_MAX_BYTES", "TorchCheckpointError", "UnsafeCheckpointError", "read_torch_checkpoint"]
+
+DEFAULT_MAX_BYTES = 4 << 30
+"""Default bound on the tensor data ``read_torch_checkpoint`` holds at once (storages read + arrays returned).
+
+About twice a checkpoint's tensor bytes are needed when its tensors are views that must be copied; tensors
+that are exactly their storage (the usual case) are returned without a copy."""
 
 # torch/serialization.py: MAGIC_NUMBER and PROTOCOL_VERSION of the legacy format.
 _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 _LEGACY_PROTOCOL = 1001
+# torch/serialization.py, _is_zipfile: torch decides "zip" from these first bytes only.
+_ZIP_SIGNATURE = b"PK\x03\x04"
+
+_PICKLE_LIMITS = PickleLimits()
+_MAX_NDIM = 64
+_MAX_ELEMENTS = 1 << 62
+_MAX_DEPTH = 64
+_MAX_ENTRIES = 1 << 20
+_MAX_KEY_CHARS = 64 << 20
+_COPY_FACTOR = 2  # returned bytes ≤ _COPY_FACTOR × storage bytes read
+# torch.save never compresses records; re-zipped float weights shrink by ~1.1×. A deflate bomb reaches ~1000×.
+_MAX_RATIO = 64
+_MAX_RATIO_FREE = 1 << 20  # small records (a few zero buffers) may compress better than _MAX_RATIO
+_CHUNK = 16 << 20  # read granularity: bounds the temporary buffer of each read
+_STORAGE_KEY = re.compile(r"[0-9A-Za-z_]{1,64}")
 
 _STORAGE_DTYPES: dict[str, np.dtype] = {
     "FloatStorage": np.dtype("<f4"),
@@ -49,237 +108,659 @@ _STORAGE_DTYPES: dict[str, np.dtype] = {
 
 
 class TorchCheckpointError(ValueError):
-    """The file is not a readable ``torch.save`` checkpoint (truncated, corrupt or unsupported)."""
+    """The file is not a readable ``torch.save`` checkpoint (truncated, corrupt, too large or unsupported)."""
 
 
 class UnsafeCheckpointError(TorchCheckpointError):
-    """The checkpoint's pickle asks for a global outside the allow-list; nothing it names was called."""
+    """The file asks for something that could run code or change objects outside it; nothing was called."""
 
 
-@dataclass(frozen=True)
+# --- stand-ins: immutable (frozen, slotted), and only ever handed to the restricted pickle machine ---------
+
+
+@dataclass(frozen=True, slots=True)
 class _StorageType:
     """Stand-in for ``torch.FloatStorage`` & co.: only its element dtype matters."""
 
+    name: str
     dtype: np.dtype
 
 
-@dataclass(frozen=True)
-class _TensorRef:
-    """A tensor whose storage bytes may not have been read yet (legacy files store them after the pickle)."""
+@dataclass(frozen=True, slots=True)
+class _Function:
+    """Stand-in for an allowed callable; what a call does is decided by ``_Hooks.call`` from the name."""
 
-    storage_key: str
+    name: str
+
+
+@dataclass(frozen=True, slots=True)
+class _Unsupported:
+    """A global torch writes for tensors this reader does not convert; an error as soon as it is used."""
+
+    qualname: str
+    kind: str
+
+
+@dataclass(frozen=True, slots=True)
+class _StorageRef:
+    key: str
+    dtype: np.dtype
+    numel: int
+
+
+@dataclass(frozen=True, slots=True)
+class _TensorRef:
+    """A tensor whose storage bytes have not been read yet (legacy files store them after the pickle)."""
+
+    storage: _StorageRef
     offset: int
     shape: tuple[int, ...]
     stride: tuple[int, ...]
 
 
-def _rebuild_tensor_v2(storage, storage_offset, size, stride, requires_grad=False, backward_hooks=None, *_):
-    del requires_grad, backward_hooks  # autograd state has no meaning for arrays
-    if not isinstance(storage, str):
-        raise TorchCheckpointError(
-            f"tensor rebuilt from a non-storage object of type {type(storage).__name__}"
+_ORDERED_DICT = _Function("collections.OrderedDict")
+_REBUILD_TENSOR = _Function("torch._utils._rebuild_tensor_v2")
+_REBUILD_PARAMETER = _Function("torch._utils._rebuild_parameter")
+
+_ALLOWED: dict[tuple[str, str], _Function | _StorageType] = {
+    ("collections", "OrderedDict"): _ORDERED_DICT,
+    ("torch._utils", "_rebuild_tensor_v2"): _REBUILD_TENSOR,
+    ("torch._utils", "_rebuild_parameter"): _REBUILD_PARAMETER,
+    **{("torch", name): _StorageType(name, dtype) for name, dtype in _STORAGE_DTYPES.items()},
+}
+
+# Globals that torch.save writes for tensor kinds this reader does not convert (torch/_utils.py,
+# torch/_tensor.py, torch/serialization.py, the torch.* dtype/layout/qscheme objects of torch 2.13).
+_UNSUPPORTED_REBUILDERS = {
+    "_rebuild_tensor": "old-style tensor",
+    "_rebuild_tensor_v3": "tensor of a newer dtype (uint16/32/64, float8, ...)",
+    "_rebuild_qtensor": "quantized tensor",
+    "_rebuild_sparse_tensor": "sparse tensor",
+    "_rebuild_nested_tensor": "nested tensor",
+    "_rebuild_wrapper_subclass": "tensor subclass",
+    "_rebuild_from_type_v2": "tensor subclass or tensor with Python attributes",
+    "_rebuild_parameter_with_state": "parameter with Python attributes",
+    "_rebuild_device_tensor_from_numpy": "device tensor",
+    "_rebuild_device_tensor_from_cpu_tensor": "device tensor",
+    "_rebuild_meta_tensor_no_storage": "meta tensor",
+    "_rebuild_xla_tensor": "XLA tensor",
+}
+_TORCH_LAYOUTS = {"sparse_coo", "sparse_csr", "sparse_csc", "sparse_bsr", "sparse_bsc", "_mkldnn", "jagged"}
+_TORCH_QSCHEMES = {
+    "per_tensor_affine",
+    "per_channel_affine",
+    "per_tensor_symmetric",
+    "per_channel_symmetric",
+    "per_channel_affine_float_qparams",
+}
+_TORCH_DTYPE = re.compile(
+    r"(u?int[1-7]|uint(16|32|64)|bits\w*|float8_\w+|float4_\w+|complex(32|64|128)|c(float|double|half)"
+    r"|q(u?int(8|32)|uint(2x4|4x2)))"
+)
+
+
+def _unsupported_kind(module: str, name: str) -> str | None:
+    if module in ("torch._utils", "torch._tensor") and name in _UNSUPPORTED_REBUILDERS:
+        return _UNSUPPORTED_REBUILDERS[name]
+    if (module, name) == ("torch.serialization", "_get_layout") or (module == "torch" and name in _TORCH_LAYOUTS):
+        return "sparse or non-strided tensor"
+    if module == "torch" and name in _TORCH_QSCHEMES:
+        return "quantized tensor"
+    if module == "torch" and name.endswith("Storage") and name.isidentifier():
+        if name.startswith("Complex"):
+            return "complex tensor"
+        if name.startswith("Q"):
+            return "quantized tensor"
+        return "tensor with an untyped storage (newer dtypes such as uint16 or float8)"
+    if module == "torch.storage" and name in ("UntypedStorage", "TypedStorage"):
+        return "tensor with an untyped storage (newer dtypes such as uint16 or float8)"
+    if module == "torch" and _TORCH_DTYPE.fullmatch(name):
+        return f"tensor of dtype torch.{name}"
+    if module == "torch" and name == "Size":
+        return "sparse or non-strided tensor"
+    return None
+
+
+def _short(text: str, limit: int = 80) -> str:
+    return text if len(text) <= limit else text[:limit] + "…"
+
+
+def _int_in(value: Any, low: int, high: int) -> bool:
+    return type(value) is int and low <= value <= high
+
+
+class _Hooks:
+    """Decides, for the restricted pickle machine, what each global, persistent id, call and BUILD may do."""
+
+    def __init__(self, storages: dict[str, _StorageRef] | None):
+        self.storages = storages  # None: this pickle may not reference storages (legacy headers, key list)
+
+    def find_class(self, module: str, name: str) -> Any:
+        allowed = _ALLOWED.get((module, name))
+        if allowed is not None:
+            return allowed
+        kind = _unsupported_kind(module, name)
+        if kind is not None:
+            return _Unsupported(f"{module}.{name}", kind)
+        raise PickleRejected(
+            f"refusing to load global '{_short(module)}.{_short(name)}': a weights file needs only tensors "
+            "and dicts, and this name could run code. The file is not a plain state dict, or it is malicious; "
+            "nothing was executed",
+            unsafe=True,
         )
-    return _TensorRef(
-        storage, int(storage_offset), tuple(int(s) for s in size), tuple(int(s) for s in stride)
+
+    def persistent_load(self, pid: Any) -> _StorageRef | _Unsupported:
+        # zip: ('storage', type, key, location, numel); legacy: the same plus view_metadata.
+        if self.storages is None or type(pid) is not tuple or len(pid) not in (5, 6):
+            raise PickleRejected(f"unsupported persistent id ({describe(pid)})")
+        if pid[0] not in ("storage", b"storage"):
+            raise PickleRejected(f"unsupported persistent id of type {describe(pid[0])}")
+        storage_type, key, numel = pid[1], pid[2], pid[4]
+        if isinstance(storage_type, _Unsupported):
+            # Not an error yet: the rebuild call it goes into may name the exact dtype (_rebuild_tensor_v3).
+            return storage_type
+        if not isinstance(storage_type, _StorageType):
+            raise PickleRejected(f"storage of unknown type ({describe(storage_type)})")
+        if type(key) is not str or not _STORAGE_KEY.fullmatch(key):
+            raise PickleRejected(f"storage key {describe(key)} is not a short alphanumeric name")
+        if not _int_in(numel, 0, _MAX_ELEMENTS):
+            raise PickleRejected(f"storage {key} has an invalid element count ({describe(numel)})")
+        if len(pid) == 6 and pid[5] is not None:
+            raise PickleRejected(f"legacy storage views are not supported (storage {key})")
+        ref = _StorageRef(key, storage_type.dtype, numel)
+        known = self.storages.setdefault(key, ref)
+        if known != ref:
+            raise PickleRejected(
+                f"storage {key} is announced twice with different types or sizes "
+                f"({known.dtype}×{known.numel}, then {ref.dtype}×{ref.numel})"
+            )
+        return known
+
+    def call(self, func: Any, args: tuple) -> Any:
+        markers = [a for a in (func, *args) if isinstance(a, _Unsupported)]
+        if markers:
+            # The most specific marker first: a dtype (torch.uint16) says more than an UntypedStorage.
+            raise _unsupported_error(min(markers, key=lambda m: not m.kind.startswith("tensor of dtype")))
+        if func is _ORDERED_DICT:
+            return _ordered_dict(args)
+        if func is _REBUILD_TENSOR:
+            return _rebuild_tensor_v2(args)
+        if func is _REBUILD_PARAMETER:
+            if not 1 <= len(args) <= 4 or not isinstance(args[0], _TensorRef):
+                raise PickleRejected(f"_rebuild_parameter called with {describe(args)} instead of a tensor")
+            return args[0]
+        raise PickleRejected(
+            f"refusing to call {describe(func)}: only tensor and dict rebuilders are called", unsafe=True
+        )
+
+    def build(self, target: Any, state: Any) -> None:
+        # torch pickles a state dict as OrderedDict plus BUILD with {'_metadata': ...} (module versions); that
+        # metadata has no meaning for arrays and is dropped. BUILD on anything else would set attributes.
+        if type(target) is OrderedDict and (state is None or type(state) is dict):
+            return
+        raise PickleRejected(
+            f"refusing BUILD on {describe(target)}: it would set the state of an object outside plain data",
+            unsafe=True,
+        )
+
+
+def _unsupported_error(marker: _Unsupported) -> PickleRejected:
+    return PickleRejected(
+        f"holds a {marker.kind} (torch's '{marker.qualname}'), which this reader does not convert; the file "
+        "looks like an ordinary torch.save checkpoint (nothing unsafe was found up to here). Convert such "
+        "tensors to a plain dtype before saving, or load the file with torch"
     )
 
 
-def _rebuild_parameter(data, requires_grad=False, backward_hooks=None, *_):
-    del requires_grad, backward_hooks
+def _ordered_dict(args: tuple) -> OrderedDict:
+    if args == ():
+        return OrderedDict()
+    if len(args) == 1 and type(args[0]) is list:
+        out: OrderedDict = OrderedDict()
+        for pair in args[0]:
+            if type(pair) not in (tuple, list) or len(pair) != 2 or not isinstance(pair[0], (str, int)):
+                raise PickleRejected(f"OrderedDict built from {describe(pair)} instead of a (key, value) pair")
+            out[pair[0]] = pair[1]
+        return out
+    raise PickleRejected(f"OrderedDict called with {describe(args)}")
+
+
+def _int_tuple(value: Any, what: str) -> tuple[int, ...]:
+    if type(value) not in (tuple, list) or len(value) > _MAX_NDIM:
+        raise PickleRejected(f"tensor {what} is {describe(value)}, not a tuple of at most {_MAX_NDIM} integers")
+    for v in value:
+        if not _int_in(v, 0, _MAX_ELEMENTS):
+            shown = ", ".join(describe(x, 20) for x in value[:8]) + (", …" if len(value) > 8 else "")
+            raise PickleRejected(
+                f"tensor {what} ({shown}{',' if len(value) == 1 else ''}) holds {describe(v)}, "
+                "not an element count in [0, 2**62]"
+            )
+    return tuple(value)
+
+
+def _rebuild_tensor_v2(args: tuple) -> _TensorRef:
+    # torch/_utils.py: _rebuild_tensor_v2(storage, storage_offset, size, stride, requires_grad,
+    # backward_hooks, metadata=None). Autograd state and (empty) hooks have no meaning for arrays.
+    if not 4 <= len(args) <= 7:
+        raise PickleRejected(f"_rebuild_tensor_v2 called with {len(args)} arguments")
+    storage, offset = args[0], args[1]
+    if not isinstance(storage, _StorageRef):
+        raise PickleRejected(f"tensor rebuilt from {describe(storage)} instead of a storage")
+    if not _int_in(offset, 0, _MAX_ELEMENTS):
+        raise PickleRejected(f"tensor has an invalid storage offset ({describe(offset)})")
+    shape, stride = _int_tuple(args[2], "size"), _int_tuple(args[3], "stride")
+    if len(shape) != len(stride):
+        raise PickleRejected(f"tensor size {shape} and stride {stride} differ in length")
+    if len(args) == 7 and args[6] not in (None, {}):
+        raise PickleRejected(f"tensor carries metadata ({describe(args[6])}), which this reader does not support")
+    return _TensorRef(storage, offset, shape, stride)
+
+
+# --- reading the containers -----------------------------------------------------------------------------
+
+
+class _Budget:
+    """Counts the bytes of tensor data held, refusing any allocation that would pass ``max_bytes``."""
+
+    def __init__(self, max_bytes: int, source: str):
+        self.max_bytes = max_bytes
+        self.used = 0
+        self.storage_bytes = 0
+        self.returned_bytes = 0
+        self.source = source
+
+    def take(self, n: int, what: str) -> None:
+        if n > self.max_bytes - self.used:
+            raise TorchCheckpointError(
+                f"{self.source}: {what} needs {n} bytes, which would bring the tensor data held to "
+                f"{self.used + n} bytes, over max_bytes={self.max_bytes}; pass a larger max_bytes to "
+                "read_torch_checkpoint if the file is trusted and that much memory is available"
+            )
+        self.used += n
+
+
+def _read_exact(f: BinaryIO, n: int) -> bytearray | None:
+    """Reads exactly ``n`` bytes in bounded chunks into a fresh buffer; None if the stream ends first.
+
+    Callers check ``n`` against the bytes the file can hold before calling: the buffer is allocated first.
+    """
+    buf = bytearray(n)
+    view = memoryview(buf)
+    got = 0
+    while got < n:
+        read = f.readinto(view[got : got + min(_CHUNK, n - got)])
+        if not read:
+            return None
+        got += read
+    return buf
+
+
+class _Storages:
+    """Reads each storage on first use, checking it against the budget before allocating."""
+
+    def __init__(self, source: str, budget: _Budget, byteorder: str):
+        self.source = source
+        self.budget = budget
+        self.byteorder = byteorder
+        self.arrays: dict[str, np.ndarray] = {}
+        self.given_away: set[str] = set()  # storages returned as an array themselves (no longer to be copied)
+
+    def read_bytes(self, ref: _StorageRef, nbytes: int) -> bytearray:
+        raise NotImplementedError
+
+    def get(self, ref: _StorageRef) -> np.ndarray:
+        if ref.key not in self.arrays:
+            nbytes = ref.numel * ref.dtype.itemsize
+            self.budget.take(nbytes, f"storage {ref.key} ({ref.numel} × {ref.dtype})")
+            self.budget.storage_bytes += nbytes
+            array = np.frombuffer(self.read_bytes(ref, nbytes), dtype=ref.dtype, count=ref.numel)
+            if self.byteorder != "little" and ref.dtype.itemsize > 1:
+                array.byteswap(inplace=True)  # in its own buffer: no second copy
+            self.arrays[ref.key] = array
+        return self.arrays[ref.key]
+
+
+class _ZipStorages(_Storages):
+    def __init__(self, source: str, budget: _Budget, byteorder: str, archive: zipfile.ZipFile, root: str):
+        super().__init__(source, budget, byteorder)
+        self.archive = archive
+        self.root = root
+
+    def check(self, refs: dict[str, _StorageRef]) -> None:
+        """Every announced storage must be a record of exactly its declared size (nothing is read here)."""
+        for ref in refs.values():
+            info = _member(self.archive, f"{self.root}data/{ref.key}", self.source)
+            declared = ref.numel * ref.dtype.itemsize
+            if info.file_size != declared:
+                raise TorchCheckpointError(
+                    f"{self.source}: storage {ref.key} is announced as {ref.numel} × {ref.dtype} "
+                    f"({declared} bytes) but its record {info.filename} holds {info.file_size} bytes: corrupt file"
+                )
+
+    def read_bytes(self, ref: _StorageRef, nbytes: int) -> bytearray:
+        return _read_member(self.archive, f"{self.root}data/{ref.key}", nbytes, self.source)
+
+
+class _LegacyStorages(_Storages):
+    def __init__(self, source: str, budget: _Budget, f: BinaryIO, offsets: dict[str, int]):
+        super().__init__(source, budget, "little")
+        self.f = f
+        self.offsets = offsets
+
+    def read_bytes(self, ref: _StorageRef, nbytes: int) -> bytearray:
+        self.f.seek(self.offsets[ref.key])
+        data = _read_exact(self.f, nbytes)
+        if data is None:
+            raise TorchCheckpointError(f"{self.source}: file ends inside storage {ref.key}: truncated file")
+        return data
+
+
+def _member(archive: zipfile.ZipFile, name: str, source: str) -> zipfile.ZipInfo:
+    try:
+        return archive.getinfo(name)
+    except KeyError:
+        raise TorchCheckpointError(f"{source}: the zip archive has no record {_short(name)}: corrupt file") from None
+
+
+def _read_member(archive: zipfile.ZipFile, name: str, limit: int, source: str) -> bytearray:
+    """A zip record's bytes, decompressed only up to its declared size, which must not exceed ``limit``.
+
+    Before anything is allocated the declared size is checked against what the file can hold: the record's
+    stored bytes must lie inside the file, and may expand at most ``_MAX_RATIO``× if compressed.
+    """
+    info = _member(archive, name, source)
+    if info.file_size > limit:
+        raise TorchCheckpointError(
+            f"{source}: record {_short(name)} declares {info.file_size} bytes, more than the {limit} expected"
+        )
+    if info.header_offset + info.compress_size > os.fstat(archive.fp.fileno()).st_size:
+        raise TorchCheckpointError(
+            f"{source}: record {_short(name)} extends past the end of the file: truncated or corrupt file"
+        )
+    if info.compress_type == zipfile.ZIP_STORED and info.file_size != info.compress_size:
+        raise TorchCheckpointError(
+            f"{source}: uncompressed record {_short(name)} declares {info.file_size} bytes but stores "
+            f"{info.compress_size}: corrupt file"
+        )
+    if info.compress_type != zipfile.ZIP_STORED and info.file_size > max(
+        _MAX_RATIO_FREE, _MAX_RATIO * info.compress_size
+    ):
+        raise TorchCheckpointError(
+            f"{source}: compressed record {_short(name)} would expand from {info.compress_size} to "
+            f"{info.file_size} bytes, more than {_MAX_RATIO}×: refused as a likely decompression bomb "
+            "(torch.save writes uncompressed records; re-save the file with torch or store it uncompressed)"
+        )
+    try:
+        with archive.open(info) as f:
+            data = _read_exact(f, info.file_size)
+            # zipfile stops at the declared size; a stream that still has data is inconsistent.
+            overrun = data is not None and f.read(1) != b""
+    except TorchCheckpointError:
+        raise
+    except Exception as err:  # zipfile reports damage with many exception types (BadZipFile, zlib.error, ...)
+        raise TorchCheckpointError(
+            f"{source}: damaged zip record {_short(name)} ({type(err).__name__}: {_short(str(err))}); "
+            "truncated download?"
+        ) from err
+    if data is None or overrun:
+        raise TorchCheckpointError(
+            f"{source}: zip record {_short(name)} does not hold its declared {info.file_size} bytes: corrupt file"
+        )
     return data
 
 
-def _ordered_dict(*args):
-    return OrderedDict(*args)
-
-
-_ALLOWED: dict[tuple[str, str], Callable[..., Any] | _StorageType] = {
-    ("collections", "OrderedDict"): _ordered_dict,
-    ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor_v2,
-    ("torch._utils", "_rebuild_parameter"): _rebuild_parameter,
-    **{("torch", name): _StorageType(dtype) for name, dtype in _STORAGE_DTYPES.items()},
-}
-
-
-class _SafeUnpickler(pickle.Unpickler):
-    """Resolves only allow-listed globals; storages become keys into a table filled by the caller."""
-
-    def __init__(self, file: BinaryIO, source: str, storages: dict[str, tuple[np.dtype, int]]):
-        super().__init__(file)
-        self._source = source
-        self._storages = storages  # key -> (dtype, element count) as announced by the pickle
-
-    def find_class(self, module: str, name: str) -> Any:
-        try:
-            return _ALLOWED[(module, name)]
-        except KeyError:
-            raise UnsafeCheckpointError(
-                f"{self._source}: refusing to load global '{module}.{name}': a weights file needs only "
-                "tensors "
-                "and dicts, and this name could run code. The file is not a plain state dict, or it is "
-                "malicious; nothing was executed."
-            ) from None
-
-    def persistent_load(self, pid: Any) -> str:
-        # zip: ('storage', type, key, location, numel); legacy: (..., numel, view_metadata).
-        if not (isinstance(pid, tuple) and len(pid) in (5, 6) and pid[0] in ("storage", b"storage")):
-            raise UnsafeCheckpointError(f"{self._source}: unsupported persistent id {pid!r:.80}")
-        storage_type, key, numel = pid[1], str(pid[2]), int(pid[4])
-        if not isinstance(storage_type, _StorageType):
-            raise TorchCheckpointError(f"{self._source}: storage {key} has unknown type {storage_type!r:.60}")
-        if len(pid) == 6 and pid[5] is not None:
-            raise TorchCheckpointError(
-                f"{self._source}: legacy storage views are not supported (storage {key})"
-            )
-        self._storages[key] = (storage_type.dtype, numel)
-        return key
-
-
-def _materialise(obj: Any, storages: Mapping[str, np.ndarray], source: str) -> Any:
-    """Replaces every ``_TensorRef`` (in dicts, lists, tuples) by a NumPy array copied out of its storage."""
-    if isinstance(obj, _TensorRef):
-        flat = storages[obj.storage_key]
-        extent = obj.offset + sum((n - 1) * s for n, s in zip(obj.shape, obj.stride, strict=True) if n > 0)
-        if obj.offset < 0 or any(s < 0 for s in obj.stride) or (0 not in obj.shape and extent >= flat.size):
-            raise TorchCheckpointError(
-                f"{source}: tensor of shape {obj.shape} (offset {obj.offset}, stride {obj.stride}) "
-                "overruns its "
-                f"storage {obj.storage_key} of {flat.size} elements: the file is corrupt"
-            )
-        if 0 in obj.shape:
-            return np.zeros(obj.shape, flat.dtype)
-        view = np.lib.stride_tricks.as_strided(
-            flat[obj.offset :],
-            shape=obj.shape,
-            strides=tuple(s * flat.itemsize for s in obj.stride),
-            writeable=False,
-        )
-        return np.array(view, order="C")  # an owned C-contiguous copy, whatever the strides
-    if isinstance(obj, dict):
-        out = type(obj)() if isinstance(obj, OrderedDict) else {}
-        for k, v in obj.items():
-            out[k] = _materialise(v, storages, source)
-        return out
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_materialise(v, storages, source) for v in obj)
-    return obj
-
-
-def _read_zip(path: str) -> Any:
+def _unpickle(f: BinaryIO, hooks: _Hooks, source: str, where: str) -> Any:
     try:
-        archive = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError) as err:
+        return _load_pickle(f, hooks, _PICKLE_LIMITS)
+    except PickleRejected as err:
+        error = UnsafeCheckpointError if err.unsafe else TorchCheckpointError
+        raise error(f"{source}: {err} (in {where})") from None
+
+
+def _read_zip(path: str, f: BinaryIO, budget: _Budget) -> tuple[Any, _Storages]:
+    try:
+        archive = zipfile.ZipFile(f)
+        infos = archive.infolist()
+    except Exception as err:  # zipfile's parser raises BadZipFile, ValueError, struct.error, ...
         raise TorchCheckpointError(
-            f"{path}: not a readable torch.save zip archive ({err}); truncated?"
+            f"{path}: not a readable torch.save zip archive ({type(err).__name__}: {_short(str(err))}); truncated?"
         ) from err
-    with archive:
-        pickles = [n for n in archive.namelist() if n.endswith("/data.pkl") or n == "data.pkl"]
-        if len(pickles) != 1:
-            raise TorchCheckpointError(f"{path}: expected one data.pkl in the zip archive, found {pickles}")
-        root = pickles[0][: -len("data.pkl")]
-        byteorder = "little"
-        if f"{root}byteorder" in archive.namelist():
-            byteorder = archive.read(f"{root}byteorder").decode().strip()
-        announced: dict[str, tuple[np.dtype, int]] = {}
-        try:
-            obj = _SafeUnpickler(io.BytesIO(archive.read(pickles[0])), path, announced).load()
-            storages = {}
-            for key, (dtype, numel) in announced.items():
-                raw = archive.read(f"{root}data/{key}")
-                storages[key] = _from_bytes(
-                    raw, dtype.newbyteorder("<" if byteorder == "little" else ">"), numel, path, key
-                )
-        except (zipfile.BadZipFile, KeyError, EOFError, OSError) as err:
-            raise TorchCheckpointError(f"{path}: damaged zip archive ({err}); truncated download?") from err
-        except pickle.UnpicklingError as err:
-            raise TorchCheckpointError(f"{path}: corrupt pickle in {pickles[0]} ({err})") from err
-    return _materialise(obj, storages, path)
+    names = [info.filename for info in infos]
+    if len(set(names)) != len(names):
+        # Which copy a reader picks differs between implementations; refuse rather than guess.
+        raise TorchCheckpointError(f"{path}: the zip archive holds several records of the same name: corrupt file")
+    # caffe2/serialize/inline_container.cc: the archive's root folder is that of its first record.
+    if not names or "/" not in names[0]:
+        raise TorchCheckpointError(f"{path}: the zip archive's first record is not in a folder: not a torch.save file")
+    root = names[0].split("/", 1)[0] + "/"
+    byteorder = "little"
+    if f"{root}byteorder" in names:
+        raw = bytes(_read_member(archive, f"{root}byteorder", 16, path))
+        if raw not in (b"little", b"big"):
+            raise TorchCheckpointError(f"{path}: unknown byte order {raw!r} in {root}byteorder: corrupt file")
+        byteorder = raw.decode()
+    pickle_bytes = _read_member(archive, f"{root}data.pkl", _PICKLE_LIMITS.max_bytes, path)
+    refs: dict[str, _StorageRef] = {}
+    obj = _unpickle(io.BytesIO(pickle_bytes), _Hooks(refs), path, f"{root}data.pkl")
+    storages = _ZipStorages(path, budget, byteorder, archive, root)
+    storages.check(refs)
+    return obj, storages
 
 
-def _from_bytes(raw: bytes, dtype: np.dtype, numel: int, source: str, key: str) -> np.ndarray:
-    if len(raw) < numel * dtype.itemsize:
-        raise TorchCheckpointError(
-            f"{source}: storage {key} holds {len(raw)} bytes, expected {numel} × {dtype.itemsize}: "
-            "truncated file"
-        )
-    return np.frombuffer(raw, dtype=dtype, count=numel)
-
-
-def _read_legacy(path: str) -> Any:
-    with open(path, "rb") as f:
-        try:
-            header = [_SafeUnpickler(f, path, {}).load() for _ in range(3)]
-            if header[0] != _LEGACY_MAGIC or header[1] != _LEGACY_PROTOCOL:
-                raise TorchCheckpointError(
-                    f"{path}: neither a zip archive nor a legacy torch.save file (bad magic number)"
-                )
-            announced: dict[str, tuple[np.dtype, int]] = {}
-            obj = _SafeUnpickler(f, path, announced).load()
-            keys = _SafeUnpickler(f, path, {}).load()
-        except UnsafeCheckpointError:
-            raise
-        except (pickle.UnpicklingError, EOFError, ValueError, IndexError, TypeError) as err:
-            if isinstance(err, TorchCheckpointError):
-                raise
-            raise TorchCheckpointError(f"{path}: not a readable torch.save file ({err}); truncated?") from err
-        if not isinstance(keys, list) or set(map(str, keys)) != set(announced):
+def _read_legacy(path: str, f: BinaryIO, budget: _Budget) -> tuple[Any, _Storages]:
+    head = f.read(512)
+    if len(head) == 512 and head[257:262] == b"ustar":
+        raise TorchCheckpointError(f"{path}: a tar-based torch.save file (PyTorch < 0.4), which is not supported")
+    f.seek(0)
+    header = [_unpickle(f, _Hooks(None), path, "the legacy header") for _ in range(3)]
+    if not (_int_in(header[0], 0, 1 << 80) and header[0] == _LEGACY_MAGIC):
+        raise TorchCheckpointError(f"{path}: neither a zip archive nor a legacy torch.save file (bad magic number)")
+    if not (type(header[1]) is int and header[1] == _LEGACY_PROTOCOL):
+        raise TorchCheckpointError(f"{path}: unsupported legacy protocol version {describe(header[1])}")
+    refs: dict[str, _StorageRef] = {}
+    obj = _unpickle(f, _Hooks(refs), path, "the legacy object pickle")
+    keys = _unpickle(f, _Hooks(None), path, "the legacy storage key list")
+    if type(keys) is not list or not all(type(k) is str for k in keys) or len(set(keys)) != len(keys):
+        raise TorchCheckpointError(f"{path}: the storage key list is {describe(keys)}, not a list of distinct names")
+    if set(keys) != set(refs):
+        raise TorchCheckpointError(f"{path}: the storage key list does not match the tensors; corrupt file")
+    size = os.fstat(f.fileno()).st_size
+    offsets = {}
+    for key in keys:
+        ref = refs[key]
+        count_bytes = f.read(8)
+        if len(count_bytes) != 8:
+            raise TorchCheckpointError(f"{path}: file ends before storage {key}: truncated file")
+        (count,) = struct.unpack("<q", count_bytes)
+        if count != ref.numel:
+            raise TorchCheckpointError(f"{path}: storage {key} has {count} elements, the pickle said {ref.numel}")
+        nbytes = ref.numel * ref.dtype.itemsize
+        offsets[key] = f.tell()
+        if nbytes > size - offsets[key]:
             raise TorchCheckpointError(
-                f"{path}: the storage key list does not match the tensors; corrupt file"
+                f"{path}: storage {key} declares {ref.numel} × {ref.dtype} = {nbytes} bytes but only "
+                f"{size - offsets[key]} bytes are left in the file: truncated or corrupt file"
             )
-        storages = {}
-        for key in map(str, keys):
-            dtype, numel = announced[key]
-            count_bytes = f.read(8)
-            if len(count_bytes) != 8:
-                raise TorchCheckpointError(f"{path}: file ends before storage {key}: truncated file")
-            (count,) = struct.unpack("<q", count_bytes)
-            if count != numel:
-                raise TorchCheckpointError(f"{path}: storage {key} has {count} elements, pickle said {numel}")
-            storages[key] = _from_bytes(f.read(numel * dtype.itemsize), dtype, numel, path, key)
-    return _materialise(obj, storages, path)
+        f.seek(nbytes, os.SEEK_CUR)
+    return obj, _LegacyStorages(path, budget, f, offsets)
 
 
-def _flatten_state_dict(obj: Any, path: str, prefix: str = "") -> dict[str, np.ndarray]:
+# --- from references to arrays --------------------------------------------------------------------------
+
+
+def _overlapping(shape: tuple[int, ...], stride: tuple[int, ...]) -> bool:
+    """False when no two indices can reach the same element (strides nest, as for any slice or permutation).
+
+    A sufficient test: sorted by stride, each dimension's stride must exceed the span of all smaller ones.
+    Views that pass it are exactly those reachable by slicing, transposing and permuting a contiguous tensor.
+    """
+    span = 0
+    for stride_i, n in sorted((s, n) for n, s in zip(shape, stride, strict=True) if n > 1):
+        if stride_i <= span:
+            return True
+        span += (n - 1) * stride_i
+    return False
+
+
+class _Tensors:
+    """Turns tensor references into NumPy arrays, sharing one array between identical views (tied weights)."""
+
+    def __init__(self, storages: _Storages, budget: _Budget, source: str):
+        self.storages = storages
+        self.budget = budget
+        self.source = source
+        self.done: dict[_TensorRef, np.ndarray] = {}
+
+    def array(self, ref: _TensorRef, key: str) -> np.ndarray:
+        if ref in self.done:
+            return self.done[ref]
+        where = f"{self.source}: tensor {_short(key)!r} (shape {ref.shape}, stride {ref.stride}, offset {ref.offset})"
+        numel = math.prod(ref.shape)
+        if numel == 0:
+            return np.zeros(ref.shape, ref.storage.dtype)
+        if _overlapping(ref.shape, ref.stride):
+            raise TorchCheckpointError(
+                f"{where} has strides that make elements overlap (an expanded or broadcast view); the reader "
+                "refuses to expand it into new memory. Save a .contiguous() copy of it instead"
+            )
+        extent = ref.offset + sum((n - 1) * s for n, s in zip(ref.shape, ref.stride, strict=True))
+        if extent >= ref.storage.numel:
+            raise TorchCheckpointError(
+                f"{where} overruns its storage {ref.storage.key} of {ref.storage.numel} elements: corrupt file"
+            )
+        flat = self.storages.get(ref.storage)
+        nbytes = numel * flat.itemsize
+        if self.budget.returned_bytes + nbytes > _COPY_FACTOR * self.budget.storage_bytes:
+            raise TorchCheckpointError(
+                f"{where}: the tensors would hold more than {_COPY_FACTOR}× the bytes of their storages; "
+                "a state dict does not view the same data that many times: corrupt or malicious file"
+            )
+        self.budget.returned_bytes += nbytes
+        contiguous = tuple(int(math.prod(ref.shape[i + 1 :])) for i in range(len(ref.shape)))
+        whole = (
+            ref.offset == 0
+            and numel == flat.size
+            and all(s == c for n, s, c in zip(ref.shape, ref.stride, contiguous, strict=True) if n > 1)
+        )
+        if whole and ref.storage.key not in self.storages.given_away:
+            # The tensor is its storage: hand out the storage's own buffer instead of a copy.
+            self.storages.given_away.add(ref.storage.key)
+            out = flat.reshape(ref.shape)
+        else:
+            self.budget.take(nbytes, f"tensor {_short(key)!r}")
+            view = np.lib.stride_tricks.as_strided(
+                flat[ref.offset :],
+                shape=ref.shape,
+                strides=tuple(s * flat.itemsize for s in ref.stride),
+                writeable=False,
+            )
+            out = np.array(view, order="C")  # an owned C-contiguous copy, whatever the strides
+        self.done[ref] = out
+        return out
+
+
+def _flatten_state_dict(obj: dict, tensors: _Tensors, path: str) -> dict[str, np.ndarray]:
+    """``{dotted key: array}`` in the file's order; iterative, with depth, entry and key-length bounds."""
     out: dict[str, np.ndarray] = {}
-    for k, v in obj.items():
+    entries = key_chars = 0
+    stack: list[tuple[str, Any]] = [("", iter(obj.items()))]
+    seen = {id(obj)}  # every dict walked: a state dict never holds the same sub-dict twice
+    while stack:
+        prefix, items = stack[-1]
+        item = next(items, None)
+        if item is None:
+            stack.pop()
+            continue
+        k, v = item
+        if not (type(k) is str or _int_in(k, -(1 << 63), 1 << 63)):
+            raise TorchCheckpointError(f"{path}: state dict key {describe(k)} under {_short(prefix)!r} is not a name")
         key = f"{prefix}{k}"
-        if isinstance(v, np.ndarray):
-            out[key] = v
+        entries += 1
+        key_chars += len(key)
+        if entries > _MAX_ENTRIES or key_chars > _MAX_KEY_CHARS:
+            raise TorchCheckpointError(
+                f"{path}: the state dict has more than {_MAX_ENTRIES} entries or {_MAX_KEY_CHARS} characters "
+                "of keys: corrupt or malicious file"
+            )
+        if isinstance(v, _TensorRef):
+            out[key] = tensors.array(v, key)
         elif isinstance(v, dict):
-            out.update(_flatten_state_dict(v, path, f"{key}."))
+            if id(v) in seen:
+                # Also what a cycle looks like; refusing shared sub-dicts keeps the walk linear in the file.
+                raise TorchCheckpointError(
+                    f"{path}: state dict entry {_short(key)!r} is a dict already seen (it contains itself or "
+                    "appears twice): corrupt or malicious file"
+                )
+            if len(stack) >= _MAX_DEPTH:
+                raise TorchCheckpointError(
+                    f"{path}: state dict nested deeper than {_MAX_DEPTH} levels at {_short(key)!r}"
+                )
+            seen.add(id(v))
+            stack.append((f"{key}.", iter(v.items())))
+        elif isinstance(v, _Unsupported):
+            raise TorchCheckpointError(f"{path}: entry {_short(key)!r} {_unsupported_error(v)}")
         else:
             raise TorchCheckpointError(
-                f"{path}: entry {key!r} is a {type(v).__name__}, not a tensor; expected a state dict"
+                f"{path}: entry {_short(key)!r} is {describe(v)}, not a tensor; expected a state dict"
             )
     return out
 
 
-def read_torch_checkpoint(path: str | os.PathLike) -> dict[str, np.ndarray]:
+def read_torch_checkpoint(path: str | os.PathLike, *, max_bytes: int = DEFAULT_MAX_BYTES) -> dict[str, np.ndarray]:
     """Reads the state dict of a ``torch.save`` file as NumPy arrays, safely and without torch.
+
+    Safe for untrusted files: nothing in the file is executed, memory is bounded by ``max_bytes`` plus the
+    fixed pickle limits, and every problem with the content is reported as ``TorchCheckpointError`` (see the
+    module docstring for the exact promises).
 
     Args:
         path: a ``.pt``/``.pth`` file written by ``torch.save`` (zip or legacy format) holding a state
             dict, or a dict that keeps it under ``"model"`` or ``"state_dict"`` (e.g. next to an
-            ``"optimizer"`` entry). Nested dicts of tensors are flattened with ``.``-joined keys.
+            ``"optimizer"`` entry, whose pickle is checked but whose tensors are not read). Nested dicts of
+            tensors are flattened with ``.``-joined keys.
+        max_bytes: the most bytes of tensor data held at once, storages read plus arrays returned (default
+            ``DEFAULT_MAX_BYTES``, 4 GiB). Raise it for larger trusted checkpoints.
 
     Returns:
         ``{key: array}`` in the file's order with the tensors' dtypes (bfloat16 via ``ml_dtypes``),
-        C-contiguous copies in native byte order.
+        C-contiguous and writable, in native byte order. Keys that are the same view of the same storage in
+        the file (tied weights) share one array, as the tensors share memory after ``torch.load``.
 
     Raises:
-        UnsafeCheckpointError: the pickle references anything beyond tensors and dicts (nothing is executed).
-        TorchCheckpointError: truncated, corrupt or unsupported file, or entries that are not tensors.
+        UnsafeCheckpointError: the pickle asks for anything beyond tensors and dicts (nothing is executed).
+        TorchCheckpointError: truncated, corrupt, unsupported or over-limit file, or entries that are not
+            tensors.
         FileNotFoundError: no such file.
+        ValueError: ``max_bytes`` is not a non-negative int.
+
+    Example:
+        >>> state = read_torch_checkpoint("vgg16-397923af.pth")  # doctest: +SKIP
+        >>> state["features.0.weight"].shape  # doctest: +SKIP
+        (64, 3, 3, 3)
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no checkpoint file at {path}")
-    obj = _read_zip(path) if zipfile.is_zipfile(path) else _read_legacy(path)
-    if isinstance(obj, dict):
-        for wrapper in ("model", "state_dict"):
-            if isinstance(obj.get(wrapper), dict):
-                obj = obj[wrapper]
-                break
-    if not isinstance(obj, dict):
-        raise TorchCheckpointError(f"{path}: holds a {type(obj).__name__}, expected a state dict")
-    return _flatten_state_dict(obj, path)
+    if type(max_bytes) is not int or max_bytes < 0:
+        raise ValueError(f"max_bytes must be a non-negative int, got {max_bytes!r}")
+    budget = _Budget(max_bytes, path)
+    try:
+        with open(path, "rb") as f:
+            is_zip = f.read(len(_ZIP_SIGNATURE)) == _ZIP_SIGNATURE
+            f.seek(0)
+            obj, storages = (_read_zip if is_zip else _read_legacy)(path, f, budget)
+            if isinstance(obj, dict):
+                for wrapper in ("model", "state_dict"):
+                    if isinstance(obj.get(wrapper), dict):
+                        obj = obj[wrapper]
+                        break
+            if not isinstance(obj, dict):
+                raise TorchCheckpointError(f"{path}: holds {describe(obj)}, expected a state dict")
+            return _flatten_state_dict(obj, _Tensors(storages, budget, path), path)
+    except TorchCheckpointError:
+        raise
+    except Exception as err:
+        # A net under the checks above: whatever else a hostile file provokes still honours the contract.
+        raise TorchCheckpointError(
+            f"{path}: could not be read ({type(err).__name__}: {_short(str(err))}); not a readable checkpoint"
+        ) from err
