@@ -4,6 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from placejax import hha
 from placejax.hha import _encode
@@ -204,6 +206,76 @@ def test_all_missing_image_is_defined():
 def test_bad_input_raises(depth, k, raw, match):
     with pytest.raises(ValueError, match=match):
         hha.encode(depth, k, raw)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Properties on random input (hypothesis): a few fixed small shapes, since each new shape costs a compile.
+
+_H, _W = 16, 20
+_JUNK = (np.nan, 0.0, np.inf, -np.inf, -1.0, 1e-9, 0.05, 1e30)  # all outside the default 0.1-1000 m range
+_PROPERTY_SETTINGS = settings(max_examples=8, deadline=None, derandomize=True, database=None)
+
+
+@st.composite
+def _scenes(draw):
+    """A rough ground-and-wall depth image (0.5-50 m) with missing pixels of mixed kinds, and random intrinsics."""
+    seed = draw(st.integers(0, 2**32 - 1))
+    share = draw(st.sampled_from([0.0, 0.01, 0.2, 0.9, 1.0]))
+    junk = draw(st.lists(st.sampled_from(_JUNK), min_size=1, max_size=4))
+    fx, fy = draw(st.floats(5.0, 80.0)), draw(st.floats(5.0, 80.0))
+    cx, cy = draw(st.floats(-5.0, _W + 5.0)), draw(st.floats(-5.0, _H + 5.0))
+    rng = np.random.default_rng(seed)
+    depth = ground_and_wall(_H, _W, f=fx, pitch_deg=rng.uniform(-20, 20), roll_deg=rng.uniform(-15, 15))[0]
+    depth = np.clip(depth * np.exp(rng.normal(0, 0.05, depth.shape)), 0.5, 50.0)
+    missing = rng.random(depth.shape) < share
+    depth[missing] = rng.choice(np.array(junk), size=int(missing.sum()))
+    k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return depth, k, missing
+
+
+@_PROPERTY_SETTINGS
+@given(_scenes())
+def test_property_jit_equals_eager_and_missing_pixels_are_zero(scene):
+    depth, k, missing = scene
+    out = hha.encode_full(depth, k)
+    img = np.asarray(out.hha)
+    assert img.dtype == np.uint8 and img.shape == (_H, _W, 3)
+    np.testing.assert_array_equal(np.asarray(jax.jit(hha.encode)(depth, k)), img)
+    np.testing.assert_array_equal(np.asarray(out.valid), ~missing)
+    assert (img[missing] == 0).all()
+    assert (img[~missing][:, 0] >= 6).all()  # disparity 310 / Z with Z ≤ 50 m: never 0 at a valid pixel
+    for leaf in jax.tree_util.tree_leaves(out):
+        assert np.isfinite(np.asarray(leaf, np.float64)).all()
+
+
+@_PROPERTY_SETTINGS
+@given(st.lists(_scenes(), min_size=3, max_size=3))
+def test_property_batch_and_vmap_equal_the_loop(scenes):
+    depth = np.stack([d for d, _, _ in scenes])
+    ks = np.stack([k for _, k, _ in scenes])
+    loop = [hha.encode(d, k) for d, k, _ in scenes]
+    batch = hha.encode(depth, ks)
+    vmapped = jax.vmap(hha.encode)(depth, ks)
+    assert batch.shape == vmapped.shape == (3, _H, _W, 3)
+    for i in range(3):
+        assert_same_up_to_rounding(batch[i], loop[i])
+        assert_same_up_to_rounding(vmapped[i], loop[i])
+
+
+@_PROPERTY_SETTINGS
+@given(_scenes(), st.sampled_from([np.uint16, np.int32, np.uint8, np.float16, np.float64]))
+def test_property_dtypes_give_the_same_metric_depth(scene, dtype):
+    depth, k, missing = scene
+    # Quarter metres (0.5-50 m → 2-200 quarters): exact in every dtype here, so all encodings must agree.
+    quarters = np.where(missing, 0.0, np.rint(np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0) * 4))
+    expected = np.asarray(hha.encode(quarters / 4.0, k))
+    if np.issubdtype(dtype, np.integer):
+        with pytest.raises(TypeError, match="depth_scale"):
+            hha.encode(quarters.astype(dtype), k)
+        got = hha.encode(quarters.astype(dtype), k, depth_scale=0.25)
+    else:
+        got = hha.encode((quarters / 4.0).astype(dtype), k)
+    np.testing.assert_array_equal(np.asarray(got), expected)
 
 
 # --------------------------------------------------------------------------------------------------------------------
