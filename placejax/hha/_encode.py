@@ -58,15 +58,16 @@ class HHAResult(NamedTuple):
     """HHA image and the intermediates it was computed from (leading batch axes as in the input).
 
     Attributes:
-        hha: ``uint8 (..., H, W, 3)`` channels (disparity, height, angle). Pixels whose depth is invalid
-            (non-finite or ≤ 0) are 0 in all three channels.
+        hha: ``uint8 (..., H, W, 3)`` channels (disparity, height, angle). Missing pixels (depth outside the
+            valid range, NaN/±inf included, or unusable intrinsics) are 0 in all three channels.
         normals: ``float32 (..., H, W, 3)`` unit surface normals from 7×7 windows, camera frame (x right, y down,
             z forward), pointing away from the camera; 0 where undefined (see ``normal_valid``).
         normal_valid: ``bool (..., H, W)``: the 7×7 window held at least one valid pixel.
         gravity: ``float32 (..., 3)`` unit gravity direction in the camera frame (pointing down).
         height_cm: ``float32 (..., H, W)`` height above the estimated floor in centimetres (before rounding).
         angle_deg: ``float32 (..., H, W)`` angle between normal and gravity in degrees; 180 where undefined.
-        valid: ``bool (..., H, W)`` pixels whose depth is finite and > 0.
+        valid: ``bool (..., H, W)`` pixels whose depth lies in the valid range [min_depth_m, max_depth_m] (and
+            whose image has usable intrinsics).
     """
 
     hha: jax.Array
