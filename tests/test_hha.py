@@ -325,14 +325,19 @@ def assert_same_up_to_rounding(a, b, max_share=0.005):
     assert diff.max() <= 1 and (diff > 0).any(-1).mean() <= max_share
 
 
+# A caller's jit and vmap, shared by the tests below so that each compiles once.
+_jit_encode_full = jax.jit(hha.encode_full)
+_vmap_encode = jax.vmap(hha.encode)
+
+
 def test_callers_jit_and_vmap_equal_eager_with_missing_pixels():
     depth, holed, k = _scene_with_holes()
     eager = np.asarray(hha.encode(holed, k))
     # Under a caller's jit the encoder is the same program: bit for bit the eager result.
-    np.testing.assert_array_equal(np.asarray(jax.jit(hha.encode)(holed, k)), eager)
-    np.testing.assert_array_equal(np.asarray(jax.jit(hha.encode)(depth, k)), np.asarray(hha.encode(depth, k)))
-    batch = np.stack([depth, holed])
-    vmapped = np.asarray(jax.vmap(hha.encode, in_axes=(0, None))(batch, k))
+    np.testing.assert_array_equal(np.asarray(_jit_encode_full(holed, k).hha), eager)
+    np.testing.assert_array_equal(np.asarray(_jit_encode_full(depth, k).hha), np.asarray(hha.encode(depth, k)))
+    batch = np.stack([depth, holed, depth])
+    vmapped = np.asarray(_vmap_encode(batch, np.stack([k] * 3)))
     assert_same_up_to_rounding(vmapped[1], eager)
     assert_same_up_to_rounding(vmapped[0], hha.encode(depth, k))
     # A batch mixing dense and holed images equals encoding them one by one.
@@ -405,7 +410,7 @@ def test_bad_intrinsics_under_jit_give_an_all_missing_image():
     for bad in bad_ks:
         with pytest.raises(ValueError, match="intrinsics"):
             hha.encode(depth, bad)  # concrete: refused
-        out = jax.jit(hha.encode_full)(depth, bad)  # traced: cannot raise, so the image is entirely missing
+        out = _jit_encode_full(depth, bad)  # traced: cannot raise, so the image is entirely missing
         assert (np.asarray(out.hha) == 0).all() and not np.asarray(out.valid).any()
         np.testing.assert_array_equal(np.asarray(out.gravity), [0.0, 1.0, 0.0])
         for leaf in jax.tree_util.tree_leaves(out):
@@ -414,7 +419,7 @@ def test_bad_intrinsics_under_jit_give_an_all_missing_image():
     assert np.asarray(hha.intrinsics_valid(ks)).tolist() == [True, False, True]
     assert bool(jax.jit(hha.intrinsics_valid)(k))
     # Per-image intrinsics under vmap: only the bad camera's image is lost.
-    out = jax.vmap(hha.encode, in_axes=(None, 0))(depth, ks)
+    out = _vmap_encode(np.stack([depth] * 3), ks)
     assert (np.asarray(out[1]) == 0).all()
     assert_same_up_to_rounding(out[2], hha.encode(depth, k))
 
