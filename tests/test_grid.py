@@ -121,3 +121,37 @@ def test_bad_inputs_give_clear_errors(tmp_path):
 def test_doctest_examples():
     failures, _ = doctest.testmod(grid_module, extraglobs={"np": np})
     assert failures == 0
+
+
+@pytest.mark.parametrize("n", [2.5, True, np.True_, 0, -3, 50000, grid_module.MAX_N + 1, "10", None])
+def test_n_must_be_a_positive_int_whose_labels_fit_int32(n):
+    with pytest.raises(ValueError, match=r"PlaceGrid\.n must be"):
+        PlaceGrid(0.0, 1.0, 0.0, 1.0, n=n)
+    with pytest.raises(ValueError, match=r"PlaceGrid\.n must be"):
+        PlaceGrid.fit([np.array([[0.0, 0.0], [1.0, 1.0]])], n=n)  # not truncated to int(n)
+
+
+def test_largest_grid_labels_fit_int32_and_numpy_n_round_trips(tmp_path):
+    g = PlaceGrid(0.0, 1.0, 0.0, 1.0, n=grid_module.MAX_N)
+    top = g.label(np.array([[1.0, 1.0]]))
+    assert top.dtype == np.int32 and top[0] == g.num_classes - 1 == grid_module.MAX_N**2 - 1
+    g = PlaceGrid.fit([np.array([[0.0, 0.0], [1.0, 1.0]])], n=np.int64(7))
+    assert type(g.n) is int
+    g.save(tmp_path / "g.json")
+    assert PlaceGrid.load(tmp_path / "g.json") == g
+
+
+def test_bad_saved_grid_named(tmp_path):
+    path = tmp_path / "g.json"
+    good = PlaceGrid(0.0, 1.0, 0.0, 1.0, n=4).to_dict()
+    for field, value in [("n", 2.5), ("n", 50000), ("x_min", "a"), ("x_max", None)]:
+        path.write_text(json.dumps({**good, field: value}))
+        with pytest.raises(ValueError, match=r"g\.json: invalid PlaceGrid"):
+            PlaceGrid.load(path)
+
+
+def test_bounds_must_be_real_numbers_and_binnable():
+    with pytest.raises(TypeError, match="real numbers"):
+        PlaceGrid(0.0, True, 0.0, 1.0)
+    with pytest.raises(ValueError, match="too large"):
+        PlaceGrid(-1e308, 1e308, 0.0, 1.0)

@@ -4,6 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from placejax import hha
 from placejax.hha import _encode
@@ -122,9 +124,10 @@ def test_jit_equals_eager():
     raw = depth.copy()
     raw[5:9, 10:20] = 0
     d, kk, r = (jnp.asarray(x[None], jnp.float32) for x in (depth, k, raw))
-    jitted = _encode._encode_batch(d, kk, r)
+    depth_range = jnp.asarray([0.1, 1000.0], jnp.float32)
+    jitted = _encode._encode_batch(d, kk, r, depth_range)
     with jax.disable_jit():
-        eager = _encode._encode_batch(d, kk, r)
+        eager = _encode._encode_batch(d, kk, r, depth_range)
     # Fused (jit) and op-by-op float32 arithmetic round differently: a value on a .5 boundary may move by one level.
     diff = np.abs(np.asarray(jitted.hha, int) - np.asarray(eager.hha, int))
     assert diff.max() <= 1 and (diff == 0).mean() > 0.999
@@ -206,6 +209,76 @@ def test_bad_input_raises(depth, k, raw, match):
 
 
 # --------------------------------------------------------------------------------------------------------------------
+# Properties on random input (hypothesis): a few fixed small shapes, since each new shape costs a compile.
+
+_H, _W = 16, 20
+_JUNK = (np.nan, 0.0, np.inf, -np.inf, -1.0, 1e-9, 0.05, 1e30)  # all outside the default 0.1-1000 m range
+_PROPERTY_SETTINGS = settings(max_examples=8, deadline=None, derandomize=True, database=None)
+
+
+@st.composite
+def _scenes(draw):
+    """A rough ground-and-wall depth image (0.5-50 m) with missing pixels of mixed kinds, and random intrinsics."""
+    seed = draw(st.integers(0, 2**32 - 1))
+    share = draw(st.sampled_from([0.0, 0.01, 0.2, 0.9, 1.0]))
+    junk = draw(st.lists(st.sampled_from(_JUNK), min_size=1, max_size=4))
+    fx, fy = draw(st.floats(5.0, 80.0)), draw(st.floats(5.0, 80.0))
+    cx, cy = draw(st.floats(-5.0, _W + 5.0)), draw(st.floats(-5.0, _H + 5.0))
+    rng = np.random.default_rng(seed)
+    depth = ground_and_wall(_H, _W, f=fx, pitch_deg=rng.uniform(-20, 20), roll_deg=rng.uniform(-15, 15))[0]
+    depth = np.clip(depth * np.exp(rng.normal(0, 0.05, depth.shape)), 0.5, 50.0)
+    missing = rng.random(depth.shape) < share
+    depth[missing] = rng.choice(np.array(junk), size=int(missing.sum()))
+    k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return depth, k, missing
+
+
+@_PROPERTY_SETTINGS
+@given(_scenes())
+def test_property_jit_equals_eager_and_missing_pixels_are_zero(scene):
+    depth, k, missing = scene
+    out = hha.encode_full(depth, k)
+    img = np.asarray(out.hha)
+    assert img.dtype == np.uint8 and img.shape == (_H, _W, 3)
+    np.testing.assert_array_equal(np.asarray(jax.jit(hha.encode)(depth, k)), img)
+    np.testing.assert_array_equal(np.asarray(out.valid), ~missing)
+    assert (img[missing] == 0).all()
+    assert (img[~missing][:, 0] >= 6).all()  # disparity 310 / Z with Z ≤ 50 m: never 0 at a valid pixel
+    for leaf in jax.tree_util.tree_leaves(out):
+        assert np.isfinite(np.asarray(leaf, np.float64)).all()
+
+
+@_PROPERTY_SETTINGS
+@given(st.lists(_scenes(), min_size=3, max_size=3))
+def test_property_batch_and_vmap_equal_the_loop(scenes):
+    depth = np.stack([d for d, _, _ in scenes])
+    ks = np.stack([k for _, k, _ in scenes])
+    loop = [hha.encode(d, k) for d, k, _ in scenes]
+    batch = hha.encode(depth, ks)
+    vmapped = jax.vmap(hha.encode)(depth, ks)
+    assert batch.shape == vmapped.shape == (3, _H, _W, 3)
+    for i in range(3):
+        assert_same_up_to_rounding(batch[i], loop[i])
+        assert_same_up_to_rounding(vmapped[i], loop[i])
+
+
+@_PROPERTY_SETTINGS
+@given(_scenes(), st.sampled_from([np.uint16, np.int32, np.uint8, np.float16, np.float64]))
+def test_property_dtypes_give_the_same_metric_depth(scene, dtype):
+    depth, k, missing = scene
+    # Quarter metres (0.5-50 m → 2-200 quarters): exact in every dtype here, so all encodings must agree.
+    quarters = np.where(missing, 0.0, np.rint(np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0) * 4))
+    expected = np.asarray(hha.encode(quarters / 4.0, k))
+    if np.issubdtype(dtype, np.integer):
+        with pytest.raises(TypeError, match="depth_scale"):
+            hha.encode(quarters.astype(dtype), k)
+        got = hha.encode(quarters.astype(dtype), k, depth_scale=0.25)
+    else:
+        got = hha.encode((quarters / 4.0).astype(dtype), k)
+    np.testing.assert_array_equal(np.asarray(got), expected)
+
+
+# --------------------------------------------------------------------------------------------------------------------
 # Monocular inverse depth → metric depth.
 
 
@@ -226,3 +299,148 @@ def test_inverse_depth_to_metric_is_affine_invariant_and_bounded():
     assert np.allclose(flat, 50.0)
     with pytest.raises(ValueError, match="near_m < far_m"):
         hha.inverse_depth_to_metric(inv, near_m=5.0, far_m=2.0)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Hostile input: caller's jit/vmap, junk depth, dtypes, traced intrinsics, stream arguments.
+
+
+def _scene_with_holes():
+    depth, k, _, _ = ground_and_wall(24, 32, f=30.0, pitch_deg=8.0, roll_deg=-4.0)
+    holed = depth.copy()
+    holed[3, 4], holed[10, 11:14], holed[20, 5] = np.nan, 0.0, np.inf
+    return depth, holed, k
+
+
+def assert_same_up_to_rounding(a, b, max_share=0.005):
+    """Same HHA images up to float32 rounding: identical missing pixels, others within ±1 level, rarely off.
+
+    A batch axis added by ``vmap`` changes how XLA accumulates the gravity estimate's sums (≈1e-6 in the unit
+    vector), which can move a height or angle that sits on a .5 boundary by one level.
+    """
+    a, b = np.asarray(a, int), np.asarray(b, int)
+    assert a.shape == b.shape
+    np.testing.assert_array_equal((a == 0).all(-1), (b == 0).all(-1))
+    diff = np.abs(a - b)
+    assert diff.max() <= 1 and (diff > 0).any(-1).mean() <= max_share
+
+
+# A caller's jit and vmap, shared by the tests below so that each compiles once.
+_jit_encode_full = jax.jit(hha.encode_full)
+_vmap_encode = jax.vmap(hha.encode)
+
+
+def test_callers_jit_and_vmap_equal_eager_with_missing_pixels():
+    depth, holed, k = _scene_with_holes()
+    eager = np.asarray(hha.encode(holed, k))
+    # Under a caller's jit the encoder is the same program: bit for bit the eager result.
+    np.testing.assert_array_equal(np.asarray(_jit_encode_full(holed, k).hha), eager)
+    np.testing.assert_array_equal(np.asarray(_jit_encode_full(depth, k).hha), np.asarray(hha.encode(depth, k)))
+    batch = np.stack([depth, holed, depth])
+    vmapped = np.asarray(_vmap_encode(batch, np.stack([k] * 3)))
+    assert_same_up_to_rounding(vmapped[1], eager)
+    assert_same_up_to_rounding(vmapped[0], hha.encode(depth, k))
+    # A batch mixing dense and holed images equals encoding them one by one.
+    assert_same_up_to_rounding(hha.encode(batch, k)[0], hha.encode(depth, k))
+    np.testing.assert_array_equal(np.asarray(hha.encode(batch, k))[1], eager)
+
+
+@pytest.mark.parametrize("junk", [1e-9, 0.05, 1e30, -0.0])
+def test_junk_depth_outside_the_valid_range_counts_as_missing(junk):
+    depth, _, k = _scene_with_holes()
+    with_junk, with_nan = depth.copy(), depth.copy()
+    with_junk[12, 16], with_nan[12, 16] = junk, np.nan
+    out = hha.encode_full(with_junk, k)
+    np.testing.assert_array_equal(np.asarray(out.hha), np.asarray(hha.encode(with_nan, k)))
+    assert not np.asarray(out.valid)[12, 16] and (np.asarray(out.hha)[12, 16] == 0).all()
+    # One missing pixel only touches its neighbourhood, not the gravity estimate of the whole image.
+    changed = (np.asarray(out.hha) != np.asarray(hha.encode(depth, k))).any(-1)
+    assert changed.mean() < 0.05
+
+
+def test_valid_depth_range_is_configurable_and_checked():
+    depth, _, k = _scene_with_holes()
+    far = depth > 5.0
+    out = hha.encode_full(depth, k, max_depth_m=5.0)
+    np.testing.assert_array_equal(np.asarray(out.valid), ~far)
+    assert (np.asarray(out.hha)[far] == 0).all()
+    # A range inclusive at both ends: the exact limits are valid depth.
+    assert np.asarray(hha.encode_full(np.full((8, 8), 0.1), k, min_depth_m=0.1).valid).all()
+    for kwargs, err, match in [
+        ({"min_depth_m": 0.0}, ValueError, "min_depth_m must be a positive finite number"),
+        ({"min_depth_m": np.nan}, ValueError, "min_depth_m"),
+        ({"max_depth_m": np.nan}, ValueError, "max_depth_m"),
+        ({"min_depth_m": 5.0, "max_depth_m": 2.0}, ValueError, "min_depth_m < max_depth_m"),
+        ({"min_depth_m": True}, TypeError, "min_depth_m must be a real number"),
+        ({"depth_scale": 0.0}, ValueError, "depth_scale"),
+        ({"depth_scale": np.inf}, ValueError, "depth_scale"),
+        ({"depth_scale": "mm"}, TypeError, "depth_scale"),
+        ({"dtype": jnp.int32}, TypeError, "dtype must be a floating dtype"),
+    ]:
+        with pytest.raises(err, match=match):
+            hha.encode(depth, k, **kwargs)
+    assert np.asarray(hha.encode_full(depth, k, max_depth_m=np.inf).valid).all()
+
+
+def test_dtype_rules_integer_depth_needs_a_unit_bool_refused():
+    depth, _, k = _scene_with_holes()
+    mm = np.rint(depth * 1000).astype(np.uint16)
+    with pytest.raises(TypeError, match=r"depth_m has integer dtype uint16.*depth_scale=0\.001"):
+        hha.encode(mm, k)
+    with pytest.raises(TypeError, match=r"depth_m .* got dtype bool"):
+        hha.encode(depth > 2, k)
+    with pytest.raises(TypeError, match="raw_depth_m has integer dtype"):
+        hha.encode(depth, k, mm)
+    with pytest.raises(TypeError, match="complex"):
+        hha.encode(depth.astype(np.complex64), k)
+    with pytest.raises(TypeError, match="intrinsics must be a real float array"):
+        hha.encode(depth, np.eye(3, dtype=bool))
+    # With a unit, integer depth is the same metric depth (quarter metres: exact in binary floating point).
+    quarters = np.rint(depth * 4).astype(np.int32)
+    np.testing.assert_array_equal(
+        np.asarray(hha.encode(quarters, k, depth_scale=0.25)), np.asarray(hha.encode(quarters / 4.0, k))
+    )
+    mm_out = np.asarray(hha.encode(mm, k, mm, depth_scale=0.001))
+    assert mm_out.dtype == np.uint8 and (mm_out[..., 0] == np.asarray(hha.encode(mm / 1000.0, k))[..., 0]).all()
+
+
+def test_bad_intrinsics_under_jit_give_an_all_missing_image():
+    depth, _, k = _scene_with_holes()
+    bad_ks = [np.diag([0.0, 30.0, 1.0]), np.diag([30.0, -30.0, 1.0]), np.full((3, 3), np.nan)]
+    for bad in bad_ks:
+        with pytest.raises(ValueError, match="intrinsics"):
+            hha.encode(depth, bad)  # concrete: refused
+        out = _jit_encode_full(depth, bad)  # traced: cannot raise, so the image is entirely missing
+        assert (np.asarray(out.hha) == 0).all() and not np.asarray(out.valid).any()
+        np.testing.assert_array_equal(np.asarray(out.gravity), [0.0, 1.0, 0.0])
+        for leaf in jax.tree_util.tree_leaves(out):
+            assert np.isfinite(np.asarray(leaf, np.float64)).all()
+    ks = np.stack([k, bad_ks[0], k])
+    assert np.asarray(hha.intrinsics_valid(ks)).tolist() == [True, False, True]
+    assert bool(jax.jit(hha.intrinsics_valid)(k))
+    # Per-image intrinsics under vmap: only the bad camera's image is lost.
+    out = _vmap_encode(np.stack([depth] * 3), ks)
+    assert (np.asarray(out[1]) == 0).all()
+    assert_same_up_to_rounding(out[2], hha.encode(depth, k))
+
+
+def test_stream_checks_its_arguments_up_front():
+    k = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    images = [np.full((24, 32), 2.0)] * 3
+    for bad in (0, -1, 2.5, True, None):
+        with pytest.raises(ValueError, match="batch_size must be a positive int"):
+            hha.encode_stream(iter(images), k, batch_size=bad)  # raised on the call, not on the first next()
+    with pytest.raises(ValueError, match=r"intrinsics must have shape \(3, 3\)"):
+        hha.encode_stream(iter(images), np.stack([k, k]))
+    with pytest.raises(ValueError, match="positive focal lengths"):
+        hha.encode_stream(iter(images), np.diag([0.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match="min_depth_m"):
+        hha.encode_stream(iter(images), k, min_depth_m=-1.0)
+    with pytest.raises(ValueError, match=r"item 1 has shape \(24, 31\)"):
+        list(hha.encode_stream(iter([images[0], np.ones((24, 31))]), k, batch_size=4))
+    with pytest.raises(TypeError, match="item 2: depth_m has integer dtype"):
+        list(hha.encode_stream(iter([*images[:2], np.full((24, 32), 2000, np.uint16)]), k, batch_size=4))
+    mixed = [images[0], np.full((24, 32), 2000, np.uint16)]
+    out = list(hha.encode_stream(iter(mixed), k, batch_size=2, depth_scale=0.001))
+    assert out[0][0, 0, 0] == np.rint(310 / 0.002) or out[0][0, 0, 0] == 0  # 2.0 × 0.001 m: below the range
+    assert out[1][0, 0, 0] == 155  # 2000 mm = 2 m

@@ -66,18 +66,53 @@ def test_undistortion_map_axes(fake):
     np.testing.assert_array_equal(s.image(0), expected)
 
 
-def test_u2d_parse_any_size_and_partial(tmp_path):
+def test_u2d_parse_any_size(tmp_path):
     p = tmp_path / "U2D_Cam5_3X2.txt"
-    p.write_text("width/cols = 3 , height/rows = 2\n0 0 0.5 1.25\n1 2 1.0 0.0\n")
+    lines = [f"{i} {j} {i + 0.5} {j + 0.25}" for i in range(2) for j in range(3)]
+    p.write_text("\n".join(["width/cols = 3 , height/rows = 2", *lines]) + "\n")
     mapu, mapv = nclt.read_u2d_map(p)
     assert mapu.shape == (2, 3) and mapu.dtype == np.float32
-    assert (mapu[0, 0], mapv[0, 0], mapu[1, 2], mapv[1, 2]) == (1.25, 0.5, 0.0, 1.0)
-    assert mapu[0, 1] == -1.0  # unlisted pixel: outside, black after remap
-    p.write_text("width/cols = 3 , height/rows = 2\n0 0 0.5 1.25\n2 0 0 0\n")
-    with pytest.raises(nclt.NcltFormatError, match=r"U2D_Cam5_3X2\.txt.*outside"):
+    assert (mapu[0, 0], mapv[0, 0], mapu[1, 2], mapv[1, 2]) == (0.25, 0.5, 2.25, 1.5)
+    p.write_text("width/cols = 3 , height/rows = 2\n0 0 0.5 1.25\n2 0 0 0\n" + "0 1 0 0\n" * 6)
+    with pytest.raises(nclt.NcltFormatError, match=r"U2D_Cam5_3X2\.txt: pixel line 2 \(2 0\).*inside"):
         nclt.read_u2d_map(p)
     p.write_text("cols 3 rows 2\n")
     with pytest.raises(nclt.NcltFormatError, match="bad header"):
+        nclt.read_u2d_map(p)
+
+
+def _u2d_lines(h, w):
+    return [f"{i} {j} {float(i):.6f} {float(j):.6f}" for i in range(h) for j in range(w)]
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        # Cut to half its lines: unlisted pixels would silently turn black.
+        (lambda lines: lines[: len(lines) // 2], r"48 of 96 pixels not listed, first \(row 4, col 0\)"),
+        (lambda lines: [*lines[:5], "0 5 nan 5.0", *lines[6:]], r"pixel \(row 0, col 5\) has source .*nan"),
+        (lambda lines: [*lines[:5], "0 5 0.0 1e30", *lines[6:]], r"pixel \(row 0, col 5\).*1e\+30.*outside"),
+        (lambda lines: [*lines[:5], "0 4 0.0 4.0", *lines[6:]], r"pixel \(row 0, col 4\) listed 2 times"),
+        (lambda lines: [*lines[:5], "0 5.5 0.0 4.0", *lines[6:]], r"pixel line 6 \(0 5\.5\) is not an integer"),
+    ],
+)
+def test_u2d_map_damage_is_an_error_naming_file_and_pixel(tmp_path, edit, match):
+    p = tmp_path / "U2D_Cam5_12X8.txt"
+    p.write_text("\n".join(["width/cols = 12 , height/rows = 8", *edit(_u2d_lines(8, 12))]) + "\n")
+    with pytest.raises(nclt.NcltFormatError, match=r"U2D_Cam5_12X8\.txt: " + match):
+        nclt.read_u2d_map(p)
+
+
+def test_u2d_header_checked_before_allocating(tmp_path):
+    p = tmp_path / "U2D_Cam5_100000X100000.txt"
+    p.write_text("width/cols = 100000 , height/rows = 100000\n0 0 0 0\n")
+    with pytest.raises(nclt.NcltFormatError, match=r"100000X100000\.txt: header size 100000 × 100000"):
+        nclt.read_u2d_map(p)
+    p.write_text("width/cols = 16000 , height/rows = 16000\n0 0 0 0\n")  # plausible size, file far too short
+    with pytest.raises(nclt.NcltFormatError, match=r"256000000 pixel lines, but the file has only \d+ bytes"):
+        nclt.read_u2d_map(p)
+    p.write_text("width/cols = 0 , height/rows = 4\n")
+    with pytest.raises(nclt.NcltFormatError, match="header size 0 × 4"):
         nclt.read_u2d_map(p)
 
 
@@ -274,3 +309,88 @@ def test_command_line_report_grid_and_cache(fake, tmp_path, capsys):
     assert grid == PlaceGrid.fit([fake.sessions[d].poses for d in (DATE, "2012-03-31")])
     caches = sorted(p for p in (tmp_path / "c").iterdir() if p.is_dir())
     assert len(caches) == 2 and open_session_cache(caches[0]).image_shape == (8, 6)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Hostile input.
+
+
+def _gt_csv(fake):
+    return fake.ground_truth_root / f"groundtruth_{DATE}.csv"
+
+
+def test_conflicting_duplicate_ground_truth_rows_dropped_and_counted(fake):
+    csv = _gt_csv(fake)
+    lines = csv.read_text().splitlines()
+    # Row 10 again with a pose 5 m off (conflict); row 20 again verbatim (a harmless exact duplicate).
+    t, *pose = lines[10].split(",")
+    conflict = ",".join([t, str(float(pose[0]) + 5.0), *pose[1:]])
+    csv.write_text("\n".join([*lines, conflict, lines[20]]) + "\n")
+    truth = nclt.read_ground_truth(csv)
+    assert truth.n_conflicting_rows == 2 and int(t) not in truth.utimes
+    assert len(np.unique(truth.utimes)) == len(truth.utimes) == len(lines) - 1 - 1  # NaN row, conflicting utime
+    s = nclt.load_session(fake.root, DATE)
+    assert s.report.n_ground_truth_conflicting_rows == 2 and "2 rows with conflicting" in str(s.report)
+    assert len(s) == fake.sessions[DATE].n_kept  # neighbouring rows (10 ms apart) still give every frame a pose
+
+
+def test_ground_truth_utime_out_of_range_named(fake):
+    csv = _gt_csv(fake)
+    lines = csv.read_text().splitlines()
+    csv.write_text("\n".join([*lines, "1e25,1,2,3,0,0,0"]) + "\n")
+    with pytest.raises(nclt.NcltFormatError, match=rf"groundtruth_{DATE}\.csv: utime 1e\+25 is not"):
+        nclt.load_session(fake.root, DATE)
+
+
+@pytest.mark.parametrize(
+    "k",
+    [
+        np.diag([0.0, 5.0, 1.0]),
+        np.diag([5.0, -5.0, 1.0]),
+        np.array([[5.0, 0, 3], [0, 5, 3], [0, 0, 0]]),
+        np.array([[5.0, 0, np.inf], [0, 5, 3], [0, 0, 1]]),
+    ],
+)
+def test_unusable_intrinsics_refused(fake, k):
+    fake.k_file.write_text("\n".join(",".join(repr(float(v)) for v in row) for row in k) + "\n")
+    with pytest.raises(nclt.NcltFormatError, match=r"K_cam5\.csv: (focal lengths|last row|.*finite)"):
+        nclt.load_session(fake.root, DATE)
+    with pytest.raises(ValueError, match="intrinsics argument: "):
+        nclt.load_session(fake.root, DATE, intrinsics=k)
+
+
+@pytest.mark.parametrize("other", ["{t}.TIF", "{t}.tif", "0{t}.tiff"])
+def test_two_images_for_one_utime_is_an_error(fake, other):
+    first = fake.sessions[DATE].image_files[3]
+    t = first.stem
+    shutil.copy(first, first.with_name(other.format(t=t)))
+    with pytest.raises(nclt.NcltFormatError, match=rf"Cam5: two images for utime {t}: "):
+        nclt.load_session(fake.root, DATE)
+
+
+def test_huge_utime_image_name_named(fake):
+    first = fake.sessions[DATE].image_files[3]
+    bad = first.with_name("1" * 23 + ".tiff")
+    shutil.copy(first, bad)
+    with pytest.raises(nclt.NcltFormatError, match=rf"{bad.name}: utime {bad.stem} in the image name is out of range"):
+        nclt.load_session(fake.root, DATE)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"tolerance_s": float("nan")}, "tolerance_s must be a finite number"),
+        ({"tolerance_s": float("inf")}, "tolerance_s"),
+        ({"tolerance_s": -0.1}, "tolerance_s"),
+        ({"tolerance_s": True}, "tolerance_s"),
+        ({"tolerance_s": "0.1"}, "tolerance_s"),
+        ({"camera": 6}, "camera must be a Ladybug3 camera number 0-5"),
+        ({"camera": True}, "camera"),
+        ({"image_size": (8, 0)}, "image_size must be"),
+        ({"image_size": (8, 6.5)}, "image_size must be"),
+        ({"image_size": (8,)}, "image_size must be"),
+    ],
+)
+def test_bad_arguments_named(fake, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        nclt.load_session(fake.root, DATE, **kwargs)

@@ -53,12 +53,16 @@ def main(argv: list[str] | None = None) -> int:
             verify_images=args.verify,
         )
         sessions.append(s)
-    print(f"{'session':<12}{'images':>8}{'kept':>8}{'outside':>9}{'no pose':>9}{'bad':>6}{'gt rows':>9}{'NaN':>5}")
+    print(
+        f"{'session':<12}{'images':>8}{'kept':>8}{'outside':>9}{'no pose':>9}{'bad':>6}{'gt rows':>9}{'NaN':>5}"
+        f"{'conflict':>9}"
+    )
     for s in sessions:
         r = s.report
         print(
             f"{r.date:<12}{r.n_images:>8}{r.n_kept:>8}{r.n_outside_ground_truth:>9}{r.n_no_pose:>9}"
             f"{r.n_bad_images:>6}{r.n_ground_truth_rows:>9}{r.n_ground_truth_nan_rows:>5}"
+            f"{r.n_ground_truth_conflicting_rows:>9}"
         )
     if args.grid is not None:
         grid = PlaceGrid.fit([s.poses for s in sessions], n=args.grid_n)

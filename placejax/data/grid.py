@@ -26,6 +26,17 @@ _FORMAT = "placejax.PlaceGrid"
 _VERSION = 1
 
 
+# Labels are int32: the largest class id n * n − 1 must fit, so n ≤ 46340 (46341² > 2**31 − 1).
+MAX_N = math.isqrt(np.iinfo(np.int32).max + 1)
+
+
+def _check_n(n) -> None:
+    if isinstance(n, bool | np.bool_) or not isinstance(n, int | np.integer):
+        raise ValueError(f"PlaceGrid.n must be a positive int, got {n!r}")
+    if not 1 <= n <= MAX_N:
+        raise ValueError(f"PlaceGrid.n must be in 1…{MAX_N} (n * n classes with int32 labels), got {n}")
+
+
 @dataclasses.dataclass(frozen=True)
 class PlaceGrid:
     """An ``n × n`` grid of equal cells over ``[x_min, x_max] × [y_min, y_max]`` (metres).
@@ -40,7 +51,7 @@ class PlaceGrid:
 
     Attributes:
         x_min, x_max, y_min, y_max: the box, metres; ``x_min < x_max`` and ``y_min < y_max``.
-        n: cells per axis; ``n * n`` classes.
+        n: cells per axis, an int in 1…46340 (``n * n`` classes, class ids fit int32).
     """
 
     x_min: float
@@ -51,6 +62,8 @@ class PlaceGrid:
 
     def __post_init__(self):
         values = (self.x_min, self.x_max, self.y_min, self.y_max)
+        if not all(isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool) for v in values):
+            raise TypeError(f"PlaceGrid bounds must be real numbers, got {values!r}")
         if not all(math.isfinite(v) for v in values):
             raise ValueError(f"PlaceGrid bounds must be finite, got {values}")
         if not (self.x_min < self.x_max and self.y_min < self.y_max):
@@ -58,8 +71,10 @@ class PlaceGrid:
                 f"PlaceGrid box is empty or degenerate: x [{self.x_min}, {self.x_max}], "
                 f"y [{self.y_min}, {self.y_max}] (viewpoints must span both axes)"
             )
-        if isinstance(self.n, bool) or not isinstance(self.n, int | np.integer) or self.n < 1:
-            raise ValueError(f"PlaceGrid.n must be a positive int, got {self.n!r}")
+        if not math.isfinite(self.x_max - self.x_min) or not math.isfinite(self.y_max - self.y_min):
+            raise ValueError(f"PlaceGrid box is too large to bin in float64: {values}")
+        _check_n(self.n)
+        object.__setattr__(self, "n", int(self.n))  # a NumPy integer would not survive the JSON round trip
 
     @classmethod
     def fit(cls, xys: Sequence[np.ndarray], n: int = 10) -> PlaceGrid:
@@ -68,13 +83,14 @@ class PlaceGrid:
         Args:
             xys: per session, an ``(N_s, 2)`` array of x, y in metres (extra columns such as yaw are
                 ignored).
-            n: cells per axis.
+            n: cells per axis, an int in 1…46340.
 
         Returns:
             The grid; every input point is inside it.
         """
         if isinstance(xys, np.ndarray):
             raise TypeError("PlaceGrid.fit takes a list of per-session (N, 2) arrays, not one array")
+        _check_n(n)
         parts = []
         for s, xy in enumerate(xys):
             xy = np.asarray(xy, dtype=np.float64)
@@ -87,7 +103,7 @@ class PlaceGrid:
             raise ValueError("PlaceGrid.fit: no viewpoints given")
         allxy = np.concatenate(parts, axis=0)
         lo, hi = allxy.min(axis=0), allxy.max(axis=0)
-        return cls(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), int(n))
+        return cls(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), n)
 
     @property
     def num_classes(self) -> int:
@@ -161,7 +177,9 @@ class PlaceGrid:
             )
         try:
             box = (float(d["x_min"]), float(d["x_max"]), float(d["y_min"]), float(d["y_max"]))
-            return cls(*box, n=int(d["n"]))
+            return cls(*box, n=d["n"])
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{source}: invalid PlaceGrid ({e})") from None
         except KeyError as e:
             raise ValueError(f"{source}: PlaceGrid field {e} missing") from None
 

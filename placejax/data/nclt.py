@@ -23,10 +23,13 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import logging
+import math
 import os
 import re
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -38,6 +41,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "CAM5_INTRINSICS",
+    "GroundTruth",
     "NcltFormatError",
     "NcltPaths",
     "NcltReport",
@@ -85,6 +89,9 @@ class NcltReport:
         n_bad_images: dropped (only with ``skip_bad_frames``) because the file was empty or unreadable.
         n_ground_truth_rows: rows in the ground-truth CSV.
         n_ground_truth_nan_rows: of those, rows dropped for NaN values.
+        n_ground_truth_conflicting_rows: of those, rows dropped because another row has the same utime but a
+            different pose (no pose at that time can be trusted; frames match the neighbouring rows instead).
+            Exact duplicate rows are collapsed to one and not counted.
         bad_images: the skipped files.
     """
 
@@ -97,6 +104,7 @@ class NcltReport:
     n_bad_images: int
     n_ground_truth_rows: int
     n_ground_truth_nan_rows: int
+    n_ground_truth_conflicting_rows: int = 0
     bad_images: tuple[str, ...] = ()
 
     @property
@@ -108,7 +116,8 @@ class NcltReport:
             f"NCLT {self.date} Cam{self.camera}: kept {self.n_kept}/{self.n_images} frames, dropped "
             f"{self.n_outside_ground_truth} outside ground truth, {self.n_no_pose} without a pose within "
             f"tolerance, {self.n_bad_images} bad images; ground truth {self.n_ground_truth_rows} rows "
-            f"({self.n_ground_truth_nan_rows} NaN rows dropped)"
+            f"({self.n_ground_truth_nan_rows} NaN rows, {self.n_ground_truth_conflicting_rows} rows with conflicting "
+            "duplicate utimes dropped)"
         )
 
 
@@ -135,15 +144,26 @@ def find_paths(
     )
 
 
-def read_ground_truth(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, int, int]:
+class GroundTruth(NamedTuple):
+    """A parsed ground-truth CSV (see :func:`read_ground_truth`)."""
+
+    utimes: np.ndarray  # int64 (M,), sorted, unique
+    xyzrpy: np.ndarray  # float64 (M, 6)
+    n_rows: int
+    n_nan_rows: int
+    n_conflicting_rows: int
+
+
+def read_ground_truth(path: str | os.PathLike) -> GroundTruth:
     """Reads ``groundtruth_<date>.csv``: headerless ``utime, x, y, z, roll, pitch, yaw`` (µs, m, rad, NED).
 
     Returns:
-        ``(utimes int64 (M,), xyzrpy float64 (M, 6), n_rows, n_nan_rows)``: rows with any NaN dropped, sorted by
-        utime, duplicate utimes collapsed to their first row.
+        :class:`GroundTruth`: rows with any NaN dropped, sorted by utime; exact duplicate rows collapsed to one;
+        rows sharing a utime but not the pose (conflicting duplicates) all dropped and counted, with a warning.
 
     Raises:
-        NcltFormatError: missing, empty or malformed file (wrong column count, non-numbers, truncated line).
+        NcltFormatError: missing, empty or malformed file (wrong column count, non-numbers, truncated line,
+            utimes that are not non-negative integers below 2**53).
     """
     path = Path(path)
     if not path.is_file():
@@ -161,16 +181,56 @@ def read_ground_truth(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, 
     table = table[finite]
     if len(table) == 0:
         raise NcltFormatError(f"{path}: no ground-truth row without NaN")
-    # utimes (~1.3e15 µs) are below 2**53, so float64 parsing is exact.
-    utimes = np.rint(table[:, 0]).astype(np.int64)
-    order = np.argsort(utimes, kind="stable")
+    # utimes (~1.3e15 µs) are below 2**53, so float64 parsing is exact; beyond that it is not.
+    t = table[:, 0]
+    bad = (t < 0) | (t >= 2.0**53) | (t != np.rint(t))
+    if bad.any():
+        raise NcltFormatError(
+            f"{path}: utime {t[bad][0]:.6g} is not a non-negative integer below 2**53 µs ({int(bad.sum())} such rows)"
+        )
+    utimes = t.astype(np.int64)
+    order = np.lexsort(tuple(table[:, ::-1].T))  # by utime, then the pose: duplicates end up adjacent
     utimes, table = utimes[order], table[order]
-    utimes, first = np.unique(utimes, return_index=True)
-    return utimes, table[first, 1:], n_rows, n_rows - int(finite.sum())
+    distinct = np.ones(len(table), bool)
+    distinct[1:] = (table[1:] != table[:-1]).any(axis=1)
+    utimes, table = utimes[distinct], table[distinct]  # exact duplicates collapsed
+    values, counts = np.unique(utimes, return_counts=True)
+    conflicting = np.isin(utimes, values[counts > 1])
+    n_conflicting = int(conflicting.sum())
+    if n_conflicting:
+        log.warning(
+            "%s: %d rows share a utime with a different pose (first at utime %d); all of them dropped",
+            path,
+            n_conflicting,
+            utimes[conflicting][0],
+        )
+        utimes, table = utimes[~conflicting], table[~conflicting]
+        if len(table) == 0:
+            raise NcltFormatError(f"{path}: every ground-truth utime has conflicting poses")
+    return GroundTruth(utimes, table[:, 1:], n_rows, n_rows - int(finite.sum()), n_conflicting)
+
+
+def _check_intrinsics(k: np.ndarray, source: str) -> np.ndarray:
+    """A usable pinhole matrix: finite, fx = K[0, 0] > 0, fy = K[1, 1] > 0, last row (0, 0, 1)."""
+    if k.shape != (3, 3):
+        raise NcltFormatError(f"{source}: intrinsics must be a 3 × 3 matrix, got shape {k.shape}")
+    if not np.isfinite(k).all():
+        raise NcltFormatError(f"{source}: intrinsics must be finite, got {k.tolist()}")
+    if not (k[0, 0] > 0 and k[1, 1] > 0):
+        raise NcltFormatError(
+            f"{source}: focal lengths fx = K[0, 0] = {k[0, 0]} and fy = K[1, 1] = {k[1, 1]} must be positive"
+        )
+    if not np.allclose(k[2], [0.0, 0.0, 1.0], rtol=0.0, atol=1e-9):
+        raise NcltFormatError(f"{source}: last row of the intrinsics must be (0, 0, 1), got {k[2].tolist()}")
+    return k
 
 
 def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
-    """Reads a 3 × 3 ``K_cam<c>.csv`` (comma- or space-separated) into float64 ``(3, 3)``."""
+    """Reads a 3 × 3 ``K_cam<c>.csv`` (comma- or space-separated) into float64 ``(3, 3)``.
+
+    Raises:
+        NcltFormatError: missing file, not 9 finite numbers, focal lengths ≤ 0, or a last row other than (0, 0, 1).
+    """
     path = Path(path)
     if not path.is_file():
         raise NcltFormatError(f"{path}: intrinsics file not found (or pass intrinsics=...)")
@@ -180,21 +240,32 @@ def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
         raise NcltFormatError(f"{path}: malformed intrinsics ({e})") from None
     if values.shape != (9,) or not np.isfinite(values).all():
         raise NcltFormatError(f"{path}: expected 9 finite numbers (a 3 × 3 matrix), got {values.size}")
-    return values.reshape(3, 3)
+    return _check_intrinsics(values.reshape(3, 3), str(path))
 
 
 _U2D_HEADER = re.compile(r"width\D*(\d+)\D+height\D*(\d+)", re.IGNORECASE)
+# Largest image side a U2D header may declare (the Ladybug3's is 1616 × 1232): bounds the allocation before any
+# pixel line is read.
+_U2D_MAX_SIDE = 16384
+_U2D_MIN_LINE_BYTES = 8  # "0 0 0 0\n": the shortest possible pixel line
 
 
 def read_u2d_map(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Reads an undistortion map ``U2D_Cam<c>_<W>X<H>.txt`` (any size).
+    """Reads an undistortion map ``U2D_Cam<c>_<W>X<H>.txt`` (any size up to 16384 per side).
 
-    Format: a header ``width/cols = W , height/rows = H``, then lines ``i j v u``: undistorted pixel (row i,
-    col j) takes the distorted source pixel (row v, col u).
+    Format: a header ``width/cols = W , height/rows = H``, then one line ``i j v u`` per undistorted pixel:
+    undistorted pixel (row i, col j) takes the distorted source pixel (row v, col u).
 
     Returns:
         ``(mapu, mapv)`` float32 ``(H, W)`` for ``cv2.remap(raw, mapu, mapv, cv2.INTER_LINEAR)`` on the
-        unrotated image; pixels the file does not list map to −1 (black after remapping).
+        unrotated image.
+
+    Raises:
+        NcltFormatError: naming the file and the offending pixel: a header outside 1…16384 per side or larger
+            than the file could hold, a malformed line, pixel indices that are not integers inside the header
+            size, a pixel listed twice or not at all (a cut file would otherwise leave black pixels: the official
+            script samples pixel (0, 0) for them), or a source coordinate that is not finite or lies more than one
+            image size outside the image.
     """
     path = Path(path)
     if not path.is_file():
@@ -205,19 +276,59 @@ def read_u2d_map(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         if m is None:
             raise NcltFormatError(f"{path}: bad header {header.strip()!r}, expected 'width/cols = W , height/rows = H'")
         width, height = int(m.group(1)), int(m.group(2))
+        if not (1 <= width <= _U2D_MAX_SIDE and 1 <= height <= _U2D_MAX_SIDE):
+            raise NcltFormatError(
+                f"{path}: header size {width} × {height} (W × H) outside 1…{_U2D_MAX_SIDE} per side"
+            )
+        size = path.stat().st_size
+        if width * height * _U2D_MIN_LINE_BYTES > size:
+            raise NcltFormatError(
+                f"{path}: header says {width} × {height} = {width * height} pixel lines, but the file has only "
+                f"{size} bytes (truncated, or a wrong header)"
+            )
         try:
             rows = np.loadtxt(f, dtype=np.float64, ndmin=2)
         except ValueError as e:
             raise NcltFormatError(f"{path}: malformed undistortion map ({e})") from None
     if rows.size == 0 or rows.shape[1] != 4:
         raise NcltFormatError(f"{path}: expected lines 'i j v u', got {rows.shape[1] if rows.size else 0} columns")
-    i, j = rows[:, 0].astype(np.int64), rows[:, 1].astype(np.int64)
-    if i.min() < 0 or i.max() >= height or j.min() < 0 or j.max() >= width:
-        raise NcltFormatError(f"{path}: pixel indices outside the {width} × {height} header size")
-    mapu = np.full((height, width), -1.0, dtype=np.float32)
-    mapv = np.full((height, width), -1.0, dtype=np.float32)
-    mapu[i, j] = rows[:, 3]
-    mapv[i, j] = rows[:, 2]
+    ij = rows[:, :2]
+    bad = ~np.isfinite(ij).all(axis=1) | (ij != np.rint(ij)).any(axis=1)
+    bad |= (ij[:, 0] < 0) | (ij[:, 0] >= height) | (ij[:, 1] < 0) | (ij[:, 1] >= width)
+    if bad.any():
+        r = int(np.flatnonzero(bad)[0])
+        raise NcltFormatError(
+            f"{path}: pixel line {r + 1} ({rows[r, 0]:g} {rows[r, 1]:g}) is not an integer pixel inside the "
+            f"{width} × {height} header size ({int(bad.sum())} such lines)"
+        )
+    i, j = ij[:, 0].astype(np.int64), ij[:, 1].astype(np.int64)
+    vu = rows[:, 2:]
+    far = ~np.isfinite(vu).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        far |= (np.abs(vu[:, 0] - (height - 1) / 2) > 1.5 * height) | (np.abs(vu[:, 1] - (width - 1) / 2) > 1.5 * width)
+    if far.any():
+        r = int(np.flatnonzero(far)[0])
+        raise NcltFormatError(
+            f"{path}: pixel (row {i[r]}, col {j[r]}) has source (v, u) = ({vu[r, 0]:g}, {vu[r, 1]:g}), not finite "
+            f"or more than one image size outside the {width} × {height} image ({int(far.sum())} such pixels)"
+        )
+    count = np.bincount(i * width + j, minlength=width * height)
+    if (count > 1).any():
+        flat = int(np.flatnonzero(count > 1)[0])
+        raise NcltFormatError(
+            f"{path}: pixel (row {flat // width}, col {flat % width}) listed {count[flat]} times "
+            f"({int((count > 1).sum())} pixels listed more than once)"
+        )
+    if (count == 0).any():
+        flat = int(np.flatnonzero(count == 0)[0])
+        raise NcltFormatError(
+            f"{path}: {int((count == 0).sum())} of {width * height} pixels not listed, first (row {flat // width}, "
+            f"col {flat % width}) (a truncated file?)"
+        )
+    mapu = np.empty((height, width), dtype=np.float32)
+    mapv = np.empty((height, width), dtype=np.float32)
+    mapu[i, j] = vu[:, 1]
+    mapv[i, j] = vu[:, 0]
     return mapu, mapv
 
 
@@ -395,7 +506,8 @@ def load_session(
         undistort: remap with ``U2D_Cam<c>_<W>X<H>.txt`` (the paper does not say whether it undistorted).
             Without it the images keep the lens distortion and K is only approximate.
         image_size: ``(H, W)`` to resize the upright images to; default: the upright size (W_raw, H_raw).
-        tolerance_s: largest accepted gap between a frame and its nearest ground-truth row, seconds.
+        tolerance_s: largest accepted gap between a frame and its nearest ground-truth row, seconds (finite,
+            ≥ 0).
         skip_bad_frames: drop (and count in ``report``) empty or unreadable images instead of raising.
         verify_images: decode every image once now (slow on full NCLT: ~26k TIFFs) so that a corrupt file
             cannot surface later; otherwise only emptiness is checked here and a corrupt image raises
@@ -406,9 +518,26 @@ def load_session(
         The session; ``session.report`` has the kept / dropped counts (also logged at INFO).
 
     Raises:
-        NcltFormatError: a missing folder, CSV or calibration file, a malformed CSV, a bad image (unless
-            ``skip_bad_frames``), or no frame left.
+        NcltFormatError: a missing folder, CSV or calibration file, a malformed CSV or undistortion map, a bad
+            image (unless ``skip_bad_frames``), two images with the same utime (``.tiff`` next to ``.TIF``), a
+            utime out of range, or no frame left.
+        ValueError: a bad argument (camera outside 0–5, ``tolerance_s`` negative or not finite, ``image_size``
+            not two positive ints, ``intrinsics`` not finite with positive focal lengths).
     """
+    if isinstance(camera, bool) or not isinstance(camera, int | np.integer) or not 0 <= camera <= 5:
+        raise ValueError(f"camera must be a Ladybug3 camera number 0-5, got {camera!r}")
+    if (
+        isinstance(tolerance_s, bool | np.bool_)
+        or not isinstance(tolerance_s, int | float | np.integer | np.floating)
+        or not 0 <= tolerance_s < math.inf
+    ):
+        raise ValueError(f"tolerance_s must be a finite number of seconds ≥ 0, got {tolerance_s!r}")
+    if image_size is not None:
+        size = tuple(image_size)
+        if len(size) != 2 or not all(
+            isinstance(v, int | np.integer) and not isinstance(v, bool) and v >= 1 for v in size
+        ):
+            raise ValueError(f"image_size must be (H, W), two positive ints, got {image_size!r}")
     paths = find_paths(
         root,
         date,
@@ -429,14 +558,22 @@ def load_session(
             continue
         if not _UTIME_RE.match(stem):
             raise NcltFormatError(f"{entry.path}: image name is not <utime>.tiff")
+        if int(stem) >= 2**53:  # int64 and the float64 ground-truth utimes
+            raise NcltFormatError(f"{entry.path}: utime {stem} in the image name is out of range (≥ 2**53 µs)")
         entries.append((int(stem), entry))
     if not entries:
         raise NcltFormatError(f"{paths.images_dir}: no <utime>.tiff images")
-    entries.sort(key=lambda e: e[0])
+    entries.sort(key=lambda e: (e[0], e[1].name))
+    for (u0, e0), (u1, e1) in itertools.pairwise(entries):
+        if u0 == u1:  # e.g. 123.tiff next to 123.TIF, or 0123.tiff: one frame per timestamp
+            raise NcltFormatError(
+                f"{paths.images_dir}: two images for utime {u0}: {e0.name} and {e1.name} (remove one)"
+            )
     utimes = np.array([u for u, _ in entries], dtype=np.int64)
     files = [Path(e.path) for _, e in entries]
 
-    gt_utimes, gt, n_gt_rows, n_gt_nan = read_ground_truth(paths.ground_truth_csv)
+    truth = read_ground_truth(paths.ground_truth_csv)
+    gt_utimes, gt = truth.utimes, truth.xyzrpy
     index, outside, too_far = match_nearest(utimes, gt_utimes, round(tolerance_s * 1e6))
     keep = ~outside & ~too_far
 
@@ -455,9 +592,14 @@ def load_session(
     if intrinsics is None:
         raw_k = read_intrinsics(_find_one(paths.calib_dir, f"K_cam{camera}.csv", "intrinsics"))
     else:
-        raw_k = np.asarray(intrinsics, dtype=np.float64)
-        if raw_k.shape != (3, 3):
-            raise ValueError(f"intrinsics must be (3, 3), got {raw_k.shape}")
+        try:
+            raw_k = np.asarray(intrinsics, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"intrinsics must be a (3, 3) float matrix ({e})") from None
+        try:
+            _check_intrinsics(raw_k, "intrinsics argument")
+        except NcltFormatError as e:
+            raise ValueError(str(e)) from None
 
     # The stored size comes from the first decodable kept image; every other image must match it.
     raw_shape = None
@@ -497,8 +639,9 @@ def load_session(
         n_outside_ground_truth=int(outside.sum()),
         n_no_pose=int(too_far.sum()),
         n_bad_images=len(bad),
-        n_ground_truth_rows=n_gt_rows,
-        n_ground_truth_nan_rows=n_gt_nan,
+        n_ground_truth_rows=truth.n_rows,
+        n_ground_truth_nan_rows=truth.n_nan_rows,
+        n_ground_truth_conflicting_rows=truth.n_conflicting_rows,
         bad_images=tuple(bad),
     )
     log.info("%s", report)

@@ -4,11 +4,12 @@ Public surface:
     encode: depth (metres) + intrinsics → ``uint8`` HHA images, jitted and batched.
     encode_full: the same plus the intermediates (:class:`HHAResult`).
     encode_stream: bounded-memory encoding of a stream of images in fixed-size batches.
+    intrinsics_valid: the camera check the encoder applies, usable on traced arrays.
     encode_reference: plain NumPy float64 implementation, one image at a time (test oracle, baseline).
     inverse_depth_to_metric: relative inverse depth (MiDaS) → metric depth for HHA.
 """
 
-from placejax.hha._api import encode, encode_full, encode_stream
+from placejax.hha._api import encode, encode_full, encode_stream, intrinsics_valid
 from placejax.hha._encode import HHAResult
 from placejax.hha._metric import inverse_depth_to_metric
 from placejax.hha._reference import encode_reference
@@ -19,5 +20,6 @@ __all__ = [
     "encode_full",
     "encode_reference",
     "encode_stream",
+    "intrinsics_valid",
     "inverse_depth_to_metric",
 ]

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Iterator
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from placejax.hha._constants import MAX_DEPTH_M, MIN_DEPTH_M
 from placejax.hha._encode import HHAResult, _encode_batch
 
 
@@ -15,8 +17,80 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def _prepare(depth_m, intrinsics, raw_depth_m, dtype):
-    """Checks shapes and values; returns batched arrays, whether a batch axis was added, and the dense flag."""
+def _check_depth_dtype(x, name: str, depth_scale) -> None:
+    """The dtype rule: floating depth is metres; integer depth needs an explicit ``depth_scale``; bool is refused."""
+    dt = jnp.result_type(x)
+    if dt == jnp.bool_:
+        raise TypeError(f"{name} must be a float (metres) or integer (with depth_scale) array, got dtype bool")
+    if jnp.issubdtype(dt, jnp.complexfloating) or not jnp.issubdtype(dt, jnp.number):
+        raise TypeError(f"{name} must be a real float (metres) or integer array, got dtype {dt}")
+    if jnp.issubdtype(dt, jnp.integer) and depth_scale is None:
+        raise TypeError(
+            f"{name} has integer dtype {dt}: give its unit explicitly, e.g. depth_scale=0.001 for millimetres "
+            "(metres per unit); floating depth is taken as metres"
+        )
+
+
+def _check_scalar(value, name: str, *, allow_inf: bool = False) -> None:
+    """A positive real number argument (not bool): finite, or +inf where ``allow_inf``. Traced values pass."""
+    if isinstance(value, bool | np.bool_ | str | bytes):
+        raise TypeError(f"{name} must be a real number, got {value!r}")
+    if not _is_concrete(value):
+        return
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a real number, got {value!r}") from None
+    if not v > 0 or (math.isinf(v) and not allow_inf):
+        raise ValueError(f"{name} must be a positive {'' if allow_inf else 'finite '}number, got {value!r}")
+
+
+def intrinsics_valid(intrinsics) -> jax.Array:
+    """Whether each pinhole matrix is usable by the encoder: all entries finite, fx = K[0, 0] > 0, fy = K[1, 1] > 0.
+
+    Works on concrete and traced arrays (inside ``jit``/``vmap``), where :func:`encode` cannot raise: an image
+    whose intrinsics fail this check comes out as entirely missing. Callers that trace the encoder can test their
+    cameras with this (or ``jax.experimental.checkify``) beforehand.
+
+    Args:
+        intrinsics: ``(..., 3, 3)`` matrices.
+
+    Returns:
+        ``bool (...)``.
+    """
+    k = jnp.asarray(intrinsics)
+    return jnp.all(jnp.isfinite(k), axis=(-2, -1)) & (k[..., 0, 0] > 0) & (k[..., 1, 1] > 0)
+
+
+def _check_options(dtype, depth_scale, min_depth_m, max_depth_m) -> None:
+    if not jnp.issubdtype(jnp.dtype(dtype), jnp.floating):
+        raise TypeError(f"dtype must be a floating dtype (float32 or float64), got {dtype!r}")
+    if depth_scale is not None:
+        _check_scalar(depth_scale, "depth_scale")
+    _check_scalar(min_depth_m, "min_depth_m")
+    _check_scalar(max_depth_m, "max_depth_m", allow_inf=True)
+    if _is_concrete(min_depth_m) and _is_concrete(max_depth_m) and not float(min_depth_m) < float(max_depth_m):
+        raise ValueError(f"need min_depth_m < max_depth_m, got {min_depth_m!r} and {max_depth_m!r}")
+
+
+def _as_intrinsics(intrinsics) -> jax.Array:
+    kdt = jnp.result_type(intrinsics)
+    if kdt == jnp.bool_ or not jnp.issubdtype(kdt, jnp.number) or jnp.issubdtype(kdt, jnp.complexfloating):
+        raise TypeError(f"intrinsics must be a real float array, got dtype {kdt}")
+    return jnp.asarray(intrinsics)
+
+
+def _check_intrinsics(kn: np.ndarray) -> None:
+    if not np.all(np.isfinite(kn)):
+        raise ValueError("intrinsics must be finite (fx, fy, cx, cy), got non-finite values")
+    if np.any(kn[..., 0, 0] <= 0) or np.any(kn[..., 1, 1] <= 0):
+        raise ValueError("intrinsics must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
+
+
+def _prepare(depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, max_depth_m):
+    """Checks shapes, dtypes and (when concrete) values; returns batched arrays and whether a batch axis was added."""
+    _check_options(dtype, depth_scale, min_depth_m, max_depth_m)
+    _check_depth_dtype(depth_m, "depth_m", depth_scale)
     depth = jnp.asarray(depth_m)
     if depth.ndim not in (2, 3):
         raise ValueError(f"depth_m must have shape (H, W) or (B, H, W), got shape {tuple(depth.shape)}")
@@ -26,7 +100,7 @@ def _prepare(depth_m, intrinsics, raw_depth_m, dtype):
     b, h, w = depth.shape
     if h < 1 or w < 1:
         raise ValueError(f"depth_m must be a non-empty image, got shape {tuple(depth.shape)}")
-    k = jnp.asarray(intrinsics)
+    k = _as_intrinsics(intrinsics)
     if k.shape == (3, 3):
         k = jnp.broadcast_to(k, (b, 3, 3))
     elif k.shape != (b, 3, 3):
@@ -35,13 +109,10 @@ def _prepare(depth_m, intrinsics, raw_depth_m, dtype):
             f"got shape {tuple(k.shape)}"
         )
     if _is_concrete(k):
-        kn = np.asarray(k, np.float64)
-        if not np.all(np.isfinite(kn)):
-            raise ValueError("intrinsics must be finite (fx, fy, cx, cy), got non-finite values")
-        if np.any(kn[:, 0, 0] <= 0) or np.any(kn[:, 1, 1] <= 0):
-            raise ValueError("intrinsics must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
+        _check_intrinsics(np.asarray(k, np.float64))
     raw = None
     if raw_depth_m is not None:
+        _check_depth_dtype(raw_depth_m, "raw_depth_m", depth_scale)
         raw = jnp.asarray(raw_depth_m)
         if raw.ndim == 2 and squeeze:
             raw = raw[None]
@@ -51,51 +122,88 @@ def _prepare(depth_m, intrinsics, raw_depth_m, dtype):
                 f"got shape {tuple(jnp.shape(raw_depth_m))}"
             )
     depth = depth.astype(dtype)
+    raw = None if raw is None else raw.astype(dtype)
+    if depth_scale is not None:
+        depth = depth * jnp.asarray(depth_scale, dtype)
+        raw = None if raw is None else raw * jnp.asarray(depth_scale, dtype)
     k = k.astype(dtype)
-    # When every pixel is known to be usable, the fit mask is the same for all images and its window moments are
-    # computed once per call. Only decidable on concrete input; under an outer jit the general path runs.
-    if raw is None and _is_concrete(depth):
-        dn = np.asarray(depth)
-        if not np.all(np.isfinite(dn) & (dn > 0)):
-            raw = jnp.ones(depth.shape, dtype)  # depth's own invalid pixels are masked inside
-    elif raw is not None:
-        raw = raw.astype(dtype)
-    return depth, k, raw, squeeze
+    depth_range = jnp.asarray([min_depth_m, max_depth_m], dtype)
+    return depth, k, raw, depth_range, squeeze
 
 
-def encode_full(depth_m, intrinsics, raw_depth_m=None, *, dtype=jnp.float32) -> HHAResult:
+def encode_full(
+    depth_m,
+    intrinsics,
+    raw_depth_m=None,
+    *,
+    depth_scale: float | None = None,
+    min_depth_m: float = MIN_DEPTH_M,
+    max_depth_m: float = MAX_DEPTH_M,
+    dtype=jnp.float32,
+) -> HHAResult:
     """HHA image plus its intermediates (normals, gravity, height, angle); see :class:`HHAResult`.
 
-    Args and conventions as in :func:`encode`.
+    Args, conventions, dtype rules and ``jit`` behaviour as in :func:`encode`.
     """
-    depth, k, raw, squeeze = _prepare(depth_m, intrinsics, raw_depth_m, dtype)
-    out = _encode_batch(depth, k, raw)
+    depth, k, raw, depth_range, squeeze = _prepare(
+        depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, max_depth_m
+    )
+    out = _encode_batch(depth, k, raw, depth_range)
     if squeeze:
         out = jax.tree_util.tree_map(lambda x: x[0], out)
     return out
 
 
-def encode(depth_m, intrinsics, raw_depth_m=None, *, dtype=jnp.float32) -> jax.Array:
+def encode(
+    depth_m,
+    intrinsics,
+    raw_depth_m=None,
+    *,
+    depth_scale: float | None = None,
+    min_depth_m: float = MIN_DEPTH_M,
+    max_depth_m: float = MAX_DEPTH_M,
+    dtype=jnp.float32,
+) -> jax.Array:
     """HHA encoding (Gupta et al., ECCV 2014) of metric depth images, as the original implementation computes it.
 
-    Compiled once per input shape and dtype; a batch runs as one ``vmap`` of the single-image encoder.
+    Compiled once per input shape and dtype; a batch runs as one ``vmap`` of the single-image encoder. The same
+    result comes out eagerly, under a caller's ``jax.jit`` and under ``jax.vmap``: whether every pixel is valid
+    (the fast path) is decided on the data inside the compiled code, never from a Python-level look at it.
 
     Args:
-        depth_m: ``(H, W)`` or ``(B, H, W)`` depth in **metres** (z-depth along the optical axis). Pixels that are
-            NaN, ±inf, zero or negative count as missing: they are left out of every fit and come out as
-            (0, 0, 0).
+        depth_m: ``(H, W)`` or ``(B, H, W)`` z-depth along the optical axis. **Floating** arrays are metres.
+            **Integer** arrays (e.g. ``uint16`` millimetres) need their unit as ``depth_scale`` (metres per unit,
+            0.001 for millimetres), otherwise ``TypeError``; ``bool`` and complex arrays are refused
+            (``TypeError``). Pixels outside the valid range ``[min_depth_m, max_depth_m]`` (NaN, ±inf, zero,
+            negative, sensor junk such as 1e-9 or 1e30) count as missing: they are left out of every fit, the
+            gravity estimate and the floor height, and come out as (0, 0, 0).
         intrinsics: ``(3, 3)`` pinhole matrix shared by all images, or ``(B, 3, 3)`` one per image, in the 0-based
             OpenCV pixel convention (pixel (row i, col j) has u = j, v = i). A camera given 1-based (MATLAB
-            style) has centre (cx − 1, cy − 1) here.
-        raw_depth_m: optional raw depth of the same shape: where it is 0 the pixel is missing for the normal and
-            gravity estimates (the reference's ``missing = RD == 0``), while disparity and height still use
-            ``depth_m``. ``None``: nothing is missing (the right choice for dense, e.g. monocular, depth).
-        dtype: compute dtype; float32 reproduces the reference (the normal fits are centred for that reason).
+            style) has centre (cx − 1, cy − 1) here. Must be finite with fx = K[0, 0] > 0 and fy = K[1, 1] > 0:
+            concrete intrinsics that are not raise ``ValueError``; traced ones (inside a caller's ``jit`` or
+            ``vmap``) cannot raise, and an image with unusable intrinsics comes out entirely missing (all-zero
+            HHA, ``valid`` all False, gravity (0, 1, 0)). Check traced cameras with :func:`intrinsics_valid`.
+        raw_depth_m: optional raw depth of the same shape and the same units/dtype rules: where it is 0 (or
+            outside the valid range) the pixel is missing for the normal and gravity estimates (the reference's
+            ``missing = RD == 0``), while disparity and height still use ``depth_m``. ``None``: only invalid
+            ``depth_m`` pixels are missing (the right choice for dense, e.g. monocular, depth).
+        depth_scale: metres per unit of ``depth_m`` and ``raw_depth_m`` (both are multiplied by it); required for
+            integer depth, optional for floating depth.
+        min_depth_m, max_depth_m: the valid depth range in metres, inclusive, after ``depth_scale``; default
+            0.1 m to 1000 m. ``0 < min_depth_m < max_depth_m``; ``max_depth_m`` may be ``inf``.
+        dtype: compute dtype, floating; float32 reproduces the reference (the normal fits are centred for that
+            reason).
 
     Returns:
         ``uint8 (..., H, W, 3)`` channels in the order (disparity, height, angle): 31000 / max(Z_cm, 100),
         height above the estimated floor in cm, and the normal's angle with gravity in degrees + 38 (180° where
-        the normal is undefined), each rounded half to even and capped at 255.
+        the normal is undefined), each rounded half to even and capped at 255; (0, 0, 0) at missing pixels.
+
+    Raises:
+        TypeError: a bool, complex or non-numeric depth, integer depth without ``depth_scale``, a non-floating
+            ``dtype``, or a non-numeric scalar argument.
+        ValueError: wrong shapes, non-positive or non-finite ``depth_scale``/``min_depth_m``, an empty depth
+            range, or (concrete) intrinsics that are not finite with positive focal lengths.
 
     Example:
         >>> import numpy as np
@@ -103,45 +211,98 @@ def encode(depth_m, intrinsics, raw_depth_m=None, *, dtype=jnp.float32) -> jax.A
         >>> k = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
         >>> hha.encode(np.full((48, 64), 2.0), k).shape
         (48, 64, 3)
+        >>> hha.encode(np.full((48, 64), 2000, np.uint16), k, depth_scale=0.001)[0, 0].tolist()  # millimetres
+        [155, 177, 128]
     """
-    return encode_full(depth_m, intrinsics, raw_depth_m, dtype=dtype).hha
+    return encode_full(
+        depth_m,
+        intrinsics,
+        raw_depth_m,
+        depth_scale=depth_scale,
+        min_depth_m=min_depth_m,
+        max_depth_m=max_depth_m,
+        dtype=dtype,
+    ).hha
 
 
 def encode_stream(
-    depths: Iterable[np.ndarray], intrinsics, *, batch_size: int = 32, dtype=jnp.float32
+    depths: Iterable[np.ndarray],
+    intrinsics,
+    *,
+    batch_size: int = 32,
+    depth_scale: float | None = None,
+    min_depth_m: float = MIN_DEPTH_M,
+    max_depth_m: float = MAX_DEPTH_M,
+    dtype=jnp.float32,
 ) -> Iterator[np.ndarray]:
     """Encodes a stream of ``(H, W)`` depth images in fixed-size batches, in bounded memory.
 
     Every batch has the same shape (the last one is padded), so the encoder compiles once for the whole stream,
     and at most one batch of inputs and outputs is held at a time: a 100k-image dataset streams through.
+    The arguments are checked when this is called, each image when it arrives (a differing shape or a dtype the
+    rules of :func:`encode` refuse raises, naming the image's position in the stream).
 
     Args:
-        depths: iterable of ``(H, W)`` metric depth images, all of one shape; or of ``(depth, raw_depth)`` pairs.
-        intrinsics: ``(3, 3)`` matrix shared by all images (0-based convention).
-        batch_size: images per compiled call.
+        depths: iterable of ``(H, W)`` depth images, all of one shape; or of ``(depth, raw_depth)`` pairs
+            (``raw_depth`` may be ``None``). Units and dtype rules as in :func:`encode`.
+        intrinsics: ``(3, 3)`` finite matrix with positive focal lengths, shared by all images (0-based).
+        batch_size: images per compiled call, a positive int.
+        depth_scale, min_depth_m, max_depth_m, dtype: as in :func:`encode`.
 
     Yields:
         ``uint8 (H, W, 3)`` HHA images, one per input, in order.
     """
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int | np.integer) or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+    # Every argument is checked now, not when the first batch is full.
+    _check_options(dtype, depth_scale, min_depth_m, max_depth_m)
+    k = np.asarray(_as_intrinsics(intrinsics))
+    if k.shape != (3, 3):
+        raise ValueError(f"intrinsics must have shape (3, 3) for encode_stream, got shape {k.shape}")
+    _check_intrinsics(k.astype(np.float64))
+    kwargs = dict(depth_scale=depth_scale, min_depth_m=min_depth_m, max_depth_m=max_depth_m, dtype=dtype)
+    return _stream(iter(depths), k, int(batch_size), kwargs)
+
+
+def _stream(depths: Iterator, k: np.ndarray, batch_size: int, kwargs: dict) -> Iterator[np.ndarray]:
     buf: list = []
-    for item in depths:
-        buf.append(item)
+    shape = None
+    for n, item in enumerate(depths):
+        depth, raw = item if isinstance(item, tuple) else (item, None)
+        if isinstance(item, tuple) and len(item) != 2:
+            raise ValueError(f"encode_stream: item {n} is a tuple of {len(item)}, expected (depth, raw_depth)")
+        depth = np.asarray(depth)
+        raw = None if raw is None else np.asarray(raw)
+        try:
+            _check_depth_dtype(depth, "depth_m", kwargs["depth_scale"])
+            if raw is not None:
+                _check_depth_dtype(raw, "raw_depth_m", kwargs["depth_scale"])
+        except TypeError as e:
+            raise TypeError(f"encode_stream: item {n}: {e}") from None
+        shape = depth.shape if shape is None else shape
+        if depth.ndim != 2 or depth.shape != shape or (raw is not None and raw.shape != shape):
+            raise ValueError(
+                f"encode_stream: item {n} has shape {depth.shape}"
+                + ("" if raw is None else f" (raw {raw.shape})")
+                + f", expected one (H, W) shape for the whole stream: {shape}"
+            )
+        buf.append((depth, raw))
         if len(buf) == batch_size:
-            yield from _encode_chunk(buf, intrinsics, batch_size, dtype)
+            yield from _encode_chunk(buf, k, batch_size, kwargs)
             buf = []
     if buf:
-        yield from _encode_chunk(buf, intrinsics, batch_size, dtype)
+        yield from _encode_chunk(buf, k, batch_size, kwargs)
 
 
-def _encode_chunk(items, intrinsics, batch_size, dtype):
-    pairs = [it if isinstance(it, tuple) else (it, None) for it in items]
-    depth = np.stack([np.asarray(d, np.float32) for d, _ in pairs])
+def _encode_chunk(pairs, k, batch_size, kwargs):
+    # One dtype per batch without changing any value: floats stay floats (metres), integers stay integers.
+    depth = np.stack([d for d, _ in pairs])
     has_raw = any(r is not None for _, r in pairs)
-    raw = np.stack([np.asarray(d if r is None else r, np.float32) for d, r in pairs]) if has_raw else None
-    n = len(items)
+    raw = np.stack([d if r is None else r for d, r in pairs]) if has_raw else None
+    n = len(pairs)
     if n < batch_size:  # pad with copies of the last image so the compiled shape never changes
         depth = np.concatenate([depth, np.repeat(depth[-1:], batch_size - n, 0)])
         if raw is not None:
             raw = np.concatenate([raw, np.repeat(raw[-1:], batch_size - n, 0)])
-    out = np.asarray(encode(depth, intrinsics, raw, dtype=dtype))
+    out = np.asarray(encode(depth, k, raw, **kwargs))
     yield from out[:n]

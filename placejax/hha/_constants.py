@@ -11,3 +11,9 @@ DISPARITY_NUMERATOR = 31000.0  # disparity = 31000 / max(Z_cm, 100)
 DISPARITY_MIN_CM = 100.0
 ANGLE_OFFSET = 38.0  # angle channel = θ + 38 (floor ≈ 38, wall ≈ 128)
 ANGLE_NAN_DEG = 180.0  # angle where the normal is undefined
+# Valid depth range (m, inclusive), the encoder's defaults. Below 0.1 m no depth sensor or monocular mapping gives
+# a usable value, and a single such pixel (1e-9 m of sensor junk) moves the gravity estimate and so most heights
+# and angles of the image; 1000 m keeps the farthest plausible outdoor surfaces (and SimCampus's sky depth,
+# exactly 1000 m) while overflow junk such as 1e30 counts as missing.
+MIN_DEPTH_M = 0.1
+MAX_DEPTH_M = 1000.0

@@ -58,15 +58,16 @@ class HHAResult(NamedTuple):
     """HHA image and the intermediates it was computed from (leading batch axes as in the input).
 
     Attributes:
-        hha: ``uint8 (..., H, W, 3)`` channels (disparity, height, angle). Pixels whose depth is invalid
-            (non-finite or ≤ 0) are 0 in all three channels.
+        hha: ``uint8 (..., H, W, 3)`` channels (disparity, height, angle). Missing pixels (depth outside the
+            valid range, NaN/±inf included, or unusable intrinsics) are 0 in all three channels.
         normals: ``float32 (..., H, W, 3)`` unit surface normals from 7×7 windows, camera frame (x right, y down,
             z forward), pointing away from the camera; 0 where undefined (see ``normal_valid``).
         normal_valid: ``bool (..., H, W)``: the 7×7 window held at least one valid pixel.
         gravity: ``float32 (..., 3)`` unit gravity direction in the camera frame (pointing down).
         height_cm: ``float32 (..., H, W)`` height above the estimated floor in centimetres (before rounding).
         angle_deg: ``float32 (..., H, W)`` angle between normal and gravity in degrees; 180 where undefined.
-        valid: ``bool (..., H, W)`` pixels whose depth is finite and > 0.
+        valid: ``bool (..., H, W)`` pixels whose depth lies in the valid range [min_depth_m, max_depth_m] (and
+            whose image has usable intrinsics).
     """
 
     hha: jax.Array
@@ -351,24 +352,22 @@ def _finish_one(depth_m: jax.Array, intrinsics: jax.Array, normals, ok_angle: ja
     return HHAResult(hha, normals, ok_angle, g, jnp.where(valid, height, 0.0), angle, valid)
 
 
-@jax.jit
-def _encode_batch(depth_m: jax.Array, intrinsics: jax.Array, raw_depth_m: jax.Array | None) -> HHAResult:
-    """``depth_m (B, H, W)``, ``intrinsics (B, 3, 3)``, ``raw_depth_m (B, H, W)``, or ``None`` when the caller has
-    checked that every depth is valid and nothing is missing."""
-    token = jnp.sum(depth_m.reshape(-1)[:1])  # any unbatched runtime scalar (see _materialise); 0 if empty
-    if raw_depth_m is None:
-        # The fit mask is then shared by the whole batch: vmap leaves an unbatched input unbatched, so its window
-        # moments (half of the normal-fitting work) are computed once per call instead of once per image.
-        fit_mask = jnp.ones(depth_m.shape[1:], depth_m.dtype)
-        mask_axis = None
-    else:
-        valid = jnp.isfinite(depth_m) & (depth_m > 0)
-        fit_mask = (valid & (raw_depth_m != 0)).astype(depth_m.dtype)
-        mask_axis = 0
-    if mask_axis is None:
-        mask_terms = _mask_terms(fit_mask, token)
-    else:
-        mask_terms = jax.vmap(_mask_terms, in_axes=(0, None))(fit_mask, token)
+def _encode_dense(depth_m: jax.Array, intrinsics: jax.Array, token: jax.Array) -> HHAResult:
+    """Every pixel valid and present: the fit mask is shared by the whole batch, and vmap leaves an unbatched
+    input unbatched, so its window moments (half of the normal-fitting work) are computed once per call instead
+    of once per image."""
+    fit_mask = jnp.ones(depth_m.shape[1:], depth_m.dtype)
+    mask_terms = _mask_terms(fit_mask, token)
+    return _encode_masked(depth_m, intrinsics, mask_terms, None, token)
+
+
+def _encode_missing(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array, token: jax.Array) -> HHAResult:
+    """Some pixel missing: one fit mask per image."""
+    mask_terms = jax.vmap(_mask_terms, in_axes=(0, None))(fit_mask.astype(depth_m.dtype), token)
+    return _encode_masked(depth_m, intrinsics, mask_terms, 0, token)
+
+
+def _encode_masked(depth_m, intrinsics, mask_terms, mask_axis, token) -> HHAResult:
     (n_angle, ok_angle), n_gravity = jax.vmap(_normals_one, in_axes=(0, 0, mask_axis, None))(
         depth_m, intrinsics, mask_terms, token
     )
@@ -376,3 +375,40 @@ def _encode_batch(depth_m: jax.Array, intrinsics: jax.Array, raw_depth_m: jax.Ar
     # the ten passes, instead of every pass streaming the whole batch's normals through memory.
     g = jax.lax.map(lambda a: _gravity(*a), n_gravity)
     return jax.vmap(_finish_one)(depth_m, intrinsics, n_angle, ok_angle, g)
+
+
+@jax.jit
+def _encode_batch(
+    depth_m: jax.Array, intrinsics: jax.Array, raw_depth_m: jax.Array | None, depth_range: jax.Array
+) -> HHAResult:
+    """``depth_m (B, H, W)`` metres, ``intrinsics (B, 3, 3)``, ``raw_depth_m (B, H, W)`` metres or ``None``,
+    ``depth_range (2,)``: the inclusive valid depth range [min, max] in metres.
+
+    Every decision about the data is taken here, on traced values, so the result is the same eagerly and under a
+    caller's ``jit``/``vmap``:
+
+    * depth outside the range (NaN and ±inf included) becomes NaN, i.e. missing for everything downstream;
+    * an image whose intrinsics are non-finite or have fx ≤ 0 or fy ≤ 0 is entirely missing (its matrix is
+      replaced by the identity so that no NaN leaks into the outputs);
+    * the shared-mask fast path runs only when every pixel of the batch is valid and present (``lax.cond``,
+      which executes one branch; under a caller's ``vmap`` it becomes a select of both, each image still getting
+      its own branch's result).
+    """
+    dtype = depth_m.dtype
+    lo, hi = depth_range[0], depth_range[1]
+    fx, fy = intrinsics[:, 0, 0], intrinsics[:, 1, 1]
+    k_ok = jnp.all(jnp.isfinite(intrinsics), axis=(1, 2)) & (fx > 0) & (fy > 0)
+    intrinsics = jnp.where(k_ok[:, None, None], intrinsics, jnp.eye(3, dtype=dtype))
+    valid = (depth_m >= lo) & (depth_m <= hi) & k_ok[:, None, None]  # NaN compares False
+    depth_m = jnp.where(valid, depth_m, jnp.nan)
+    fit_mask = valid if raw_depth_m is None else valid & (raw_depth_m >= lo) & (raw_depth_m <= hi)
+    token = jnp.sum(depth_m.reshape(-1)[:1])  # any unbatched runtime scalar (see _materialise); 0 if empty
+    return jax.lax.cond(
+        jnp.all(fit_mask),
+        lambda d, k, m, t: _encode_dense(d, k, t),
+        _encode_missing,
+        depth_m,
+        intrinsics,
+        fit_mask,
+        token,
+    )
