@@ -123,3 +123,20 @@ def test_readme_links_exist():
             assert (REPO / target).exists(), f"README links to missing {target}"
     for page in re.findall(r"`(docs/[\w/.-]+\.md)`", README.read_text()):
         assert (REPO / page).is_file(), f"README names missing {page}"
+
+
+def test_help_shows_every_presets_values():
+    """``python -m experiments.cross_season --help`` gives each key's value in every preset, not only the default's."""
+    from experiments.cross_season import config
+    from experiments.cross_season.__main__ import _help_epilog
+
+    text = _help_epilog()
+    for key in config.leaf_keys(config.get_config("default")):
+        if key == "preset":
+            continue
+        block = text.split(f"\n  {key}\n", 1)[1].split("\n", 1)[0]
+        for name in config.PRESETS:
+            node = config.get_config(name)
+            for part in key.split("."):
+                node = node[part]
+            assert f"{name}={node!r}" in block, (key, name, block)
