@@ -123,6 +123,10 @@ def test_readme_links_exist():
             assert (REPO / target).exists(), f"README links to missing {target}"
     for page in re.findall(r"`(docs/[\w/.-]+\.md)`", README.read_text()):
         assert (REPO / page).is_file(), f"README names missing {page}"
+    for page in sorted((REPO / "docs").glob("*.md")):
+        for target in re.findall(r"\]\(([^)#\s]+)\)", page.read_text()):
+            if "://" not in target:
+                assert (page.parent / target).exists(), f"{page.name} links to missing {target}"
 
 
 def test_help_shows_every_presets_values():
