@@ -5,7 +5,7 @@
 Prints a table (images/s, ms/image, first-call compile time, peak memory) and writes
 ``benchmarks/results/hha_speed.json``. Inputs are ray-cast ground/wall scenes with holes-free metric depth.
 The widely used Python implementation (Depth2HHA-python) takes about 1 s per 256×256 image and 4 s per 480×640
-image on a 2-core x86 machine (``shared/specs/hha.md``); the NumPy float64 baseline here is already faster than
+image on a 2-core x86 machine (``docs/hha.md``); the NumPy float64 baseline here is already faster than
 that (it replaces the direct 2-D convolutions with separable sums), so the speed-ups quoted are conservative.
 """
 
@@ -22,7 +22,7 @@ from placejax.hha.scenes import ground_and_wall
 
 SIZES = ((256, 256), (480, 640))
 BATCHES = (1, 8, 32)
-COMMON_PYTHON_S = {(256, 256): 1.0, (480, 640): 3.9}  # Depth2HHA-python, shared/specs/hha.md (not measured here)
+COMMON_PYTHON_S = {(256, 256): 1.0, (480, 640): 3.9}  # Depth2HHA-python, docs/hha.md (not measured here)
 
 
 def scenes(h: int, w: int, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +94,7 @@ def main() -> None:
             ("ms_per_image", "ms/image"),
             ("compile_s", "first call s"),
             ("speedup", "× numpy"),
-            ("vs_common_python", "× Depth2HHA-python (spec)"),
+            ("vs_common_python", "× Depth2HHA-python (docs/hha.md)"),
             ("peak_rss_mb", "peak RSS MiB"),
         ],
     )

@@ -1,4 +1,4 @@
-"""Tiny NCLT trees in the exact on-disk format of ``specs/nclt.md``, with the truth a loader must recover.
+"""Tiny NCLT trees in the exact on-disk format of ``docs/nclt.md``, with the truth a loader must recover.
 
 Reusable by any test (end-to-end runs of the ``paper`` code path included)::
 
@@ -27,7 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-# First Cam5 utime of the real 2012-01-22 session (specs/nclt.md); other dates start at 15:00 UTC.
+# First Cam5 utime of the real 2012-01-22 session (docs/nclt.md); other dates start at 15:00 UTC.
 _KNOWN_STARTS = {"2012-01-22": 1327251905811462}
 FRAME_STEP_US = 200_000
 GT_STEP_US = 10_000

@@ -12,7 +12,7 @@ from placejax.data import PlaceGrid
 
 def _sessions(seed=0):
     rng = np.random.default_rng(seed)
-    # Shapes like NCLT poses (x, y, yaw) and extents inside the campus box of specs/nclt.md.
+    # Shapes like NCLT poses (x, y, yaw) and extents inside the campus box of docs/nclt.md.
     a = np.column_stack([rng.uniform(-380, 140, 500), rng.uniform(-750, 150, 500), rng.uniform(-3, 3, 500)])
     b = np.column_stack([rng.uniform(-300, 100, 300), rng.uniform(-700, 0, 300), rng.uniform(-3, 3, 300)])
     return [a, b]

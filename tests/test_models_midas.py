@@ -133,7 +133,7 @@ def test_official_parameter_count(fixture_state_dict, fixture_variables):
         v.size for k, v in fixture_state_dict.items() if k.startswith("scratch.refinenet4.resConfUnit1.")
     )
     assert unused == 4_719_616
-    assert n_params + unused == 21_320_545  # spec: trainable parameters of the official checkpoint
+    assert n_params + unused == 21_320_545  # docs/models.md: trainable parameters of the official checkpoint
 
 
 def test_converter_fails_loudly(fixture_state_dict):

@@ -9,15 +9,22 @@ from experiments.cross_season import config as _config
 
 
 def _help_epilog() -> str:
-    c = _config.get_config("default")
-    lines = ["config keys (override with key=value; values are Python literals; defaults of the 'default' preset):"]
-    for k in _config.leaf_keys(c):
+    configs = {name: _config.get_config(name) for name in _config.PRESETS}
+    lines = [
+        "config keys (override with key=value; values are Python literals). Each key's value in every preset "
+        f"({', '.join(_config.PRESETS)}):"
+    ]
+    for k in _config.leaf_keys(configs["default"]):
         if k == "preset":
             continue
-        node = c
-        for part in k.split("."):
-            node = node[part]
-        lines.append(f"  {k} = {node!r}\n      {_config.HELP.get(k, '')}")
+        values = {}
+        for name, c in configs.items():
+            node = c
+            for part in k.split("."):
+                node = node[part]
+            values[name] = node
+        shown = "  ".join(f"{name}={value!r}" for name, value in values.items())
+        lines.append(f"  {k}\n      {shown}\n      {_config.HELP.get(k, '')}")
     return "\n".join(lines)
 
 

@@ -1,6 +1,6 @@
 """The place classes: an n × n grid of equal cells over the bounding box of all sessions' viewpoints.
 
-Paper §IV / ``specs/nclt.md``: the workspace is the bounding box of the (x, y) viewpoints of *all* sessions
+Paper §IV / ``docs/nclt.md``: the workspace is the bounding box of the (x, y) viewpoints of *all* sessions
 used, split into a 10 × 10 grid = 100 classes, fixed before training. Saving the fitted grid with the
 experiment keeps labels from drifting between runs (a refit on other sessions would move every cell edge).
 

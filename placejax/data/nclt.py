@@ -1,4 +1,4 @@
-"""NCLT sessions: Ladybug3 images matched to SLAM ground-truth poses (format in ``specs/nclt.md``).
+"""NCLT sessions: Ladybug3 images matched to SLAM ground-truth poses (format in ``docs/nclt.md``).
 
 Typical use::
 
@@ -54,7 +54,7 @@ __all__ = [
     "read_u2d_map",
 ]
 
-# K_cam5.csv of ladybug3_calib/cam_params.zip (specs/nclt.md): intrinsics of the undistorted, *unrotated*
+# K_cam5.csv of ladybug3_calib/cam_params.zip (docs/nclt.md): intrinsics of the undistorted, *unrotated*
 # 1616 × 1232 Cam5 image. Pass as ``intrinsics=`` when the calibration archive is not at hand.
 CAM5_INTRINSICS = np.array(
     [[399.433184, 0.0, 826.361952], [0.0, 399.433184, 621.668624], [0.0, 0.0, 1.0]], dtype=np.float64

@@ -3,7 +3,7 @@
 Follows isl-org/MiDaS ``midas/transforms.py`` (``Resize`` with ``keep_aspect_ratio=True``,
 ``ensure_multiple_of=32``, ``resize_method="upper_bound"``, ``cv2.INTER_CUBIC``; ``NormalizeImage`` with
 ImageNet statistics) and ``run.py``'s bicubic upsampling of the prediction back to the image size;
-``shared/specs/midas_small.md``.
+``docs/models.md``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Constants of the HHA encoding (Gupta et al., ECCV 2014; values of the original code, ``shared/specs/hha.md``)."""
+"""Constants of the HHA encoding (Gupta et al., ECCV 2014; values of the original code, ``docs/hha.md``)."""
 
 RADIUS_ANGLE = 3  # 7×7 normals feed the angle channel
 RADIUS_GRAVITY = 10  # 21×21 normals feed only the gravity estimate

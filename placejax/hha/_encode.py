@@ -1,6 +1,6 @@
 """Jitted, batched HHA encoder (float32, centred least squares, fixed-trip-count gravity loop).
 
-The algorithm is the reference one (``shared/specs/hha.md``, Gupta et al. ECCV 2014); what differs is how it is
+The algorithm is the reference one (``docs/hha.md``, Gupta et al. ECCV 2014); what differs is how it is
 computed so that float32 is enough and XLA can compile it once for a whole batch:
 
 * Normals are fitted with moments taken relative to each window's centre pixel, in pixel offsets (s = column

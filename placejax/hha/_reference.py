@@ -1,7 +1,7 @@
 """Plain NumPy float64 HHA encoder: one image at a time, the reference algorithm step by step.
 
 This is the test oracle for :func:`placejax.hha.encode` and the baseline of ``benchmarks.hha_speed``. It follows
-the original formulation of Gupta et al. (``rcnn-depth``/``rgbdutils``, as described in ``shared/specs/hha.md``):
+the original formulation of Gupta et al. (``rcnn-depth``/``rgbdutils``, as described in ``docs/hha.md``):
 raw (uncentred) least-squares moments summed in square windows, an adjugate solve, and the iterative gravity
 estimate. In float64 it reproduces the reference HHA images exactly; it is deliberately simple, not fast.
 """

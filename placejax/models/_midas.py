@@ -1,7 +1,7 @@
 """MiDaS v2.1 small (``MidasNet_small``): an EfficientNet-Lite3 encoder and a RefineNet-style fusion decoder.
 
 Weight-compatible with the official ``midas_v21_small_256.pt`` (isl-org/MiDaS, encoder from
-rwightman/gen-efficientnet-pytorch ``tf_efficientnet_lite3``); see ``shared/specs/midas_small.md``. NHWC
+rwightman/gen-efficientnet-pytorch ``tf_efficientnet_lite3``); see ``docs/models.md``. NHWC
 throughout. Parameter names follow the checkpoint so that ``placejax.weights.convert_midas_small`` is a short
 rule table: ``encoder/stem_conv``, ``encoder/blocks_{stage}_{i}/{conv_pw,bn1,conv_dw,bn2,conv_pwl,bn3}``,
 ``layer{1..4}_rn``, ``refinenet{1..4}/{resConfUnit1,resConfUnit2,out_conv}``, ``output_conv_{0,2,4}``.

@@ -1,6 +1,6 @@
 """VGG16 in torchvision's layout (``torchvision.models.vgg16``), NHWC, with a documented trunk/head split.
 
-``shared/specs/vgg16.md``: 13 biased 3×3 convs with ReLU and five 2×2 max-pools, adaptive 7×7 average
+``docs/models.md``: 13 biased 3×3 convs with ReLU and five 2×2 max-pools, adaptive 7×7 average
 pooling (any input size works), then fc6 → ReLU → dropout → fc7 → ReLU → dropout → fc8. The trunk (convs +
 pooling) and the head (fc6..fc8) are separate submodules so a frozen trunk's output can be computed once and
 cached while only the head trains (the paper fine-tunes the fully connected layers with the convolutions

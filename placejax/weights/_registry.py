@@ -133,7 +133,7 @@ REGISTRY: dict[str, PretrainedWeights] = {
             "(placejax.depth.preprocess)",
         ),
         description="MiDaS v2.1 small (EfficientNet-Lite3), relative inverse depth; isl-org/MiDaS v2_1",
-        # The release publishes no checksum for this file name; ~85.6 MB of float32 tensors (spec).
+        # The release publishes no checksum for this file name; ~85.6 MB of float32 tensors (docs/models.md).
         size_bytes=85_600_000,
     ),
     "vgg16_imagenet": PretrainedWeights(

@@ -1,4 +1,4 @@
-"""SimCampus: the built-in seasonal 3-D campus, rendered in JAX (spec: ``../shared/specs/simcampus.md``).
+"""SimCampus: the built-in seasonal 3-D campus, rendered in JAX (design: ``docs/simcampus.md``).
 
 A procedural campus (terrain, paths, buildings, trees, street furniture, landmarks) visited by a robot in four
 seasons. Appearance changes a lot across sessions, geometry a little, routes and viewpoints differ — so the

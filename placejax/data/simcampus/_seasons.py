@@ -3,7 +3,7 @@
 The four default sessions follow the paper's NCLT sessions (2012-01-22, 03-31, 08-04, 11-17): WI, SP, SU, AU.
 Appearance changes a lot (ground, foliage, sky, light, haze, exposure, noise); geometry changes a little
 (foliage volume, snow banks in WI, per-session pedestrians/bikes/parked cars, renovated facades and a
-construction site in the later sessions SU and AU) — as `../shared/specs/simcampus.md` asks.
+construction site in the later sessions SU and AU) — as `docs/simcampus.md` asks.
 """
 
 from __future__ import annotations

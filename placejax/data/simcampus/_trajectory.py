@@ -22,10 +22,10 @@ _START_DATES = {"WI": (2012, 1, 22), "SP": (2012, 3, 31), "SU": (2012, 8, 4), "A
 
 @dataclasses.dataclass(frozen=True)
 class RouteConfig:
-    """How a session's frames are sampled along its route (spec: ``simcampus.md``, Trajectories).
+    """How a session's frames are sampled along its route (``docs/simcampus.md``, Trajectories).
 
     Attributes:
-        frame_spacing: metres of travel between frames (spec: about 1 m).
+        frame_spacing: metres of travel between frames (docs/simcampus.md: about 1 m).
         max_frames: keep at most this many frames (None: the full route, a few thousand frames).
         speed: robot speed (m/s), sets the timestamps.
         lateral_max: bound (m) of the slow random walk across the path centre line.

@@ -17,7 +17,7 @@ import numpy as np
 
 from placejax.data.simcampus._render import wave, wave_grad
 
-# Campus extent (spec: "roughly 300 m x 300 m").
+# Campus extent (docs/simcampus.md: about 300 m × 300 m).
 CAMPUS_HALF = 150.0
 # Ground material map: 0.5 m texels over a slightly larger square than the campus.
 MAP_HALF = 160.0

@@ -1,0 +1,146 @@
+"""README.md as a test: every ```python block runs as written, every bash block names real modules and options.
+
+Each Python block runs in its own interpreter (a fresh namespace, the working directory a temporary folder) with
+``PLACEJAX_CACHE`` pointing at a temporary cache that holds a MiDaS v2.1 small file in the official format (random
+values, written by ``torch_refs/make_random_official_weights.py``), so nothing is downloaded. Blocks that read
+``NCLT_ROOT`` run twice: on a tiny fake NCLT tree in the official layout and without it (the SimCampus branch).
+Bash blocks run the full experiment, so they are only checked: every ``python -m`` module must exist, and
+``experiments.cross_season``'s presets and ``key=value`` overrides must be ones its config knows.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
+_FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.MULTILINE | re.DOTALL)
+
+
+def _blocks(lang: str) -> list[str]:
+    return [body for kind, body in _FENCE.findall(README.read_text()) if kind == lang]
+
+
+PYTHON_BLOCKS = _blocks("python")
+BASH_BLOCKS = _blocks("bash")
+
+
+def _first_line(code: str) -> str:
+    return next((line for line in code.splitlines() if line and not line.startswith(("import", "from"))), "")
+
+
+@pytest.fixture(scope="module")
+def readme_env(tmp_path_factory, shared_dir) -> dict[str, str]:
+    """Environment of the snippets: a pre-filled weights cache and a fake NCLT tree."""
+    tmp = tmp_path_factory.mktemp("readme")
+    generated = tmp / "generated"
+    script = Path(__file__).parent / "torch_refs" / "make_random_official_weights.py"
+    fixture = shared_dir / "fixtures" / "midas_small" / "weights_fp16.npz"
+    # VGG width 1/16: the VGG16 file is a by-product here (a few MB); the tour does not load ImageNet weights.
+    subprocess.run([sys.executable, str(script), str(generated), str(fixture), "0.0625"], check=True)
+    cache = tmp / "cache"
+    (cache / "weights").mkdir(parents=True)
+    # The registry looks for the official file name in $PLACEJAX_CACHE/weights/ (no checksum is published for it).
+    (generated / "midas_random.pt").rename(cache / "weights" / "midas_v21_small_256.pt")
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fake_nclt import make_fake_nclt
+
+    nclt = make_fake_nclt(tmp / "nclt", ["2012-01-22", "2012-03-31"], n_frames=40, stored_hw=(40, 32))
+    env = dict(os.environ)
+    env.update(
+        PLACEJAX_CACHE=str(cache),
+        NCLT_ROOT=str(nclt.root),
+        PYTHONPATH=os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+        # Share compiled programs with the rest of the suite (only ever saves time).
+        JAX_COMPILATION_CACHE_DIR=os.environ.get("PLACEJAX_TEST_JAX_CACHE", "/tmp/placejax-test-jax-cache"),
+    )
+    env.pop("XLA_FLAGS", None)  # the snippets run as a user would: one CPU device
+    return env
+
+
+def _run(code: str, env: dict[str, str], cwd: Path) -> None:
+    done = subprocess.run([sys.executable, "-c", code], env=env, cwd=cwd, capture_output=True, text=True)
+    assert done.returncode == 0, f"README block failed:\n{code}\n--- stderr ---\n{done.stderr[-4000:]}"
+
+
+def test_readme_has_python_blocks():
+    assert len(PYTHON_BLOCKS) >= 3 and BASH_BLOCKS
+
+
+@pytest.mark.parametrize("code", PYTHON_BLOCKS, ids=[_first_line(c)[:40] for c in PYTHON_BLOCKS])
+def test_python_block_runs(code, readme_env, tmp_path):
+    _run(code, readme_env, tmp_path)
+    if "NCLT_ROOT" in code:
+        without = {k: v for k, v in readme_env.items() if k != "NCLT_ROOT"}
+        _run(code, without, tmp_path)
+
+
+def _commands(block: str) -> list[list[str]]:
+    """Shell words of every ``python -m ...`` command in a bash block (comments and ``&&`` chains split)."""
+    out = []
+    for line in block.splitlines():
+        line = line.split(" #", 1)[0]
+        for part in line.split("&&"):
+            words = shlex.split(part)
+            if len(words) >= 3 and words[0] in ("python", "python3") and words[1] == "-m":
+                out.append(words[2:])
+    return out
+
+
+def test_bash_blocks_name_existing_modules_and_options():
+    from experiments.cross_season import config
+
+    commands = [c for block in BASH_BLOCKS for c in _commands(block)]
+    assert any(c[0] == "experiments.cross_season" for c in commands)
+    for module, *args in commands:
+        if module in ("venv", "pip", "pytest"):
+            continue
+        # Placeholders such as [--preset default|smoke|full] describe a usage line, not a command to run.
+        assert importlib.util.find_spec(module) is not None, f"README runs python -m {module}, which does not exist"
+        if module != "experiments.cross_season":
+            continue
+        preset = args[args.index("--preset") + 1] if "--preset" in args else "default"
+        assert preset in config.PRESETS, f"README uses unknown preset {preset!r}"
+        known = config.leaf_keys(config.get_config(preset))
+        for arg in args:
+            if "=" in arg and not arg.startswith("-"):
+                assert arg.split("=", 1)[0] in known, f"README passes unknown config key {arg!r}"
+
+
+def test_readme_links_exist():
+    """Every relative link or image of the README (docs pages, figures) is in the repository."""
+    for target in re.findall(r"\]\(([^)#\s]+)\)", README.read_text()):
+        if "://" not in target:
+            assert (REPO / target).exists(), f"README links to missing {target}"
+    for page in re.findall(r"`(docs/[\w/.-]+\.md)`", README.read_text()):
+        assert (REPO / page).is_file(), f"README names missing {page}"
+    for page in sorted((REPO / "docs").glob("*.md")):
+        for target in re.findall(r"\]\(([^)#\s]+)\)", page.read_text()):
+            if "://" not in target:
+                assert (page.parent / target).exists(), f"{page.name} links to missing {target}"
+
+
+def test_help_shows_every_presets_values():
+    """``python -m experiments.cross_season --help`` gives each key's value in every preset, not only the default's."""
+    from experiments.cross_season import config
+    from experiments.cross_season.__main__ import _help_epilog
+
+    text = _help_epilog()
+    for key in config.leaf_keys(config.get_config("default")):
+        if key == "preset":
+            continue
+        block = text.split(f"\n  {key}\n", 1)[1].split("\n", 1)[0]
+        for name in config.PRESETS:
+            node = config.get_config(name)
+            for part in key.split("."):
+                node = node[part]
+            assert f"{name}={node!r}" in block, (key, name, block)
