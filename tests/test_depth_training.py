@@ -88,8 +88,8 @@ def test_depth_network_trains_on_the_engine_and_its_loss_falls(tmp_path):
     assert np.mean([not np.allclose(a, b) for a, b in zip(stats_before, stats_after, strict=True)]) > 0.9
 
 
-def test_ensure_depth_model_trains_once_and_reports(uninterrupted_dir, tmp_path, monkeypatch):
-    # Seed the cache with the finished run: ensure_depth_model must reuse it, not train again.
+def test_ensure_trained_trains_once_and_reports(uninterrupted_dir, tmp_path, monkeypatch):
+    # Seed the cache with the finished run: ensure_trained must reuse it, not train again.
     workdir = depth.run_dir(CFG, "smoke", tmp_path)
     shutil.copytree(uninterrupted_dir, workdir)
     from placejax.training import _loop

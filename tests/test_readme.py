@@ -38,12 +38,12 @@ def _first_line(code: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def readme_env(tmp_path_factory, shared_dir) -> dict[str, str]:
+def readme_env(tmp_path_factory, midas_recipe_npz) -> dict[str, str]:
     """Environment of the snippets: a pre-filled weights cache and a fake NCLT tree."""
     tmp = tmp_path_factory.mktemp("readme")
     generated = tmp / "generated"
     script = Path(__file__).parent / "torch_refs" / "make_random_official_weights.py"
-    fixture = shared_dir / "fixtures" / "midas_small" / "weights_fp16.npz"
+    fixture = midas_recipe_npz
     # VGG width 1/16: the VGG16 file is a by-product here (a few MB); the tour does not load ImageNet weights.
     subprocess.run([sys.executable, str(script), str(generated), str(fixture), "0.0625"], check=True)
     cache = tmp / "cache"
