@@ -17,6 +17,7 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import tempfile
@@ -26,7 +27,7 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "save_figure", "write_bytes", "write_json", "write_npz", "write_text"]
+__all__ = ["atomic_write", "file_sha256", "save_figure", "write_bytes", "write_json", "write_npz", "write_text"]
 
 
 def _umask() -> int:
@@ -92,3 +93,12 @@ def save_figure(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> Non
     fmt = Path(path).suffix.lstrip(".") or "png"
     with atomic_write(path) as f:
         fig.savefig(f, format=fmt, **savefig_kwargs)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes (hex), read in 4 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -176,8 +177,10 @@ def test_stale_or_tampered_cache_never_read(tmp_path):
     assert calls
     # A data file of the wrong size is not read.
     np.save(c2.path / "data.npy", np.zeros((4, 4, 5), np.float32))
-    with pytest.raises(CacheError, match="manifest says"):
+    with pytest.raises(CacheError, match="checksum mismatch"):
         open_array_cache(c2.path)
+    with pytest.raises(CacheError, match="manifest says"):
+        open_array_cache(c2.path, verify=False)
     # A partial folder with garbage progress and data of another shape is discarded, not resumed.
     ref = build_array_cache(tmp_path / "ref", fn=_producer(), key={"k": 3}, **args)
     garbage = tmp_path / "g" / f"{ref.path.name}.partial"
@@ -230,3 +233,71 @@ def test_nclt_session_cache_keyed_by_fingerprint(tmp_path):
     s_und = nclt.load_session(fake.root, "2012-01-22", undistort=True)
     c_und = cache_session(s_und, tmp_path / "cache", image_size=(8, 6), progress=False)
     assert c_und.path != c.path  # undistortion is a setting of the source, so another cache
+
+
+def test_corrupt_caches_are_detected_and_rebuilt(tmp_path):
+    """Bit rot in the data, a truncated or missing extra, a non-object manifest and a non-dict progress marker:
+    each is a CacheError on open, and the next build rebuilds the cache instead of failing forever."""
+    from placejax.data.cache import _VERIFIED, CacheError
+
+    data = np.arange(40 * 3, dtype=np.float32).reshape(40, 3)
+    calls = []
+
+    def fn(a, b):
+        calls.append((a, b))
+        return data[a:b]
+
+    def build():
+        return build_array_cache(
+            tmp_path, "x", 40, fn, (3,), np.float32, key={"v": 1}, extras={"t": np.arange(40)}, chunk=16,
+            progress=False,
+        )
+
+    first = build()
+    folder = first.path
+    np.testing.assert_array_equal(first.data, data)
+
+    def corrupt_data():
+        raw = bytearray((folder / "data.npy").read_bytes())
+        raw[-5] ^= 0x40  # one flipped bit in the last row
+        (folder / "data.npy").write_bytes(bytes(raw))
+
+    def truncate_extra():
+        (folder / "t.npy").write_bytes((folder / "t.npy").read_bytes()[:50])
+
+    def drop_extra():
+        (folder / "t.npy").unlink()
+
+    def bad_manifest():
+        (folder / "manifest.json").write_text("[1, 2]")
+
+    for damage in (corrupt_data, truncate_extra, drop_extra, bad_manifest):
+        _VERIFIED.clear()  # a new process: nothing verified yet
+        damage()
+        with pytest.raises(CacheError):
+            open_array_cache(folder)
+        calls.clear()
+        healed = build()
+        assert calls, damage.__name__  # rebuilt
+        np.testing.assert_array_equal(healed.data, data)
+        np.testing.assert_array_equal(healed.extras["t"], np.arange(40))
+        folder = healed.path
+
+    # A partial build whose progress marker is not a JSON object restarts instead of failing forever.
+    shutil.rmtree(folder)
+
+    def stopping(a, b):
+        if a >= 16:
+            raise RuntimeError("stop")
+        return fn(a, b)
+
+    with pytest.raises(RuntimeError, match="stop"):
+        build_array_cache(
+            tmp_path, "x", 40, stopping, (3,), np.float32, key={"v": 1}, extras={"t": np.arange(40)}, chunk=16,
+            progress=False,
+        )
+    (partial_dir,) = list(tmp_path.glob("x-*.partial"))
+    (partial_dir / "progress.json").write_text('["not", "a", "dict"]')
+    calls.clear()
+    np.testing.assert_array_equal(build().data, data)
+    assert calls[0] == (0, 16)  # started over

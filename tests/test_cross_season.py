@@ -65,19 +65,11 @@ def test_smoke_table_and_results(smoke):
 def test_smoke_accuracies_are_real(smoke):
     """Accuracies recomputed independently from the cached network outputs and the saved grid."""
     workdir, results = smoke
+    _assert_net_accuracies_recomputed(workdir, results, SEASONS, "32x32")
     grid = PlaceGrid.load(workdir / "grid.json")
-    caches = workdir / "cache"
-    labels = {}
-    for s in SEASONS:
-        (rgb,) = [d for d in caches.iterdir() if re.fullmatch(rf"{s}-rgb32x32-[0-9a-f]{{16}}", d.name)]
-        labels[s] = grid.label(open_array_cache(rgb).extras["poses"])
-    c = results["num_classes"]
+    labels = {s: _session_labels(workdir, grid, s, "32x32") for s in SEASONS}
     for p in results["pairs"]:
         assert len(labels[p["test"]]) == p["n_test"]
-        for m in ("rgb", "hha", "depth1"):
-            (d,) = [d for d in caches.iterdir() if d.name.startswith(f"{p['train']}-{m}-on-{p['test']}-")]
-            logits = np.asarray(open_array_cache(d).data)[:, :c]
-            assert p[f"{m}_net"] == pytest.approx(np.mean(logits.argmax(1) == labels[p["test"]]))
         seen = np.isin(labels[p["test"]], np.unique(labels[p["train"]]))
         assert p["seen_class_fraction"] == pytest.approx(seen.mean())
         for m in ("ours", "rgb_net", "hha_net", "depth1_net", "average"):
@@ -194,14 +186,17 @@ def test_paper_path_on_fake_nclt(tmp_path, midas_recipe_npz):
     _assert_net_accuracies_recomputed(tmp_path / "work", results, dates, "32x32")
 
 
+def _session_labels(workdir: Path, grid: PlaceGrid, session: str, size: str) -> np.ndarray:
+    caches = workdir / "cache"
+    (rgb,) = [d for d in caches.iterdir() if re.fullmatch(rf"{re.escape(session)}-rgb{size}-[0-9a-f]{{16}}", d.name)]
+    return grid.label(open_array_cache(rgb).extras["poses"])
+
+
 def _assert_net_accuracies_recomputed(workdir: Path, results: dict, sessions, size: str) -> None:
     """Every net column of every pair equals top-1 recomputed from the cached logits and the saved grid."""
     grid = PlaceGrid.load(workdir / "grid.json")
     caches = workdir / "cache"
-    labels = {}
-    for s in sessions:
-        (rgb,) = [d for d in caches.iterdir() if re.fullmatch(rf"{re.escape(s)}-rgb{size}-[0-9a-f]{{16}}", d.name)]
-        labels[s] = grid.label(open_array_cache(rgb).extras["poses"])
+    labels = {s: _session_labels(workdir, grid, s, size) for s in sessions}
     c = results["num_classes"]
     for p in results["pairs"]:
         for m in ("rgb", "hha", "depth1"):
@@ -261,3 +256,24 @@ def test_bad_overrides_are_explained():
         env={**os.environ, "PYTHONPATH": str(REPO)},
     )
     assert done.returncode == 0 and "depth.source" in done.stdout and "--preset" in done.stdout
+
+
+def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smoke, tmp_path, monkeypatch):
+    from experiments.cross_season import pipeline
+
+    workdir, _ = smoke
+    cfg = get_config("smoke")
+    cfg.progress = False
+    with pipeline.workdir_lock(workdir):
+        with pytest.raises(RuntimeError, match=r"in use by another run \(pid \d+"):
+            run(cfg, workdir)
+    # A finished run on read-only storage (simulated: this suite runs as root, which may write anywhere) is read
+    # back without a single write.
+    real_access = os.access
+    monkeypatch.setattr(pipeline.os, "access", lambda p, mode: False if mode == os.W_OK else real_access(p, mode))
+    monkeypatch.setattr(pipeline, "_run", lambda *a: pytest.fail("a read-only finished run must not be rerun"))
+    assert run(cfg, workdir) == json.loads((workdir / "results.json").read_text())
+    other = get_config("smoke")
+    other.seed = 1
+    with pytest.raises(PermissionError, match="read-only"):
+        run(other, workdir)

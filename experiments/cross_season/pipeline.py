@@ -18,9 +18,13 @@ rerun ends with the same accuracies as an uninterrupted run.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import functools
-import hashlib
+import json
+import os
+import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -258,11 +262,7 @@ def _vgg(ctx: Context, num_classes: int) -> VGG16:
 @functools.lru_cache(maxsize=8)
 def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
     del size, mtime_ns  # part of the cache key only: a replaced file is hashed again
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    return io.file_sha256(path)
 
 
 def weights_identity(path: str, registry_name: str) -> dict:
@@ -582,8 +582,46 @@ def versions() -> dict[str, str]:
     return out
 
 
+def finished_results(workdir: str | Path, config: ml_collections.ConfigDict) -> dict | None:
+    """The ``results.json`` of a finished run of ``config`` in ``workdir`` (read only), or ``None``."""
+    path = Path(workdir) / "results.json"
+    try:
+        results = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    same = isinstance(results, dict) and results.get("config") == json.loads(json.dumps(config.to_dict()))
+    return results if same else None
+
+
+@contextlib.contextmanager
+def workdir_lock(workdir: Path):
+    """Exclusive use of a work directory: a second run on it fails at once with a clear message instead of
+    colliding inside orbax or a cache. The lock is an ``flock``, so the kernel drops it when its process dies."""
+    f = open(workdir / ".lock", "a+")
+    try:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise RuntimeError(
+                f"work directory {workdir} is in use by another run ({holder}); wait for it to finish, or pass "
+                "another --workdir"
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        f.flush()
+        yield
+    finally:
+        f.close()  # closing releases the lock
+
+
 def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
     """Runs (or resumes) the whole experiment in ``workdir``; writes results.json, table.md and figures.
+
+    A finished run on read-only storage is read back, not rerun. Two runs cannot share a work directory (the
+    second fails at once).
 
     Returns:
         The ``results.json`` content.
@@ -592,7 +630,19 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
     t_start = time.perf_counter()
     mesh = data_mesh(config.devices or None)
     _config.validate(config, mesh.size)  # every key checked before the first stage
+    if workdir.is_dir() and not os.access(workdir, os.W_OK):
+        finished = finished_results(workdir, config)
+        if finished is not None:
+            return finished
+        raise PermissionError(f"work directory {workdir} is read-only and holds no finished run of this config")
     workdir.mkdir(parents=True, exist_ok=True)
+    if jax.process_index() == 0:
+        with workdir_lock(workdir):
+            return _run(config, workdir, mesh, t_start)
+    return _run(config, workdir, mesh, t_start)
+
+
+def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Mesh, t_start: float) -> dict:
     ctx = Context(config=config, workdir=workdir, mesh=mesh)
     io.write_json(workdir / "config.json", config.to_dict())
 

@@ -11,7 +11,7 @@ Two entry points share one mechanism:
 Layout under ``root``::
 
     <name>-<digest>/            complete cache (only ever appears by an atomic rename)
-        manifest.json           key, shapes, dtypes, "complete": true
+        manifest.json           key, shapes, dtypes, SHA-256 of every file, "complete": true
         data.npy                the (N, ...) array, read back with np.load(mmap_mode="r")
         <extra>.npy             small per-session arrays (utimes, poses, intrinsics)
     <name>-<digest>.partial/    build in progress: data.npy + progress.json (rows done), resumed on rerun
@@ -19,6 +19,8 @@ Layout under ``root``::
 
 ``digest`` hashes the key (the settings and the identity of the source), so a cache built with other settings or
 from another source is simply a different folder and is never read; the manifest's key is checked again on open.
+A cache whose files no longer match the checksums in its manifest (bit rot, a file edited or truncated by
+hand), or whose manifest or extras are missing or corrupt, is discarded and rebuilt by the next builder.
 A kill at any point leaves either the complete folder or a ``.partial`` one; the rerun continues from the last
 chunk whose progress marker was written (after the chunk's data was flushed) and produces the same bytes as an
 uninterrupted build.
@@ -58,7 +60,7 @@ __all__ = [
     "session_identity",
 ]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: SHA-256 of every file in the manifest
 _DATA = "data.npy"
 _MANIFEST = "manifest.json"
 _PROGRESS = "progress.json"
@@ -99,6 +101,28 @@ class ArrayCache:
     extras: dict[str, np.ndarray]
 
 
+# Caches verified in this process (path, size, mtime): a cache is hashed once per process, not at every open.
+_VERIFIED: set[tuple[str, int, int]] = set()
+
+
+def _verify_checksums(path: Path, manifest: dict) -> None:
+    sums = manifest.get("sha256")
+    if not isinstance(sums, dict) or set(sums) != {_DATA, *(f"{e}.npy" for e in manifest["extras"])}:
+        raise CacheError(f"{path / _MANIFEST}: no checksum for every file")
+    for name, want in sorted(sums.items()):
+        f = path / name
+        try:
+            st = f.stat()
+        except OSError as e:
+            raise CacheError(f"{f}: missing cache file ({e})") from None
+        stamp = (str(f), st.st_size, st.st_mtime_ns)
+        if stamp in _VERIFIED:
+            continue
+        if io.file_sha256(f) != want:
+            raise CacheError(f"{f}: checksum mismatch (the file changed after the cache was written)")
+        _VERIFIED.add(stamp)
+
+
 def _manifest(key: Mapping, n: int, shape: tuple[int, ...], dtype: np.dtype, extras: Mapping) -> dict:
     return {
         "format_version": FORMAT_VERSION,
@@ -112,11 +136,18 @@ def _manifest(key: Mapping, n: int, shape: tuple[int, ...], dtype: np.dtype, ext
     }
 
 
-def open_array_cache(path: str | os.PathLike, key: Mapping | None = None) -> ArrayCache:
+def open_array_cache(path: str | os.PathLike, key: Mapping | None = None, *, verify: bool = True) -> ArrayCache:
     """Opens a complete cache folder; with ``key``, also checks it was built for that key.
 
+    Args:
+        path: the cache folder.
+        key: the key it must have been built for.
+        verify: check every file against the SHA-256 the manifest recorded (once per file per process), so
+            bit rot or a file replaced by hand is found, and the builder rebuilds the cache instead of using it.
+
     Raises:
-        CacheError: no complete manifest, a different key or format, or a data file of the wrong size.
+        CacheError: no complete manifest, a different key or format, a missing, corrupt or changed file, or a data
+            file of the wrong size.
     """
     path = Path(path)
     mpath = path / _MANIFEST
@@ -124,12 +155,16 @@ def open_array_cache(path: str | os.PathLike, key: Mapping | None = None) -> Arr
         manifest = json.loads(mpath.read_text())
     except FileNotFoundError:
         raise CacheError(f"{path}: not a complete cache (no {_MANIFEST})") from None
-    except json.JSONDecodeError as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise CacheError(f"{mpath}: corrupt manifest ({e})") from None
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("extras", []), list):
+        raise CacheError(f"{mpath}: corrupt manifest (not a JSON object)")
     if manifest.get("format_version") != FORMAT_VERSION or manifest.get("complete") is not True:
         raise CacheError(f"{mpath}: incomplete or format {manifest.get('format_version')} != {FORMAT_VERSION}")
     if key is not None and manifest.get("key") != json.loads(_canonical(key)):
         raise CacheError(f"{mpath}: stale cache, built for another key")
+    if verify:
+        _verify_checksums(path, manifest)
     try:
         data = np.load(path / _DATA, mmap_mode="r")
     except (OSError, ValueError) as e:
@@ -138,7 +173,12 @@ def open_array_cache(path: str | os.PathLike, key: Mapping | None = None) -> Arr
         raise CacheError(
             f"{path / _DATA}: holds {data.dtype} {data.shape}, manifest says {manifest['dtype']} {manifest['shape']}"
         )
-    extras = {name: np.load(path / f"{name}.npy") for name in manifest["extras"]}
+    extras = {}
+    for name in manifest["extras"]:
+        try:
+            extras[name] = np.load(path / f"{name}.npy")
+        except (OSError, ValueError, EOFError) as e:
+            raise CacheError(f"{path / name}.npy: missing or unreadable cache extra ({e})") from None
     return ArrayCache(path=path, key=manifest["key"], data=data, extras=extras)
 
 
@@ -175,8 +215,8 @@ def _open_partial(partial: Path, digest: str, n: int, shape: tuple[int, ...], dt
                 if 0 <= rows_done <= n:
                     return mm, rows_done
             del mm
-        except (OSError, ValueError, KeyError, json.JSONDecodeError):
-            pass  # killed before the first marker, or foreign content: start over
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, EOFError, json.JSONDecodeError):
+            pass  # killed before the first marker, or foreign or corrupt content: start over
         _discard(partial)
     partial.mkdir(parents=True)
     mm = np.lib.format.open_memmap(data_path, mode="w+", dtype=dtype, shape=(n, *shape))
@@ -279,7 +319,10 @@ def build_array_cache(
             np.save(partial / f"{k}.npy", v)
         # The manifest is written last inside the folder and the folder appears under its final name by an
         # atomic rename, so a complete-looking cache is always a complete one.
-        io.write_json(partial / _MANIFEST, _manifest(full_key, n, shape, dtype, extras))
+        manifest = _manifest(full_key, n, shape, dtype, extras)
+        files = [partial / _DATA, *(partial / f"{k}.npy" for k in extras)]
+        manifest["sha256"] = {f.name: io.file_sha256(f) for f in files}
+        io.write_json(partial / _MANIFEST, manifest)
         (partial / _PROGRESS).unlink()
         _fsync_dir(partial)
         os.replace(partial, final)

@@ -13,8 +13,8 @@ Cache layout under ``$PLACEJAX_CACHE`` (default ``~/.cache/placejax``)::
 
 from __future__ import annotations
 
-import hashlib
 import os
+import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -169,14 +169,6 @@ def _entry(name: str) -> PretrainedWeights:
         raise KeyError(f"unknown pretrained weights {name!r}; registered: {sorted(REGISTRY)}") from None
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def fetch(name: str, path: str | os.PathLike | None = None, *, timeout_s: float = 60.0) -> Path:
     """Path of the original weights file of ``name``: ``path`` if given, else the cache, else a download.
 
@@ -206,7 +198,7 @@ def fetch(name: str, path: str | os.PathLike | None = None, *, timeout_s: float 
     def download_and_check(url: str, output_file: str, pup: Any) -> None:
         http(url, output_file, pup)
         # Runs on pooch's temporary file: a mismatch raises before the rename, and pooch deletes the temp.
-        entry.check_hash(_sha256(Path(output_file)), url)
+        entry.check_hash(io.file_sha256(Path(output_file)), url)
 
     try:
         got = pooch.retrieve(
@@ -258,7 +250,7 @@ def load(name: str, path: str | os.PathLike | None = None) -> Variables:
     """
     entry = _entry(name)
     source = fetch(name, path)
-    digest = _sha256(source)
+    digest = io.file_sha256(source)
     if path is None:
         entry.check_hash(digest, str(source))  # a cached file could have been replaced since
     converted = cache_dir() / "converted" / f"{name}-{digest[:16]}.npz"
@@ -266,9 +258,9 @@ def load(name: str, path: str | os.PathLike | None = None) -> Variables:
         try:
             with np.load(converted) as f:
                 return _unflatten({k: f[k] for k in f.files})
-        except (OSError, ValueError) as err:  # unreadable cache entry: rebuild it rather than fail
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
+            # An unreadable or truncated cache entry (a crash, a full disk, bit rot): rebuild it rather than fail.
             converted.unlink(missing_ok=True)
-            del err
     variables = entry.converter(read_torch_checkpoint(source))
     io.write_npz(converted, _flatten(variables))
     return variables
