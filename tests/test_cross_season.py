@@ -118,25 +118,41 @@ def _cli(workdir: Path, *extra: str) -> list[str]:
     ]
 
 
-def test_killed_run_resumes_to_the_same_accuracies(smoke, tmp_path):
-    """SIGKILL during network training, rerun the same command: same accuracies as the uninterrupted run."""
-    _, uninterrupted = smoke
-    workdir = tmp_path / "run"
-    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache")}
+def _interrupt_when(workdir: Path, env: dict, n_nets: int, sig: int) -> subprocess.CompletedProcess:
+    """Starts the smoke run and sends ``sig`` once ``n_nets`` networks have a checkpoint."""
     proc = subprocess.Popen(_cli(workdir), cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     nets = workdir / "nets"
     deadline = time.monotonic() + 400
     try:
-        # Kill once the second network has its first checkpoint: mid-stage, caches complete, one net finished.
         while time.monotonic() < deadline and proc.poll() is None:
             steps = [p for p in nets.glob("*/*") if p.name.isdigit()] if nets.exists() else []
-            if len({p.parent for p in steps}) >= 2:
+            if len({p.parent for p in steps}) >= n_nets:
                 break
             time.sleep(0.2)
-        assert proc.poll() is None, f"run ended before it could be killed: {proc.stderr.read().decode()[-2000:]}"
-        proc.send_signal(signal.SIGKILL)
+        assert proc.poll() is None, f"run ended before it could be interrupted: {proc.stderr.read().decode()[-2000:]}"
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=120)
     finally:
+        if proc.poll() is None:
+            proc.kill()
         proc.wait()
+    return subprocess.CompletedProcess(proc.args, proc.returncode, "", err.decode())
+
+
+def test_interrupted_and_killed_run_resumes_to_the_same_accuracies(smoke, tmp_path):
+    """Ctrl-C, then SIGKILL during network training, then rerun the same command: same accuracies as the
+    uninterrupted run. Ctrl-C ends with one line that says how to resume, not a traceback."""
+    _, uninterrupted = smoke
+    workdir = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache")}
+    # Ctrl-C once the second network has its first checkpoint: mid-stage, caches complete, one net finished.
+    stopped = _interrupt_when(workdir, env, 2, signal.SIGINT)
+    assert stopped.returncode == 130, stopped.stderr[-2000:]
+    last = stopped.stderr.strip().splitlines()[-1]
+    assert "interrupted: rerun the same command to resume" in last and str(workdir) in last
+    assert "Traceback" not in stopped.stderr
+    # SIGKILL later in the same stage: no handler runs at all.
+    _interrupt_when(workdir, env, 3, signal.SIGKILL)
     assert not (workdir / "results.json").exists()
     done = subprocess.run(_cli(workdir), cwd=REPO, env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-3000:]

@@ -79,29 +79,22 @@ def test_each_epoch_is_a_fresh_permutation(cached):
     assert not np.array_equal(epochs[0], np.arange(23))
 
 
-def test_train_shards_disjoint_equal_and_covering(cached):
+def test_shards_read_exactly_the_global_batches_of_one_process(cached):
+    """P shards with batch b read, between them, exactly one process's batches of P·b — each global batch's rows in
+    order, each element once — so a multi-process run trains on the same batches as a one-process run."""
     _, c, labels = cached
-    for count in (2, 3):
-        per_shard = [
-            _indices(list(train_dataset(c, labels, batch_size=1, seed=3, num_epochs=2, shard=_shard(i, count))))
+    aug = Augment(brightness=0.3)
+    for count, b in ((2, 3), (3, 2)):
+        whole = list(train_dataset(c, labels, batch_size=b * count, seed=3, num_epochs=2, augment=aug))
+        shards = [
+            list(train_dataset(c, labels, batch_size=b, seed=3, num_epochs=2, augment=aug, shard=_shard(i, count)))
             for i in range(count)
         ]
-        per = 23 // count
-        assert all(len(p) == 2 * per for p in per_shard)  # same number of steps on every process
-        for e in range(2):
-            parts = [p[e * per : (e + 1) * per] for p in per_shard]
-            union = np.concatenate(parts)
-            assert len(set(union.tolist())) == len(union) == per * count  # disjoint
-            assert set(union.tolist()) <= set(range(23))  # only the remainder of the permutation is skipped
-
-
-def test_shards_come_from_one_global_permutation(cached):
-    _, c, labels = cached
-    whole = _indices(list(train_dataset(c, labels, batch_size=1, seed=3, shard=_shard(0, 1))))
-    s0 = _indices(list(train_dataset(c, labels, batch_size=1, seed=3, shard=_shard(0, 2))))
-    s1 = _indices(list(train_dataset(c, labels, batch_size=1, seed=3, shard=_shard(1, 2))))
-    np.testing.assert_array_equal(s0, whole[:22][0::2])
-    np.testing.assert_array_equal(s1, whole[:22][1::2])
+        assert all(len(s) == len(whole) == (2 * 23) // (b * count) for s in shards)  # same steps everywhere
+        for k, batch in enumerate(whole):
+            for key in ("index", "image", "label"):
+                np.testing.assert_array_equal(np.concatenate([s[k][key] for s in shards]), batch[key])
+        assert len(set(_indices(whole)[:23].tolist())) == 23  # the first epoch is a permutation
 
 
 def test_drop_remainder(cached):

@@ -30,6 +30,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import grain
 import jax
 import jax.numpy as jnp
 import ml_collections
@@ -41,18 +42,35 @@ from placejax import io
 from placejax.data import PlaceGrid, build_array_cache, cache_session, eval_dataset, train_dataset, truncated
 from placejax.data.cache import cache_digest
 from placejax.models import VGG16, FusionMLP, cpu_compiler_options, he_init, imagenet_normalise
-from placejax.training import apply_fn, data_mesh, make_optimizer, map_batches, predict, replicate, train
+from placejax.training import (
+    apply_fn,
+    data_mesh,
+    local_copy,
+    make_optimizer,
+    map_batches,
+    predict,
+    replicate,
+    train,
+)
 
 MODALITIES = ("rgb", "hha", "depth1")
+_WHOLE = grain.sharding.ShardOptions(shard_index=0, shard_count=1)  # every frame, whatever the process
 
 
 @dataclasses.dataclass
 class Context:
-    """What every stage needs: the config, folders, the mesh and the stage timer."""
+    """What every stage needs: the config, folders, the meshes and the stage timer.
+
+    ``mesh`` spans every device of every process: training runs on it (all processes take part in each step).
+    ``local_mesh`` spans this process's devices: cached inference stages run on it, so that one process can build
+    a cache while the others wait for its file lock (a collective there would deadlock). With one process the
+    two are the same mesh.
+    """
 
     config: ml_collections.ConfigDict
     workdir: Path
     mesh: jax.sharding.Mesh
+    local_mesh: jax.sharding.Mesh
     timings: dict[str, float] = dataclasses.field(default_factory=dict)
 
     @property
@@ -130,7 +148,8 @@ def load_sessions(ctx: Context) -> list[SessionData]:
 def fit_grid(ctx: Context, sessions: list[SessionData]) -> PlaceGrid:
     """The place grid over the bounding box of all sessions' viewpoints (paper §IV: 10 × 10)."""
     grid = PlaceGrid.fit([s.cached.poses for s in sessions], n=ctx.config.grid.n)
-    grid.save(ctx.workdir / "grid.json")
+    if jax.process_index() == 0:  # one writer for shared files
+        grid.save(ctx.workdir / "grid.json")
     for s in sessions:
         s.labels = grid.label(s.cached.poses).astype(np.int32)
     return grid
@@ -349,7 +368,7 @@ def _conv_features(ctx: Context, sessions: list[SessionData], modality: str, tru
         lambda p, x: model.apply({"params": {"trunk": p}}, x, method=VGG16.conv_features),
         compiler_options=cpu_compiler_options("vgg16"),  # YNNPACK convs on CPU: ~1.8x faster; {} elsewhere
     )
-    p = replicate(trunk_params, ctx.mesh)
+    p = replicate(trunk_params, ctx.local_mesh)
     out = {}
     for s in sessions:
         images = modality_images(s, modality)
@@ -495,12 +514,13 @@ def net_outputs(ctx: Context, net: TrainedNet, s: SessionData, num_classes: int)
     frames = net.inputs(s)
 
     def compute(a: int, b: int) -> np.ndarray:
-        ds = eval_dataset(np.asarray(frames[a:b]), batch_size=cfg.eval.batch_size // jax.process_count())
+        # This process alone (whichever holds the cache's lock): every frame, on its own devices.
+        ds = eval_dataset(np.asarray(frames[a:b]), batch_size=cfg.eval.batch_size, shard=_WHOLE)
         out = predict(
-            net.state,
+            local_copy(net.state, ctx.local_mesh),
             ds,
             b - a,
-            mesh=ctx.mesh,
+            mesh=ctx.local_mesh,
             prepare=net.prepare,
             features=("fc7",),
             progress=False,
@@ -643,8 +663,9 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
 
 
 def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Mesh, t_start: float) -> dict:
-    ctx = Context(config=config, workdir=workdir, mesh=mesh)
-    io.write_json(workdir / "config.json", config.to_dict())
+    ctx = Context(config=config, workdir=workdir, mesh=mesh, local_mesh=data_mesh(jax.local_devices()))
+    if jax.process_index() == 0:
+        io.write_json(workdir / "config.json", config.to_dict())
 
     with ctx.timed("sessions"):
         sessions = load_sessions(ctx)

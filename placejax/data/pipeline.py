@@ -12,10 +12,11 @@ Typical use::
                        augment=Augment(crop_hw=(224, 224), brightness=0.2, contrast=0.2))
     for batch in ds: ...          # a grain.MapDataset; ds.to_iter_dataset() for prefetching / workers
 
-Multi-host: each JAX process gets a disjoint shard (``grain.sharding.ShardByJaxProcess`` by default). Training
-shards are equally long (the remainder after a global permutation is dropped, a different one each epoch) so
-every process runs the same number of steps; evaluation pads every shard to whole batches and marks padding with
-``valid = False``, so every frame is evaluated exactly once and batch shapes stay static under ``jax.jit``.
+Multi-host: each JAX process gets a disjoint shard (``grain.sharding.ShardByJaxProcess`` by default). In
+training every process reads its block of rows of each global batch, so every process runs the same number of
+steps and P processes read together exactly what one process reads; evaluation pads every shard to whole batches
+and marks padding with ``valid = False``, so every frame is evaluated exactly once and batch shapes stay static
+under ``jax.jit``.
 """
 
 from __future__ import annotations
@@ -231,37 +232,72 @@ def _shard(shard: grain.sharding.ShardOptions | None) -> tuple[int, int]:
 
 
 class _EpochOrder:
-    """Element k of a training stream: epoch ``k // per_shard``, this process's slice of that epoch's permutation.
+    """Element k of the global training stream: epoch ``k // n``, position ``k % n`` of that epoch's permutation.
 
     The one definition of training order in placejax (the experiment's classifiers, the depth network and
-    :func:`train_dataset`): epoch e is ``default_rng([seed, e]).permutation(n)``, cut to a multiple of the shard
-    count and dealt round-robin to the shards, so element k is a pure function of ``(seed, k)`` — a run resumed at
-    any step reads exactly what an uninterrupted run reads. Drawing the permutation with NumPy once per epoch is
-    ~1000× cheaper than grain's per-element index shuffle (~1 ms per element on a busy CPU, longer than a
-    training step of the CPU-sized nets).
+    :func:`train_dataset`): epoch e is ``default_rng([seed, e]).permutation(n)``, so element k is a pure function of
+    ``(seed, k)`` — a run resumed at any step reads exactly what an uninterrupted run reads. Drawing the
+    permutation with NumPy once per epoch is ~1000× cheaper than grain's per-element index shuffle (~1 ms per
+    element on a busy CPU, longer than a training step of the CPU-sized nets).
     """
 
-    def __init__(self, source: FrameSource, seed: int, epochs: int, shard_index: int, shard_count: int):
+    def __init__(self, source: FrameSource, seed: int, epochs: int):
         self._source = source
         self._seed = int(seed)
         self._epochs = int(epochs)
-        self._index, self._count = shard_index, shard_count
-        self.per_shard = len(source) // shard_count
+        self.n = len(source)
 
     def __len__(self) -> int:
-        return self.per_shard * self._epochs
+        return self.n * self._epochs
 
     @functools.lru_cache(maxsize=4)  # noqa: B019 (few instances, each lives for one training run)
     def permutation(self, epoch: int) -> np.ndarray:
-        rng = np.random.default_rng([self._seed, epoch])
-        # Every process draws the same global permutation and takes its own interleaved slice of it.
-        return rng.permutation(len(self._source))[: self.per_shard * self._count][self._index :: self._count]
+        return np.random.default_rng([self._seed, epoch]).permutation(self.n)
 
-    def __getitem__(self, k: int) -> dict:
-        epoch, pos = divmod(int(k), self.per_shard)
+    def index(self, k: int) -> int:
+        epoch, pos = divmod(int(k), self.n)
         if not 0 <= epoch < self._epochs:
-            raise IndexError(f"element {k} beyond {self._epochs} epochs of {self.per_shard}")
-        return self._source[int(self.permutation(epoch)[pos])]
+            raise IndexError(f"element {k} beyond {self._epochs} epochs of {self.n}")
+        return int(self.permutation(epoch)[pos])
+
+
+class _ProcessRows:
+    """This process's rows of each global batch of the stream, augmented by global element index.
+
+    Global batch k holds stream elements ``[k·B, (k+1)·B)`` with ``B = batch · shard_count``; shard p reads rows
+    ``[p·batch, (p+1)·batch)`` of it. So P processes with batch b read, between them, exactly the global batches
+    one process with batch P·b reads (the same rows on the same positions of the mesh), each element once, and
+    augmentation draws depend on the element's global position only (not on how many processes there are).
+    """
+
+    def __init__(
+        self,
+        stream: _EpochOrder,
+        batch: int,
+        shard_index: int,
+        shard_count: int,
+        keep_partial: bool,
+        augment: Augment | None,
+        augment_seed: int,
+    ):
+        self._stream, self._b, self._p, self._count = stream, batch, shard_index, shard_count
+        self._augment, self._augment_seed = augment, augment_seed
+        global_batch = batch * shard_count
+        n = len(stream)
+        self._len = n if shard_count == 1 and keep_partial else (n // global_batch) * batch
+
+    def __len__(self) -> int:
+        return self._len
+
+    def __getitem__(self, j: int) -> dict:
+        if not 0 <= int(j) < self._len:
+            raise IndexError(j)
+        k, r = divmod(int(j), self._b)
+        g = (k * self._count + self._p) * self._b + r
+        example = self._stream._source[self._stream.index(g)]
+        if self._augment is not None:
+            example = self._augment(example, np.random.default_rng([self._augment_seed, g]))
+        return example
 
 
 def train_dataset(
@@ -277,21 +313,22 @@ def train_dataset(
 ) -> grain.MapDataset:
     """Shuffled, augmented, batched training frames of this process's shard, as random-access batches.
 
-    The stream is ``num_epochs`` passes, each a fresh seeded permutation of the whole session cut into equal
-    shards (the ``len % shard_count`` frames at the end of the permutation are skipped that epoch); it is then
-    cut into batches, so a batch may span an epoch boundary and only the stream's last partial batch is dropped.
-    Batch k (and its augmentation draws) is a pure function of ``(seed, k)``: ``ds[k]`` is what a resumed run
-    reads at step k.
+    The global stream is ``num_epochs`` passes over the frames, each a fresh seeded permutation; it is cut into
+    global batches of ``batch_size × shard_count`` frames (a batch may span an epoch boundary), and this shard gets
+    its block of rows of each. Batch k (and its augmentation draws) is a pure function of ``(seed, k)``: ``ds[k]``
+    is what a resumed run reads at step k, and P processes with ``batch_size`` b read together exactly what one
+    process with ``batch_size`` P·b reads.
 
     Args:
         frames: a Session (a CachedSession streams from disk), an ArrayCache or array ``(N, ...)``, or a
             ready :class:`FrameSource` (e.g. with paired ``extras``).
         labels: int32 ``(N,)`` class ids (ignored if ``frames`` is a FrameSource).
-        batch_size: examples per batch (per process).
+        batch_size: examples per batch of this process.
         seed: shuffling and augmentation seed.
         num_epochs: passes over the data (≥ 1).
         augment: optional per-example augmentation.
-        drop_remainder: drop the stream's last partial batch (keeps shapes static under jit).
+        drop_remainder: drop the stream's last partial batch (keeps shapes static under jit); with several shards
+            it is always dropped (a partial global batch cannot be split evenly).
         shard: which part this process reads; default ``grain.sharding.ShardByJaxProcess()``.
 
     Returns:
@@ -303,17 +340,15 @@ def train_dataset(
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
     source = frames if isinstance(frames, FrameSource) else FrameSource(frames, labels)
+    if len(source) == 0:
+        raise ValueError(f"{source.name!r} has no frames to train on")
     index, count = _shard(shard)
-    stream = _EpochOrder(source, seed, num_epochs, index, count)
-    if stream.per_shard == 0:
-        raise ValueError(f"{len(source)} frames cannot be split into {count} shards")
-    ds = grain.MapDataset.source(stream)
-    if augment is not None:
-        ds = ds.random_map(augment, seed=_derive_seed(seed, "augment", index))
-    ds = ds.batch(batch_size, drop_remainder=drop_remainder)
+    stream = _EpochOrder(source, seed, num_epochs)
+    rows = _ProcessRows(stream, batch_size, index, count, not drop_remainder, augment, _derive_seed(seed, "augment"))
+    ds = grain.MapDataset.source(rows).batch(batch_size, drop_remainder=drop_remainder)
     if len(ds) == 0:
         raise ValueError(
-            f"batch_size {batch_size} exceeds the {len(stream)} frames of this shard's {num_epochs} epoch(s)"
+            f"batch_size {batch_size} × {count} shard(s) exceeds the {len(stream)} frames of {num_epochs} epoch(s)"
         )
     return ds
 

@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from placejax import io
@@ -63,7 +64,8 @@ def ensure_trained(
             raise ValueError(f"unknown depth preset {preset!r}; choose one of {sorted(PRESETS)}")
         config = PRESETS[preset]
     workdir = run_dir(config, preset, cache_root)
-    if progress and not (workdir / "depth_eval.json").exists():
+    primary = jax.process_index() == 0  # several processes train together; one of them speaks and writes
+    if progress and primary and not (workdir / "depth_eval.json").exists():
         minutes = _EXPECTED_MINUTES.get(preset)
         took = f"about {minutes} min on 2 CPU cores" if minutes else "its length depends on the preset"
         print(
@@ -74,7 +76,7 @@ def ensure_trained(
         )
     train(config, workdir, progress=progress)
     trained = load_trained(workdir, config)
-    if not (workdir / "depth_eval.json").exists():
+    if primary and not (workdir / "depth_eval.json").exists():
         write_report(trained, workdir, progress=progress)
     return trained
 

@@ -7,8 +7,9 @@ Public surface:
     train_step, predict_step: pure ``(state, batch, key)`` / ``(state, x)`` functions, jitted; the loss is a
         static *objective* (``classification_loss`` by default; the depth network brings its own); the step key
         is ``fold_in(key, state.step)`` so a resumed run draws the same randomness as an uninterrupted one.
-    data_mesh, shard_batch, replicate, initialize_distributed: ``jax.sharding`` data parallelism (batch axis
-        sharded over all devices, parameters replicated), multi-host via ``jax.distributed``.
+    data_mesh, shard_batch, replicate, initialize_distributed, local_copy, spans_processes: ``jax.sharding``
+        data parallelism (batch axis sharded over all devices, parameters replicated), several processes or hosts
+        via ``jax.distributed`` (``python -m placejax.training.launch`` starts N processes on one machine).
     Checkpointer: orbax ``CheckpointManager`` around a TrainState (save every k steps, resume the latest).
     train / fit: the training loop over random-access batches (``placejax.data.train_dataset``), resumable.
     predict, map_batches: batched inference over a session / fixed-size batched mapping of any function.
@@ -16,7 +17,14 @@ Public surface:
 
 from placejax.training._checkpoint import Checkpointer
 from placejax.training._loop import fit, map_batches, predict, train
-from placejax.training._sharding import data_mesh, initialize_distributed, replicate, shard_batch
+from placejax.training._sharding import (
+    data_mesh,
+    initialize_distributed,
+    local_copy,
+    replicate,
+    shard_batch,
+    spans_processes,
+)
 from placejax.training._state import TrainState, apply_fn, create_state, make_optimizer
 from placejax.training._steps import Objective, classification_loss, predict_step, train_step
 
@@ -30,12 +38,14 @@ __all__ = [
     "data_mesh",
     "fit",
     "initialize_distributed",
+    "local_copy",
     "make_optimizer",
     "map_batches",
     "predict",
     "predict_step",
     "replicate",
     "shard_batch",
+    "spans_processes",
     "train",
     "train_step",
 ]

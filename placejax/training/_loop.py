@@ -17,7 +17,7 @@ from jax.sharding import Mesh
 from tqdm import tqdm
 
 from placejax.training._checkpoint import Checkpointer
-from placejax.training._sharding import replicate, shard_batch
+from placejax.training._sharding import replicate, shard_batch, spans_processes
 from placejax.training._state import TrainState, create_state
 from placejax.training._steps import Objective, classification_loss, predict_step, train_step
 
@@ -209,7 +209,7 @@ def predict(
         logits, feats = predict_step(state, batch["x"])
         got = {"logits": logits, **{f: feats[f] for f in features}}
         got["index"] = batch["index"]
-        if jax.process_count() > 1:
+        if spans_processes(mesh):
             got = multihost_utils.process_allgather(got, tiled=True)
         got = jax.device_get(got)
         index = np.asarray(got.pop("index"))

@@ -17,24 +17,45 @@ _MULTI_HOST_ENV = ("JAX_COORDINATOR_ADDRESS", "COORDINATOR_ADDRESS")
 
 
 def initialize_distributed() -> bool:
-    """Calls ``jax.distributed.initialize()`` when the process was launched as part of a multi-host job.
+    """Calls ``jax.distributed.initialize()`` when the process was launched as part of a multi-process job.
 
-    Detected by ``JAX_COORDINATOR_ADDRESS`` (with ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``) or by a cluster
-    environment JAX recognises itself (SLURM, Open MPI, Cloud TPU) through ``JAX_DISTRIBUTED=1``. Must run before
-    any other JAX call. Returns whether it initialised.
+    Detected by ``JAX_COORDINATOR_ADDRESS`` (with ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``; this is what
+    ``python -m placejax.training.launch`` sets) or by a cluster environment JAX recognises itself (SLURM, Open
+    MPI, Cloud TPU) through ``JAX_DISTRIBUTED=1``. On CPU, cross-process collectives go through gloo (XLA's CPU
+    backend has no other cross-process transport). Must run before any other JAX call. Returns whether it
+    initialised.
     """
     explicit = os.environ.get("JAX_COORDINATOR_ADDRESS")
+    if not explicit and os.environ.get("JAX_DISTRIBUTED") != "1":
+        return False
+    if os.environ.get("JAX_PLATFORMS", "cpu").split(",")[0] in ("", "cpu"):
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
     if explicit:
         jax.distributed.initialize(
             coordinator_address=explicit,
             num_processes=int(os.environ["JAX_NUM_PROCESSES"]),
             process_id=int(os.environ["JAX_PROCESS_ID"]),
         )
-        return True
-    if os.environ.get("JAX_DISTRIBUTED") == "1":
+    else:
         jax.distributed.initialize()  # cluster auto-detection
-        return True
-    return False
+    return True
+
+
+def spans_processes(mesh: Mesh) -> bool:
+    """Whether the mesh has devices of more than one process (its computations are collectives)."""
+    return len({d.process_index for d in mesh.devices.flat}) > 1
+
+
+def local_copy(tree: Any, mesh: Mesh) -> Any:
+    """A tree of fully replicated (global) arrays as arrays replicated on ``mesh`` (e.g. this process's devices),
+    so that a process can run inference on its own without the other processes taking part."""
+
+    def local(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            x = x.addressable_data(0)  # replicated: every local shard holds the whole array
+        return x
+
+    return replicate(jax.tree_util.tree_map(local, tree), mesh)
 
 
 def data_mesh(devices: Sequence[jax.Device] | int | None = None) -> Mesh:
