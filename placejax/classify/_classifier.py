@@ -108,7 +108,7 @@ def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
     x = rgb.astype(jnp.float32) / 255.0
     if tuple(x.shape[1:3]) != spec.depth_net_size:
         x = resize(x, spec.depth_net_size, "bicubic", align_corners=False)
-    x = (x - jnp.asarray(IMAGENET_MEAN)) / jnp.asarray(IMAGENET_STD)
+    x = (x - jnp.asarray(IMAGENET_MEAN).reshape(1, 1, 1, 3)) / jnp.asarray(IMAGENET_STD).reshape(1, 1, 1, 3)
     inv = spec.depth_model.apply(depth_vars, x, train=False)
     inv = resize(inv[..., None], tuple(rgb.shape[1:3]), "bicubic", align_corners=False)[..., 0]
     return _hha.inverse_depth_to_metric(inv, near_m=spec.near_m, far_m=spec.far_m)
@@ -121,7 +121,8 @@ def stage_hha(spec: _Spec, depth_m: jax.Array) -> jax.Array:
 
 def stage_nets(spec: _Spec, params: dict, rgb: jax.Array, hha: jax.Array) -> dict[str, jax.Array]:
     """Both VGG16s: logits ``(N, C)`` and fc7 ``(N, D)`` of each."""
-    mean, std = jnp.asarray(spec.mean, jnp.float32), jnp.asarray(spec.std, jnp.float32)
+    mean = jnp.asarray(spec.mean, jnp.float32).reshape(1, 1, 1, 3)
+    std = jnp.asarray(spec.std, jnp.float32).reshape(1, 1, 1, 3)
     out = {}
     for name, image in (("rgb", rgb), ("hha", hha)):
         x = (image.astype(jnp.float32) - mean) / std
