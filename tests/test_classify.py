@@ -359,3 +359,15 @@ def test_results_and_table_carry_the_unknown_columns(smoke_run):
     index = json.loads((workdir / "classifiers.json").read_text())
     assert set(index["sessions"]) == {TRAIN, TEST}
     assert jax.tree_util.tree_leaves(index["sessions"][TRAIN]["unknown"])
+
+
+def test_top_level_name_is_lazy():
+    import subprocess
+    import sys
+
+    import placejax
+
+    assert placejax.PlaceClassifier is PlaceClassifier
+    # ``import placejax`` alone does not pull in JAX (the classifier is imported on first use).
+    code = "import sys, placejax; assert 'jax' not in sys.modules, 'jax imported'"
+    subprocess.run([sys.executable, "-c", code], check=True)
