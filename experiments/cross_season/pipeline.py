@@ -41,7 +41,15 @@ from placejax import hha as _hha
 from placejax import io
 from placejax.data import PlaceGrid, build_array_cache, cache_session, eval_dataset, train_dataset, truncated
 from placejax.data.cache import cache_digest
-from placejax.models import VGG16, FusionMLP, cpu_compiler_options, he_init, imagenet_normalise
+from placejax.models import (
+    IMAGENET_MEAN_255,
+    IMAGENET_STD_255,
+    VGG16,
+    FusionMLP,
+    cpu_compiler_options,
+    he_init,
+    imagenet_normalise,
+)
 from placejax.training import (
     apply_fn,
     data_mesh,
@@ -569,7 +577,7 @@ def train_mlp(ctx: Context, s: SessionData, embeddings: np.ndarray, num_classes:
         key=run_key,
         folder=folder,
     )
-    return state, _features_prepare
+    return state, _features_prepare, folder
 
 
 def _softmax(logits: np.ndarray) -> np.ndarray:
@@ -681,11 +689,12 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         }
 
     fused: dict[tuple[str, str], np.ndarray] = {}
+    mlp_dirs: dict[str, Path] = {}
     with ctx.timed("mlp"):
         for si, s in enumerate(sessions):
             emb = np.concatenate([outputs[(s.name, "rgb", s.name)]["fc7"], outputs[(s.name, "hha", s.name)]["fc7"]], 1)
             upstream = {m: cache_digest(nets[(s.name, m)].key) for m in ("rgb", "hha")}
-            state, prepare = train_mlp(ctx, s, emb, num_classes, si, upstream)
+            state, prepare, mlp_dirs[s.name] = train_mlp(ctx, s, emb, num_classes, si, upstream)
             for t in sessions:
                 emb_t = np.concatenate(
                     [outputs[(s.name, "rgb", t.name)]["fc7"], outputs[(s.name, "hha", t.name)]["fc7"]], 1
@@ -713,6 +722,8 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
                 row["seen_class_fraction"] = float(np.isin(t.labels, seen).mean())
                 if t.name == s.name:
                     row["same_session"] = True
+                else:
+                    row.update(_unknown_columns(fused, s, t))
                 pairs.append(row)
     cross = [p for p in pairs if p["train"] != p["test"]]
     methods = [k for k in ("ours", "rgb_net", "hha_net", "depth1_net", "average") if k in cross[0]]
@@ -722,6 +733,7 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         "pairs": cross,
         "same_session": [p for p in pairs if p["train"] == p["test"]],
         "mean": {m: float(np.mean([p[m] for p in cross])) for m in methods},
+        "unknown": _unknown_summary(cross),
         "num_classes": num_classes,
         "grid": grid.to_dict(),
         "sessions": {s.name: {"frames": len(s), "classes_visited": len(np.unique(s.labels))} for s in sessions},
@@ -734,6 +746,7 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
     from experiments.cross_season import report
 
     if jax.process_index() == 0:
+        _write_classifier_index(ctx, sessions, nets, mlp_dirs, grid, fused)
         io.write_json(workdir / "results.json", results)
         report.write_table(results, workdir / "table.md")
         if config.figures:
@@ -744,3 +757,90 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
 
 def nets_modalities(nets: dict, session: str) -> list[str]:
     return [m for (s, m) in nets if s == session]
+
+
+# ---------------------------------------------------------------------------------------------------- classifiers
+
+
+def _unknown_columns(fused: dict, s: SessionData, t: SessionData) -> dict[str, float]:
+    """Unseen-place detection of the fusion trained on ``s`` when tested on ``t`` (extra columns of table.md).
+
+    Each score's threshold comes from ``s``'s own frames only (``target_frr`` of them rejected); test frames in
+    classes ``s`` never visited are the positives.
+    """
+    from placejax.classify import unknown
+
+    out = {}
+    seen = np.unique(s.labels)
+    for score in unknown.SCORES:
+        thr = unknown.fit_threshold(np.asarray(unknown.unknown_score(fused[(s.name, s.name)], score)))
+        m = unknown.detection_metrics(fused[(s.name, t.name)], t.labels, seen, thr, score)
+        out[f"unknown_{score}_auroc"] = m["auroc"]
+        if score == unknown.DEFAULT_SCORE:
+            out.update({f"unknown_{k}": v for k, v in m.items() if k != "auroc"})
+    # NaN (no unseen or no accepted frame in this pair) is written as null: results.json stays strict JSON.
+    return {k: (None if np.isnan(v) else v) for k, v in out.items()}
+
+
+def _unknown_summary(cross: list[dict]) -> dict:
+    """Means of the unseen-place columns over the pairs where each is defined (``n_pairs`` says how many)."""
+    from placejax.classify import unknown
+
+    keys = [k for k in cross[0] if k.startswith("unknown_")]
+    mean, n = {}, {}
+    for k in keys:
+        vals = [p[k] for p in cross if p[k] is not None]
+        mean[k], n[k] = (float(np.mean(vals)) if vals else None), len(vals)
+    return {"score": unknown.DEFAULT_SCORE, "target_frr": unknown.DEFAULT_TARGET_FRR, "mean": mean, "n_pairs": n}
+
+
+def _write_classifier_index(ctx: Context, sessions, nets, mlp_dirs: dict, grid: PlaceGrid, fused: dict) -> None:
+    """``classifiers.json``: what ``placejax.PlaceClassifier.from_run`` needs for every training session."""
+    from placejax.classify import unknown
+    from placejax.classify._run_layout import write_run_index
+
+    c = ctx.config.depth
+    if c.source == "trained":
+        from placejax.depth import PRESETS, run_dir
+
+        cfg = PRESETS[c.trained_preset]
+        folder = run_dir(cfg, c.trained_preset, Path(c.trained_cache) if c.trained_cache else None)
+        depth_spec = {"source": "trained", "dir": str(folder.absolute()), "config": dataclasses.asdict(cfg)}
+    elif c.source == "midas":
+        weights = str(Path(c.midas_weights).resolve()) if c.midas_weights else "registry:midas_v21_small_256"
+        depth_spec = {
+            "source": "midas",
+            "weights": weights,
+            "features": c.midas_features,
+            "encoder_width": c.midas_encoder_width,
+        }
+    else:
+        depth_spec = {"source": c.source}
+    index_sessions = {}
+    for s in sessions:
+        thresholds = {}
+        for score in unknown.SCORES:
+            train_scores = np.asarray(unknown.unknown_score(fused[(s.name, s.name)], score))
+            thresholds[score] = {
+                "threshold": unknown.fit_threshold(train_scores),
+                "target_frr": unknown.DEFAULT_TARGET_FRR,
+            }
+        index_sessions[s.name] = {
+            "rgb": str(Path("nets") / nets[(s.name, "rgb")].key["ckpt"]),
+            "hha": str(Path("nets") / nets[(s.name, "hha")].key["ckpt"]),
+            "mlp": str(mlp_dirs[s.name].relative_to(ctx.workdir)),
+            "intrinsics": np.asarray(s.cached.intrinsics, np.float64).tolist(),
+            "image_size": list(s.cached.image_shape),
+            "visited_classes": np.unique(s.labels[s.labels >= 0]).tolist(),
+            "unknown": thresholds,
+        }
+    write_run_index(
+        ctx.workdir,
+        {
+            "config": ctx.config.to_dict(),
+            "grid": grid.to_dict(),
+            "normalise": {"mean": IMAGENET_MEAN_255.tolist(), "std": IMAGENET_STD_255.tolist()},
+            "depth": depth_spec,
+            "sessions": index_sessions,
+        },
+    )

@@ -18,6 +18,24 @@ _METHOD_NAMES = {
 }
 
 
+# Extra columns of the unseen-place detection (issue 12): results key → header.
+_UNKNOWN_COLUMNS = {
+    "unknown_msp_auroc": "AUROC msp",
+    "unknown_entropy_auroc": "AUROC entropy",
+    "unknown_energy_auroc": "AUROC energy",
+    "unknown_margin_auroc": "AUROC margin",
+    "unknown_rejected_unseen": "unseen rejected",
+    "unknown_rejected_seen": "seen rejected",
+    "unknown_seen_accuracy_accepted": "top-1 accepted seen",
+}
+
+
+def _unknown_cell(key: str, v: float | None) -> str:
+    if v is None:
+        return "–"
+    return f"{v:.2f}" if key.endswith("_auroc") else _pct(v)
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:.1f}"
 
@@ -26,6 +44,8 @@ def table_markdown(results: dict) -> str:
     """Table I layout: train, test, Ours, RGB-Net, gain, HHA-Net, gain (top-1 %), ablations, then the mean."""
     extra = [m for m in ("depth1_net", "average") if m in results["mean"]]
     head = ["train", "test", "Ours", "RGB-Net", "gain", "HHA-Net", "gain"] + [_METHOD_NAMES[m] for m in extra]
+    unknown = _UNKNOWN_COLUMNS if "unknown" in results else {}
+    head += list(unknown.values())
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
     def row(train: str, test: str, r: dict) -> str:
@@ -39,15 +59,26 @@ def table_markdown(results: dict) -> str:
             f"{100 * (r['ours'] - r['hha_net']):+.1f}",
         ]
         cells += [_pct(r[m]) for m in extra]
+        cells += [_unknown_cell(k, r.get(k)) for k in unknown]
         return "| " + " | ".join(cells) + " |"
 
     for p in results["pairs"]:
         lines.append(row(p["train"], p["test"], p))
-    lines.append(row("**mean**", "", results["mean"]))
+    lines.append(row("**mean**", "", {**results["mean"], **results.get("unknown", {}).get("mean", {})}))
     note = (
         f"\nTop-1 accuracy (%) on every other session; {results['num_classes']} place classes; test frames in "
         "classes the training session never visited count as errors. gain = Ours − baseline (points).\n"
     )
+    if unknown:
+        u = results["unknown"]
+        note += (
+            f"\nUnseen-place detection (extra columns; the fusion's outputs; test frames in classes the training "
+            f"session never visited are the positives): AUROC of each score (msp = 1 − max softmax, entropy, "
+            f"energy = −logsumexp, margin = −(p1 − p2)); with the {u['score']} threshold set on the training session's "
+            f"own frames to reject {100 * u['target_frr']:.0f}% of them: share of unseen / seen test frames rejected "
+            f"and top-1 on the accepted seen frames (%). '–': undefined for that pair (no unseen or no accepted "
+            f"frame); the mean is over the pairs where it is defined.\n"
+        )
     return "\n".join(lines) + "\n" + note
 
 

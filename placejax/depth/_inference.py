@@ -16,12 +16,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax.models import MidasSmall, resize
+from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall, resize
 
 __all__ = ["network_size", "predict", "preprocess"]
 
-IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
-IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 _MULTIPLE = 32
 
 

@@ -24,9 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import training
-from placejax.depth._inference import IMAGENET_MEAN, IMAGENET_STD
 from placejax.depth._losses import midas_loss
-from placejax.models import MidasSmall
+from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall
 
 # Bumped whenever the training recipe changes in a way the config does not show, so that a cached network of an
 # older recipe is never mistaken for this one (2: trained on placejax.training's engine and checkpoint layout).

@@ -3,12 +3,23 @@ CPU inference compiler options, from-scratch initialisation and the ImageNet inp
 
 from placejax.models._cpu import cpu_compiler_options
 from placejax.models._fusion import FusionMLP
-from placejax.models._init import he_init, imagenet_normalise
+from placejax.models._init import (
+    IMAGENET_MEAN,
+    IMAGENET_MEAN_255,
+    IMAGENET_STD,
+    IMAGENET_STD_255,
+    he_init,
+    imagenet_normalise,
+)
 from placejax.models._midas import EfficientNetLite3Encoder, MidasSmall, fold_batch_norm
 from placejax.models._resize import interpolation_matrix, resize, upsample2x_align_corners
 from placejax.models._vgg import VGG16, VGG16Head, VGG16Trunk, adaptive_avg_pool
 
 __all__ = [
+    "IMAGENET_MEAN",
+    "IMAGENET_MEAN_255",
+    "IMAGENET_STD",
+    "IMAGENET_STD_255",
     "VGG16",
     "EfficientNetLite3Encoder",
     "FusionMLP",

@@ -9,9 +9,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-# torchvision's ImageNet statistics on the 0–255 scale.
-IMAGENET_MEAN_255 = np.array([0.485, 0.456, 0.406], np.float32) * 255.0
-IMAGENET_STD_255 = np.array([0.229, 0.224, 0.225], np.float32) * 255.0
+# torchvision's ImageNet statistics (the input convention of the VGG16 and MiDaS weights), on the 0–1 and the
+# 0–255 scale: the one definition in placejax.
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+IMAGENET_MEAN_255 = IMAGENET_MEAN * 255.0
+IMAGENET_STD_255 = IMAGENET_STD * 255.0
 
 
 def imagenet_normalise(images: np.ndarray) -> np.ndarray:

@@ -24,6 +24,8 @@ import numpy as np
 from flax import traverse_util
 
 from placejax import io
+from placejax.models import IMAGENET_MEAN as _IMAGENET_MEAN
+from placejax.models import IMAGENET_STD as _IMAGENET_STD
 from placejax.weights._convert import convert_midas_small, convert_vgg16
 from placejax.weights._torch_checkpoint import read_torch_checkpoint
 
@@ -38,8 +40,9 @@ __all__ = [
 ]
 
 Variables = dict[str, Any]
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
+# The float32 constants of placejax.models, as the exact decimals torchvision publishes.
+IMAGENET_MEAN = tuple(round(float(v), 6) for v in _IMAGENET_MEAN)
+IMAGENET_STD = tuple(round(float(v), 6) for v in _IMAGENET_STD)
 
 
 class WeightsUnavailableError(RuntimeError):

@@ -1,0 +1,196 @@
+"""End-to-end speed of ``PlaceClassifier.predict`` from uint8 RGB, per stage, against PyTorch's heavy stages.
+
+    python -m benchmarks.inference_speed [--repeats 3] [--batch 8] [--no-torch] [--only builtin|paper]
+
+Two model sizes, both with random weights of the exact architectures (speed does not depend on the values):
+    builtin: the default SimCampus preset — 48×48 images, the placejax depth network (MidasSmall features 16,
+        encoder ×0.35, run at 64×64), VGG16 at 1/8 width from scratch, fusion MLP 2·512 → 1024 → 100.
+    paper: the paper's setting — 256×256 images, MiDaS v2.1 small (official size, run at 256×256), ImageNet
+        VGG16 at full width (conv features rounded to float16 as the experiment caches them), MLP 8192 → 1024 → 100.
+
+For each size and batch (1 and ``--batch``): images/s and ms/image of ``predict`` (host input to host output,
+padding buckets and all), and the share of each stage (depth: MiDaS transform + network + resize back + metric
+mapping; hha: HHA encoding; nets: RGB-Net and HHA-Net; mlp: fusion MLP) from each stage jitted and timed alone.
+At the paper size PyTorch (``benchmarks.torch_baselines``, ``no_grad``, all cores) runs MiDaS small on the same
+normalised input and VGG16 fc7 twice (two nets) in the same run, interleaved with JAX so both see the same load.
+Writes ``benchmarks/results/inference_speed.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import os
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from benchmarks import _report
+from placejax.classify import PlaceClassifier
+from placejax.classify import _classifier as C
+from placejax.data import PlaceGrid
+
+# Everything ``PlaceClassifier`` reads from a run, per size (values as the experiment's presets set them).
+_SIZES = {
+    "builtin": dict(image=48, depth=("trained", 16, 0.35, 64), vgg=(0.125, False), far_m=50.0),
+    "paper": dict(image=256, depth=("midas", 64, 1.0, 256), vgg=(1.0, True), far_m=80.0),
+}
+
+
+def synthetic_classifier(size: str, seed: int = 0) -> PlaceClassifier:
+    """A classifier of the given size with random weights (He-scaled, so activations stay finite)."""
+    s = _SIZES[size]
+    kind, features, width, net = s["depth"]
+    f = 500.0 * s["image"] / 640
+    meta = {
+        "train_session": "synthetic",
+        "num_classes": 100,
+        "image_size": [s["image"], s["image"]],
+        "intrinsics": [[f, 0.0, (s["image"] - 1) / 2], [0.0, f, (s["image"] - 1) / 2], [0.0, 0.0, 1.0]],
+        "normalise": {"mean": [123.675, 116.28, 103.53], "std": [58.395, 57.12, 57.375]},
+        "depth": {
+            "kind": kind,
+            "features": features,
+            "encoder_width": width,
+            "size": net,
+            "near_m": 1.0,
+            "far_m": s["far_m"],
+        },
+        "vgg": {"width": s["vgg"][0], "pretrained": s["vgg"][1]},
+        "mlp_hidden": 1024,
+        "grid": PlaceGrid(0.0, 100.0, 0.0, 100.0, 10).to_dict(),
+        "visited_classes": list(range(100)),
+        "unknown": {"score": "msp", "threshold": 0.5, "target_frr": 0.05},
+        "config": {},
+    }
+    spec = PlaceClassifier._build_spec(meta)
+    key = jax.random.key(seed)
+    k1, k2, k3 = jax.random.split(key, 3)
+    h, w = spec.image_size
+    depth = jax.jit(spec.depth_model.init)(k1, jnp.zeros((1, *spec.depth_net_size, 3)))
+    vgg = jax.jit(spec.vgg.init)(k2, jnp.zeros((1, h, w, 3)))["params"]
+    mlp = jax.jit(spec.mlp.init)(k3, jnp.zeros((1, 2 * C._fc7_width(spec.vgg))))["params"]
+    return PlaceClassifier(meta, {"depth": depth, "rgb": vgg, "hha": vgg, "mlp": mlp})
+
+
+def _interleaved(fns: dict, repeats: int) -> dict[str, float]:
+    """Median seconds per call of each function, calls alternating (one untimed warm-up/compile call each)."""
+    for fn in fns.values():
+        fn()
+    runs = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            runs[k].append(time.perf_counter() - t0)
+    return {k: statistics.median(v) for k, v in runs.items()}
+
+
+def _stage_fns(clf: PlaceClassifier, rgb: np.ndarray) -> dict:
+    """Each stage jitted alone on its real input (computed once), blocking until done."""
+    spec, params = clf._spec, clf.params
+    opts = C.cpu_compiler_options("vgg16")
+    depth_fn = jax.jit(functools.partial(C.stage_depth, spec))
+    hha_fn = jax.jit(functools.partial(C.stage_hha, spec))
+    nets_fn = jax.jit(functools.partial(C.stage_nets, spec), compiler_options=opts)
+    mlp_fn = jax.jit(functools.partial(C.stage_mlp, spec))
+    x = jnp.asarray(rgb)
+    d = jax.block_until_ready(depth_fn(params["depth"], x))
+    hh = jax.block_until_ready(hha_fn(d))
+    nets = jax.block_until_ready(nets_fn(params, x, hh))
+    return {
+        "depth": lambda: jax.block_until_ready(depth_fn(params["depth"], x)),
+        "hha": lambda: jax.block_until_ready(hha_fn(d)),
+        "nets": lambda: jax.block_until_ready(nets_fn(params, x, hh)),
+        "mlp": lambda: jax.block_until_ready(mlp_fn(params, nets)),
+    }
+
+
+def _torch_fns(batch: int, hw: int, rng: np.random.Generator) -> dict:
+    import torch
+
+    from benchmarks.torch_baselines import TorchMidasSmall, TorchVGG16
+
+    torch.set_num_threads(os.cpu_count() or 1)
+    midas, vgg = TorchMidasSmall().eval(), TorchVGG16(num_classes=100).eval()
+    x = torch.from_numpy(rng.normal(size=(batch, 3, hw, hw)).astype(np.float32))
+
+    def run_midas():
+        with torch.no_grad():
+            return midas(x)
+
+    def run_vgg_twice():  # RGB-Net and HHA-Net
+        with torch.no_grad():
+            return vgg.fc7(x), vgg.fc7(x)
+
+    return {"torch_midas": run_midas, "torch_vgg16_x2": run_vgg_twice}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--batch", type=int, default=8, help="the larger batch (besides 1)")
+    parser.add_argument("--no-torch", action="store_true")
+    parser.add_argument("--only", choices=tuple(_SIZES))
+    args = parser.parse_args(argv)
+    rng = np.random.default_rng(0)
+    rows = []
+    for size in [args.only] if args.only else list(_SIZES):
+        clf = synthetic_classifier(size)
+        hw = clf.image_size[0]
+        for batch in (1, args.batch):
+            rgb = rng.integers(0, 256, (batch, hw, hw, 3), dtype=np.uint8)
+            fns = {"predict": lambda rgb=rgb, clf=clf: clf.predict(rgb)}
+            fns.update(_stage_fns(clf, rgb))
+            if size == "paper" and not args.no_torch:
+                fns.update(_torch_fns(batch, hw, rng))
+            t = _interleaved(fns, args.repeats)
+            stages = sum(t[k] for k in ("depth", "hha", "nets", "mlp"))
+            row = {
+                "size": size,
+                "image_hw": [hw, hw],
+                "batch": batch,
+                "images_per_s": batch / t["predict"],
+                "ms_per_image": 1e3 * t["predict"] / batch,
+                **{f"share_{k}": t[k] / stages for k in ("depth", "hha", "nets", "mlp")},
+                **{f"{k}_ms_per_image": 1e3 * t[k] / batch for k in ("depth", "hha", "nets", "mlp")},
+            }
+            if "torch_midas" in t:
+                row["torch_midas_ms_per_image"] = 1e3 * t["torch_midas"] / batch
+                row["torch_vgg16_x2_ms_per_image"] = 1e3 * t["torch_vgg16_x2"] / batch
+                row["torch_over_jax_depth"] = t["torch_midas"] / t["depth"]
+                row["torch_over_jax_nets"] = t["torch_vgg16_x2"] / t["nets"]
+            rows.append(row)
+            print(f"{size} batch {batch}: {row['images_per_s']:.1f} images/s", flush=True)
+    columns = [
+        ("size", "size"),
+        ("batch", "batch"),
+        ("images_per_s", "images/s"),
+        ("ms_per_image", "ms/image"),
+        ("share_depth", "depth share"),
+        ("share_hha", "HHA share"),
+        ("share_nets", "nets share"),
+        ("share_mlp", "MLP share"),
+        ("depth_ms_per_image", "depth ms/img"),
+        ("torch_midas_ms_per_image", "torch MiDaS ms/img"),
+        ("nets_ms_per_image", "nets ms/img"),
+        ("torch_vgg16_x2_ms_per_image", "torch 2×VGG16 ms/img"),
+    ]
+    _report.print_table(rows, columns)
+    meta = {"repeats": args.repeats, "load_average_1_5_15min": list(os.getloadavg())}
+    try:
+        import torch
+
+        meta["torch"] = torch.__version__
+    except ImportError:
+        meta["torch"] = None
+    path = _report.write_json("inference_speed", {"meta": meta, "rows": rows})
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

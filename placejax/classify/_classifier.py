@@ -1,0 +1,485 @@
+"""``PlaceClassifier``: uint8 RGB → pseudo depth → HHA → RGB-Net and HHA-Net → fusion MLP → place, in one jit."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib.metadata
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from placejax import hha as _hha
+from placejax.classify import _artefact, _run_layout
+from placejax.classify import _unknown as unknown
+from placejax.data import PlaceGrid
+from placejax.data.camera import resize_image
+from placejax.depth import network_size
+from placejax.models import IMAGENET_MEAN, IMAGENET_STD, VGG16, FusionMLP, MidasSmall, cpu_compiler_options, resize
+
+BRANCHES = ("fusion", "rgb", "hha")
+_BOUNDS = ("x_lo", "x_hi", "y_lo", "y_hi")
+_BRANCH_NAMES = {"fusion": "fusion MLP on RGB + HHA", "rgb": "RGB-Net only", "hha": "HHA-Net only"}
+# Batches are padded to one of these sizes (the smallest that fits, the largest repeated), so any number of
+# images runs through a handful of compiled shapes.
+_BUCKETS = (1, 2, 4, 8, 16, 32)
+
+
+@dataclasses.dataclass(frozen=True)
+class Prediction:
+    """What :meth:`PlaceClassifier.predict` returns for a batch of ``N`` images.
+
+    Attributes:
+        label: int32 ``(N,)`` predicted class (``row * n + col`` of the place grid).
+        probabilities: float32 ``(N, C)`` softmax of the branch used.
+        confidence: float32 ``(N,)`` the predicted class's probability.
+        cell_center: float64 ``(N, 2)`` (x, y) of the predicted cell's centre, metres, workspace frame.
+        cell_bounds: float64 ``(N, 4)`` ``(x_lo, x_hi, y_lo, y_hi)`` of the predicted cell, metres.
+        unknown_score: float32 ``(N,)`` unfamiliarity (``unknown_kind``; larger = less like a trained place).
+        rejected: bool ``(N,)`` score above the threshold fitted on training frames: "I don't know this place".
+            Always False for the single-network branches (no threshold was fitted for them).
+        branch: which classifier produced the outputs: ``"fusion"`` (the paper's method), ``"rgb"`` or ``"hha"``.
+        unknown_kind: the score's name (see ``placejax.classify.unknown``).
+        threshold: the rejection threshold used (NaN: none).
+    """
+
+    label: np.ndarray
+    probabilities: np.ndarray
+    confidence: np.ndarray
+    cell_center: np.ndarray
+    cell_bounds: np.ndarray
+    unknown_score: np.ndarray
+    rejected: np.ndarray
+    branch: str
+    unknown_kind: str
+    threshold: float
+
+    def __len__(self) -> int:
+        return len(self.label)
+
+    def records(self) -> list[dict[str, Any]]:
+        """One JSON-able dict per image."""
+        return [
+            {
+                "class": int(self.label[i]),
+                "confidence": float(self.confidence[i]),
+                "cell_center_m": [float(v) for v in self.cell_center[i]],
+                "cell_bounds_m": dict(zip(_BOUNDS, map(float, self.cell_bounds[i]), strict=True)),
+                "unknown_score": float(self.unknown_score[i]),
+                "unknown_kind": self.unknown_kind,
+                "threshold": self.threshold,
+                "rejected": bool(self.rejected[i]),
+                "branch": self.branch,
+            }
+            for i in range(len(self))
+        ]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Spec:
+    """The static (hashable) part of a classifier: the modules and the preprocessing constants."""
+
+    image_size: tuple[int, int]
+    depth_model: MidasSmall
+    depth_net_size: tuple[int, int]
+    near_m: float
+    far_m: float
+    intrinsics: tuple[tuple[float, ...], ...]
+    vgg: VGG16
+    mlp: FusionMLP
+    mean: tuple[float, float, float]
+    std: tuple[float, float, float]
+    features_float16: bool  # pretrained VGG16: the experiment caches conv features as float16
+
+
+# ---------------------------------------------------------------------------------------------------- stages
+
+
+def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
+    """uint8 ``(N, H, W, 3)`` → float32 metric depth ``(N, H, W)`` (metres), as the experiment computes it.
+
+    The MiDaS transform (bicubic resize to the network size, ImageNet normalisation), the network, the bicubic
+    resize back and the percentile mapping to metres (``hha.inverse_depth_to_metric``).
+    """
+    x = rgb.astype(jnp.float32) / 255.0
+    if tuple(x.shape[1:3]) != spec.depth_net_size:
+        x = resize(x, spec.depth_net_size, "bicubic", align_corners=False)
+    x = (x - jnp.asarray(IMAGENET_MEAN).reshape(1, 1, 1, 3)) / jnp.asarray(IMAGENET_STD).reshape(1, 1, 1, 3)
+    inv = spec.depth_model.apply(depth_vars, x, train=False)
+    inv = resize(inv[..., None], tuple(rgb.shape[1:3]), "bicubic", align_corners=False)[..., 0]
+    return _hha.inverse_depth_to_metric(inv, near_m=spec.near_m, far_m=spec.far_m)
+
+
+def stage_hha(spec: _Spec, depth_m: jax.Array) -> jax.Array:
+    """Metric depth ``(N, H, W)`` → uint8 HHA ``(N, H, W, 3)`` with the training session's intrinsics."""
+    return _hha.encode(depth_m, np.asarray(spec.intrinsics, np.float32))
+
+
+def stage_nets(spec: _Spec, params: dict, rgb: jax.Array, hha: jax.Array) -> dict[str, jax.Array]:
+    """Both VGG16s: logits ``(N, C)`` and fc7 ``(N, D)`` of each."""
+    mean = jnp.asarray(spec.mean, jnp.float32).reshape(1, 1, 1, 3)
+    std = jnp.asarray(spec.std, jnp.float32).reshape(1, 1, 1, 3)
+    out = {}
+    for name, image in (("rgb", rgb), ("hha", hha)):
+        x = (image.astype(jnp.float32) - mean) / std
+        p = params[name]
+        if spec.features_float16:
+            feats = spec.vgg.apply({"params": p}, x, method=VGG16.conv_features)
+            feats = feats.astype(jnp.float16).astype(jnp.float32)
+            logits, f = spec.vgg.apply({"params": p}, feats, method=VGG16.head)
+        else:
+            logits, f = spec.vgg.apply({"params": p}, x, train=False)
+        out[f"{name}_logits"], out[f"{name}_fc7"] = logits, f["fc7"]
+    return out
+
+
+def stage_mlp(spec: _Spec, params: dict, nets: dict[str, jax.Array]) -> jax.Array:
+    """The fusion MLP on ``[fc7_rgb, fc7_hha]``: logits ``(N, C)``."""
+    emb = jnp.concatenate([nets["rgb_fc7"], nets["hha_fc7"]], axis=1)
+    return spec.mlp.apply({"params": params["mlp"]}, emb, train=False)
+
+
+def forward(spec: _Spec, params: dict, rgb: jax.Array) -> dict[str, jax.Array]:
+    """All stages: logits of the fusion and of each net, and the HHA image the HHA-Net saw."""
+    hha = stage_hha(spec, stage_depth(spec, params["depth"], rgb))
+    nets = stage_nets(spec, params, rgb, hha)
+    fused = stage_mlp(spec, params, nets)
+    return {"fusion": fused, "rgb": nets["rgb_logits"], "hha": nets["hha_logits"], "hha_image": hha}
+
+
+@functools.lru_cache(maxsize=8)
+def _jitted_forward(spec: _Spec):
+    # YNNPACK convolutions on CPU (VGG16 dominates the cost; results agree to float rounding); {} elsewhere.
+    return jax.jit(functools.partial(forward, spec), compiler_options=cpu_compiler_options("vgg16"))
+
+
+# ---------------------------------------------------------------------------------------------------- classifier
+
+
+def _versions() -> dict[str, str]:
+    import placejax
+
+    out = {"placejax": placejax.__version__}
+    for n in ("jax", "jaxlib", "flax", "numpy"):
+        try:
+            out[n] = importlib.metadata.version(n)
+        except importlib.metadata.PackageNotFoundError:
+            out[n] = "not installed"
+    return out
+
+
+def _restore_params(ckdir: Path) -> dict:
+    """The ``params`` of the latest orbax checkpoint written by ``placejax.training.Checkpointer``."""
+    import orbax.checkpoint as ocp
+
+    with ocp.CheckpointManager(ckdir) as mngr:
+        step = mngr.latest_step()
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint under {ckdir} (the run did not finish training it)")
+        item = mngr.restore(step, args=ocp.args.StandardRestore())
+    return jax.tree_util.tree_map(np.asarray, item["params"])
+
+
+class PlaceClassifier:
+    """A trained place classifier of one training session, ready for new images.
+
+    Holds the depth network's variables, the HHA settings (metric mapping, intrinsics), both VGG16s, the fusion
+    MLP, the place grid, the input normalisation, the unseen-place threshold and the experiment's config.
+
+    Build it with :meth:`from_run` (a finished ``experiments.cross_season`` run) or :meth:`load` (a file written
+    by :meth:`save`), then call :meth:`predict` on uint8 RGB images.
+
+    Example (a finished smoke run with a depth network, e.g. ``depth.source=trained``)::
+
+        clf = PlaceClassifier.from_run("runs/cross_season-default", "WI")
+        clf.save("wi.placejax")
+        pred = PlaceClassifier.load("wi.placejax").predict(images_uint8)   # (N, H, W, 3)
+        pred.label, pred.confidence, pred.rejected
+    """
+
+    def __init__(self, meta: dict[str, Any], params: dict[str, Any]):
+        self.meta = meta
+        self.params = jax.tree_util.tree_map(jnp.asarray, params)
+        self.grid = PlaceGrid.from_dict(meta["grid"], source="classifier grid")
+        self._spec = self._build_spec(meta)
+        self._check_params()
+
+    # ----------------------------------------------------------------------------------------------- building
+
+    @staticmethod
+    def _build_spec(meta: dict[str, Any]) -> _Spec:
+        d = meta["depth"]
+        image_size = tuple(int(v) for v in meta["image_size"])
+        if d["kind"] == "trained":
+            net_size = network_size(image_size, d["size"], square=True)
+        else:
+            net_size = network_size(image_size, d["size"], square=False)
+        vgg = meta["vgg"]
+        return _Spec(
+            image_size=image_size,
+            depth_model=MidasSmall(features=int(d["features"]), encoder_width=float(d["encoder_width"])),
+            depth_net_size=net_size,
+            near_m=float(d["near_m"]),
+            far_m=float(d["far_m"]),
+            intrinsics=tuple(tuple(float(v) for v in row) for row in meta["intrinsics"]),
+            vgg=VGG16(num_classes=int(meta["num_classes"]), width=float(vgg["width"])),
+            mlp=FusionMLP(num_classes=int(meta["num_classes"]), hidden=int(meta["mlp_hidden"])),
+            mean=tuple(float(v) for v in meta["normalise"]["mean"]),
+            std=tuple(float(v) for v in meta["normalise"]["std"]),
+            features_float16=bool(vgg["pretrained"]),
+        )
+
+    def _check_params(self) -> None:
+        """Every network's parameters have exactly the shapes its module expects (a mismatched file fails here)."""
+        spec = self._spec
+        h, w = spec.image_size
+        dn_h, dn_w = spec.depth_net_size
+        expected = {
+            "depth": jax.eval_shape(spec.depth_model.init, jax.random.key(0), jnp.zeros((1, dn_h, dn_w, 3))),
+            "rgb": jax.eval_shape(spec.vgg.init, jax.random.key(0), jnp.zeros((1, h, w, 3)))["params"],
+            "mlp": jax.eval_shape(spec.mlp.init, jax.random.key(0), jnp.zeros((1, 2 * _fc7_width(spec.vgg))))["params"],
+        }
+        expected["hha"] = expected["rgb"]
+        for name, want in expected.items():
+            want_flat, have = _leaf_specs(want), _leaf_specs(self.params.get(name, {}))
+            if want_flat != have:
+                missing = sorted(set(want_flat) - set(have))[:3]
+                extra = sorted(set(have) - set(want_flat))[:3]
+                wrong = sorted(k for k in set(want_flat) & set(have) if want_flat[k] != have[k])[:3]
+                raise _artefact.ArtefactError(
+                    f"{name} parameters do not fit the {name} network of this classifier: missing {missing}, "
+                    f"unexpected {extra}, wrong shape/dtype {[(k, have[k], want_flat[k]) for k in wrong]}"
+                )
+
+    @classmethod
+    def from_run(cls, workdir: str | os.PathLike, train_session: str) -> PlaceClassifier:
+        """The classifier trained on ``train_session`` in a finished ``experiments.cross_season`` run.
+
+        Raises:
+            FileNotFoundError / KeyError: see ``locate_run``.
+            ValueError: the run used rendered depth (``depth.source=true``): there is no depth network to
+                turn a photograph into depth.
+        """
+        files = _run_layout.locate_run(workdir, train_session)
+        cfg = files.config
+        d = files.depth
+        if d["source"] == "trained":
+            from placejax.depth import DepthTrainConfig, load_trained
+
+            dcfg = DepthTrainConfig(**d["config"])
+            trained = load_trained(d["dir"], dcfg)
+            depth_vars = trained.variables
+            depth_meta = {
+                "kind": "trained",
+                "features": dcfg.features,
+                "encoder_width": dcfg.encoder_width,
+                "size": dcfg.image_size,
+                "source": {"dir": d["dir"], "fingerprint": dcfg.fingerprint()},
+            }
+        elif d["source"] == "midas":
+            from placejax.weights import convert_midas_small, load, read_torch_checkpoint
+
+            model = MidasSmall(features=d["features"], encoder_width=d["encoder_width"])
+            if d["weights"].startswith("registry:"):
+                depth_vars = load(d["weights"].split(":", 1)[1])
+            else:
+                depth_vars = convert_midas_small(read_torch_checkpoint(d["weights"]), model)
+            depth_meta = {
+                "kind": "midas",
+                "features": d["features"],
+                "encoder_width": d["encoder_width"],
+                "size": 256,
+                "source": {"weights": d["weights"]},
+            }
+        else:
+            raise ValueError(
+                f"the run in {files.workdir} used depth.source={d['source']!r} (rendered depth): it has no depth "
+                "network to estimate depth from a photograph; train with depth.source=trained or midas"
+            )
+        depth_meta.update(near_m=cfg["depth"]["near_m"], far_m=cfg["depth"]["far_m"])
+        params = {
+            "depth": jax.tree_util.tree_map(np.asarray, dict(depth_vars)),
+            "rgb": _restore_params(files.rgb_checkpoint),
+            "hha": _restore_params(files.hha_checkpoint),
+            "mlp": _restore_params(files.mlp_checkpoint),
+        }
+        if cfg["vgg"]["pretrained"]:
+            trunk = _pretrained_trunk(cfg["vgg"])
+            for m in ("rgb", "hha"):
+                params[m] = {"trunk": trunk, "classifier": params[m]["classifier"]}
+        thr = files.unknown.get(unknown.DEFAULT_SCORE, {})
+        meta = {
+            "train_session": train_session,
+            "num_classes": PlaceGrid.from_dict(files.grid).num_classes,
+            "image_size": list(files.image_size),
+            "intrinsics": files.intrinsics,
+            "normalise": files.normalise,
+            "depth": depth_meta,
+            "vgg": {"width": cfg["vgg"]["width"], "pretrained": cfg["vgg"]["pretrained"]},
+            "mlp_hidden": cfg["mlp"]["hidden"],
+            "grid": files.grid,
+            "visited_classes": files.visited_classes,
+            "unknown": {
+                "score": unknown.DEFAULT_SCORE,
+                "threshold": float(thr.get("threshold", float("nan"))),
+                "target_frr": float(thr.get("target_frr", float("nan"))),
+                "all_scores": files.unknown,
+            },
+            "config": cfg,
+            "source": {"workdir": str(files.workdir), "train_session": train_session},
+        }
+        return cls(meta, params)
+
+    # ----------------------------------------------------------------------------------------------- files
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Writes the classifier to one file (zip: ``manifest.json`` + arrays with SHA-256), atomically."""
+        flat = _artefact.flatten({k: _plain(v) for k, v in self.params.items()})
+        return _artefact.write_artefact(path, {**self.meta, "versions": _versions()}, flat)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> PlaceClassifier:
+        """Reads a file written by :meth:`save`; every array's SHA-256, shape and dtype is checked.
+
+        Raises:
+            FileNotFoundError: no such file.
+            ArtefactError: not a classifier file, corrupt, another format version, or parameters that do not fit.
+        """
+        manifest, flat = _artefact.read_artefact(path)
+        meta = {k: v for k, v in manifest.items() if k not in ("format", "version", "arrays", "versions")}
+        params = {name: _artefact.unflatten(flat, name) for name in ("depth", "rgb", "hha", "mlp")}
+        try:
+            return cls(meta, params)
+        except (KeyError, TypeError) as e:
+            raise _artefact.ArtefactError(f"{path}: manifest lacks or mangles a field ({e!r})") from None
+        except _artefact.ArtefactError as e:
+            raise _artefact.ArtefactError(f"{path}: {e}") from None
+
+    # ----------------------------------------------------------------------------------------------- inference
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """``(H, W)`` the networks were trained at; other sizes are resized to it (as the experiment's cache)."""
+        return self._spec.image_size
+
+    @property
+    def threshold(self) -> float:
+        return float(self.meta["unknown"]["threshold"])
+
+    def prepare(self, images, *, name: str = "rgb_uint8_batch") -> np.ndarray:
+        """Checks a batch and resizes it to :attr:`image_size` (area when shrinking, else bilinear; OpenCV)."""
+        if not isinstance(images, np.ndarray | jax.Array):
+            raise TypeError(f"{name} must be a uint8 array of shape (N, H, W, 3), got {type(images).__name__}")
+        x = np.asarray(images)
+        if x.dtype != np.uint8:
+            raise TypeError(f"{name} must have dtype uint8 (RGB 0..255) of shape (N, H, W, 3), got dtype {x.dtype}")
+        if x.ndim != 4 or x.shape[-1] != 3:
+            hint = " (one image: pass images[None])" if x.ndim == 3 and x.shape[-1] == 3 else ""
+            raise ValueError(f"{name} must have shape (N, H, W, 3), got shape {x.shape}{hint}")
+        if x.shape[0] == 0:
+            raise ValueError(f"{name} is an empty batch (shape {x.shape}); expected (N ≥ 1, H, W, 3)")
+        if x.shape[1] < 1 or x.shape[2] < 1:
+            raise ValueError(f"{name} has empty images (shape {x.shape}); expected (N, H ≥ 1, W ≥ 1, 3)")
+        if tuple(x.shape[1:3]) != self.image_size:
+            x = np.stack([resize_image(im, self.image_size) for im in x])
+        return np.ascontiguousarray(x)
+
+    def logits(self, rgb_uint8_batch) -> dict[str, np.ndarray]:
+        """Raw outputs: ``fusion``, ``rgb``, ``hha`` logits ``(N, C)`` and the ``hha_image`` uint8 ``(N, H, W, 3)``."""
+        x = self.prepare(rgb_uint8_batch)
+        fn = _jitted_forward(self._spec)
+        outs = []
+        lo = 0
+        while lo < len(x):
+            part = x[lo : lo + _BUCKETS[-1]]
+            size = next(b for b in _BUCKETS if b >= len(part))
+            pad = size - len(part)
+            if pad:
+                part = np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])
+            out = fn(self.params, jnp.asarray(part))
+            outs.append({k: np.asarray(v)[: size - pad] for k, v in out.items()})
+            lo += _BUCKETS[-1]
+        return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
+
+    def predict(self, rgb_uint8_batch, *, branch: str = "fusion") -> Prediction:
+        """Classifies uint8 RGB images ``(N, H, W, 3)`` into places, with an "unknown place" flag.
+
+        Args:
+            rgb_uint8_batch: uint8 ``(N, H, W, 3)`` RGB, N ≥ 1; images of another size than
+                :attr:`image_size` are resized to it first (upright, undistorted images are assumed).
+            branch: ``"fusion"`` (the paper's method), or ``"rgb"`` / ``"hha"`` for one network alone.
+
+        Returns:
+            A :class:`Prediction`.
+
+        Raises:
+            TypeError / ValueError: wrong type, dtype, rank, channel count, or an empty batch.
+        """
+        if branch not in BRANCHES:
+            raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
+        out = self.logits(rgb_uint8_batch)
+        return self._prediction(out[branch], branch)
+
+    def _prediction(self, logits: np.ndarray, branch: str) -> Prediction:
+        probs = np.asarray(jax.nn.softmax(jnp.asarray(logits, jnp.float32), axis=-1))
+        label = probs.argmax(axis=1).astype(np.int32)
+        kind = self.meta["unknown"]["score"]
+        score = np.asarray(unknown.unknown_score(logits, kind))
+        thr = self.threshold if branch == "fusion" else float("nan")
+        centres = self.grid.cell_centers()
+        return Prediction(
+            label=label,
+            probabilities=probs,
+            confidence=probs[np.arange(len(label)), label],
+            cell_center=centres[label],
+            cell_bounds=np.array([self.grid.cell_bounds(int(k)) for k in label], np.float64).reshape(-1, 4),
+            unknown_score=score,
+            rejected=(score > thr) if np.isfinite(thr) else np.zeros(len(label), bool),
+            branch=branch,
+            unknown_kind=kind,
+            threshold=thr,
+        )
+
+    def describe(self) -> str:
+        m = self.meta
+        return (
+            f"place classifier: trained on session {m['train_session']}, {m['num_classes']} places "
+            f"({self.grid.n}×{self.grid.n} grid), images {self.image_size[0]}×{self.image_size[1]}, depth "
+            f"{m['depth']['kind']}, unknown if {m['unknown']['score']} score > {self.threshold:.4g}"
+        )
+
+
+def _leaf_specs(tree: Any) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """``{"a/b/c": (shape, dtype)}`` of a pytree of arrays or ``ShapeDtypeStruct``s."""
+    leaves = jax.tree_util.tree_flatten_with_path(_plain(tree))[0]
+    return {
+        "/".join(str(getattr(k, "key", k)) for k in path): (tuple(v.shape), np.dtype(v.dtype)) for path, v in leaves
+    }
+
+
+def _fc7_width(vgg: VGG16) -> int:
+    return max(1, round(4096 * vgg.width))
+
+
+def _plain(tree: Any) -> Any:
+    """Flax FrozenDict / mappings → plain nested dicts."""
+    if hasattr(tree, "items"):
+        return {k: _plain(v) for k, v in tree.items()}
+    return tree
+
+
+def _pretrained_trunk(vgg_cfg: dict) -> dict:
+    from placejax.weights import convert_vgg16, load, read_torch_checkpoint
+
+    if vgg_cfg["weights"]:
+        sd = read_torch_checkpoint(vgg_cfg["weights"])
+        fc8 = sd.get("classifier.6.weight")
+        n_out = int(np.shape(fc8)[0]) if fc8 is not None else 1000
+        params = convert_vgg16(sd, VGG16(num_classes=n_out, width=vgg_cfg["width"]))["params"]
+    else:
+        params = load("vgg16_imagenet")["params"]
+    return jax.tree_util.tree_map(np.asarray, _plain(params["trunk"]))

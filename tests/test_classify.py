@@ -1,0 +1,373 @@
+"""``PlaceClassifier``: built from a finished smoke run, checked against the experiment's own evaluation path,
+saved and loaded bit-exactly, refusing bad files and bad images; the command; the unseen-place scores."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import zipfile
+from pathlib import Path
+
+import cv2
+import jax
+import numpy as np
+import pytest
+
+from experiments.cross_season import apply_overrides, get_config, run
+from experiments.cross_season import pipeline as P
+from placejax.classify import ArtefactError, PlaceClassifier, _run_layout, unknown
+from placejax.classify.__main__ import main as classify_main
+
+TRAIN, TEST = "WI", "SU"
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    """A smoke run with a (4-step) trained depth network, two seasons: a classifier can be built from it."""
+    root = tmp_path_factory.mktemp("classify")
+    cfg = get_config("smoke")
+    apply_overrides(
+        cfg,
+        [
+            "depth.source=trained",
+            "depth.trained_preset=smoke",
+            f"depth.trained_cache={root / 'depth'}",
+            f"data.sessions=('{TRAIN}','{TEST}')",
+            "ablations.depth1=False",
+            "figures=False",
+            "progress=False",
+        ],
+    )
+    workdir = root / "run"
+    return cfg, workdir, run(cfg, workdir)
+
+
+@pytest.fixture(scope="module")
+def clf(smoke_run):
+    _, workdir, _ = smoke_run
+    return PlaceClassifier.from_run(workdir, TRAIN)
+
+
+@pytest.fixture(scope="module")
+def experiment_outputs(smoke_run):
+    """The experiment's evaluation path recomputed with its own stage functions (all cached or checkpointed):
+    per session its uint8 frames, HHA images, labels and the logits of RGB-Net, HHA-Net and the fusion MLP of
+    the classifier trained on ``TRAIN``."""
+    cfg, workdir, _ = smoke_run
+    ctx = P.Context(config=cfg, workdir=Path(workdir).absolute(), mesh=P.data_mesh(None))
+    sessions = P.load_sessions(ctx)
+    grid = P.fit_grid(ctx, sessions)
+    P.compute_depth_and_hha(ctx, sessions)
+    nets = P.train_nets(ctx, sessions, grid.num_classes)
+    by_name = {s.name: s for s in sessions}
+    tr = by_name[TRAIN]
+    out = {
+        (m, s.name): P.net_outputs(ctx, nets[(TRAIN, m)], s, grid.num_classes) for m in ("rgb", "hha") for s in sessions
+    }
+    emb = np.concatenate([out[("rgb", TRAIN)]["fc7"], out[("hha", TRAIN)]["fc7"]], 1)
+    upstream = {m: P.cache_digest(nets[(TRAIN, m)].key) for m in ("rgb", "hha")}
+    state, prepare, _ = P.train_mlp(ctx, tr, emb, grid.num_classes, 0, upstream)
+    result = {}
+    for s in sessions:
+        e = np.concatenate([out[("rgb", s.name)]["fc7"], out[("hha", s.name)]["fc7"]], 1)
+        ds = P.eval_dataset(e, batch_size=cfg.eval.batch_size)
+        fused = P.predict(state, ds, len(s), mesh=ctx.mesh, prepare=prepare, progress=False)["logits"]
+        result[s.name] = {
+            "images": np.asarray(s.cached.images),
+            "hha": np.asarray(s.hha.data),
+            "labels": s.labels,
+            "rgb": out[("rgb", s.name)]["logits"],
+            "hha_logits": out[("hha", s.name)]["logits"],
+            "fusion": np.asarray(fused),
+        }
+    return result
+
+
+# ---------------------------------------------------------------------------------------------------- parity
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("session", [TRAIN, TEST])
+def test_predict_matches_the_experiments_evaluation(clf, experiment_outputs, session):
+    """uint8 RGB → depth → HHA → nets → MLP in one jit gives the experiment's outputs on the same frames."""
+    ref = experiment_outputs[session]
+    got = clf.logits(ref["images"])
+    # HHA: the jitted bicubic resize replaces OpenCV's in the depth network's input transform (float rounding).
+    # Measured on WI / SU: 99.998% of HHA values equal, the rest ±1; logits |Δ| ≤ 1.3e-5 (RGB-Net, scale ~20),
+    # ≤ 3.5e-3 (HHA-Net, scale ~13), ≤ 6e-4 (fusion, scale ~4.5); every arg-max equal.
+    diff = np.abs(got["hha_image"].astype(int) - ref["hha"].astype(int))
+    assert diff.max() <= 1 and (diff == 0).mean() > 0.999, (diff.max(), (diff == 0).mean())
+    np.testing.assert_allclose(got["rgb"], ref["rgb"], rtol=0, atol=1e-4)
+    np.testing.assert_allclose(got["hha"], ref["hha_logits"], rtol=0, atol=2e-2)
+    np.testing.assert_allclose(got["fusion"], ref["fusion"], rtol=0, atol=5e-3)
+    pred = clf.predict(ref["images"])
+    assert (pred.label == ref["fusion"].argmax(1)).mean() >= 0.98
+    np.testing.assert_allclose(pred.probabilities.sum(1), 1.0, rtol=1e-5)
+
+
+def test_prediction_fields_describe_the_cell(clf, experiment_outputs):
+    images = experiment_outputs[TRAIN]["images"][:5]
+    pred = clf.predict(images)
+    assert len(pred) == 5 and pred.branch == "fusion" and pred.probabilities.shape == (5, clf.grid.num_classes)
+    for i in range(5):
+        x_lo, x_hi, y_lo, y_hi = clf.grid.cell_bounds(int(pred.label[i]))
+        assert x_lo <= pred.cell_center[i, 0] <= x_hi and y_lo <= pred.cell_center[i, 1] <= y_hi
+        assert clf.grid.label(pred.cell_center[i][None])[0] == pred.label[i]
+    np.testing.assert_array_equal(pred.rejected, pred.unknown_score > clf.threshold)
+    rgb_only = clf.predict(images, branch="rgb")
+    assert rgb_only.branch == "rgb" and not rgb_only.rejected.any()
+    json.dumps(pred.records())
+
+
+def test_batch_equals_loop_and_buckets_bound_compiles(clf, experiment_outputs):
+    images = experiment_outputs[TEST]["images"][:6]
+    batch = clf.logits(images)["fusion"]
+    loop = np.concatenate([clf.logits(images[i : i + 1])["fusion"] for i in range(6)])
+    np.testing.assert_allclose(batch, loop, rtol=1e-5, atol=1e-5)
+    from placejax.classify._classifier import _jitted_forward
+
+    fn = _jitted_forward(clf._spec)
+    before = fn._cache_size()
+    # Batches of 6 (padded to 8) and 1 ran above; sizes 3..8 need only the 4-bucket more.
+    for n in (3, 4, 5, 7, 8):
+        clf.logits(images[:1].repeat(n, 0))
+    assert fn._cache_size() - before <= 1
+
+
+def test_other_image_sizes_are_resized_as_the_cache_does(clf, experiment_outputs):
+    img = experiment_outputs[TRAIN]["images"][:2]
+    big = np.stack([cv2.resize(im, (64, 64), interpolation=cv2.INTER_LINEAR) for im in img])
+    pred = clf.predict(big)
+    assert pred.probabilities.shape == (2, clf.grid.num_classes)
+
+
+# ---------------------------------------------------------------------------------------------------- files
+
+
+def test_save_load_predict_is_identical(clf, experiment_outputs, tmp_path):
+    path = clf.save(tmp_path / "m.placejax")
+    assert [p.name for p in tmp_path.iterdir()] == ["m.placejax"]  # no temporary file left behind
+    again = PlaceClassifier.load(path)
+    images = experiment_outputs[TEST]["images"][:9]
+    a, b = clf.predict(images), again.predict(images)
+    for f in dataclasses.fields(a):
+        va, vb = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(va, np.ndarray):
+            np.testing.assert_array_equal(va, vb)
+        else:
+            assert va == vb or (va != va and vb != vb), f.name
+    with zipfile.ZipFile(path) as z:
+        manifest = json.loads(z.read("manifest.json"))
+    assert manifest["format"] == "placejax.PlaceClassifier" and manifest["train_session"] == TRAIN
+    assert {"jax", "flax", "placejax"} <= set(manifest["versions"])
+    assert all(len(m["sha256"]) == 64 for m in manifest["arrays"].values())
+    assert manifest["grid"] == clf.meta["grid"] and manifest["config"]["preset"] == "smoke"
+
+
+def _rewrite(src: Path, dst: Path, *, manifest=None, array_bytes=None, drop=None) -> Path:
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename == drop:
+                continue
+            if item.filename == "manifest.json" and manifest is not None:
+                data = json.dumps(manifest(json.loads(data))).encode()
+            if array_bytes is not None and item.filename == array_bytes[0]:
+                data = array_bytes[1](data)
+            zout.writestr(item, data)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def saved(clf, tmp_path_factory):
+    return clf.save(tmp_path_factory.mktemp("saved") / "m.placejax")
+
+
+def _an_array(path: Path) -> str:
+    with zipfile.ZipFile(path) as z:
+        return next(n for n in z.namelist() if n.startswith("arrays/mlp/"))
+
+
+def _flip_last_byte(data: bytes) -> bytes:
+    return data[:-1] + bytes([data[-1] ^ 0xFF])
+
+
+@pytest.mark.parametrize(
+    "corrupt, message",
+    [
+        ("flip", "SHA-256"),
+        ("truncate", "not a zip archive"),
+        ("not_zip", "not a zip archive"),
+        ("no_manifest", "no manifest.json"),
+        ("version", "format version"),
+        ("format", "format"),
+        ("missing_array", "is missing"),
+        ("shape", "manifest says"),
+        ("classes", "do not fit"),
+    ],
+)
+def test_bad_files_are_refused_by_name(saved, tmp_path, corrupt, message):
+    bad = tmp_path / "bad.placejax"
+    arr = _an_array(saved)
+    if corrupt == "flip":
+        _rewrite(saved, bad, array_bytes=(arr, _flip_last_byte))
+    elif corrupt == "truncate":
+        bad.write_bytes(saved.read_bytes()[: saved.stat().st_size // 2])
+    elif corrupt == "not_zip":
+        bad.write_text("hello")
+    elif corrupt == "no_manifest":
+        _rewrite(saved, bad, drop="manifest.json")
+    elif corrupt == "version":
+        _rewrite(saved, bad, manifest=lambda m: {**m, "version": 99})
+    elif corrupt == "format":
+        _rewrite(saved, bad, manifest=lambda m: {**m, "format": "something.else"})
+    elif corrupt == "missing_array":
+        _rewrite(saved, bad, drop=arr)
+    elif corrupt == "shape":
+        name = arr[len("arrays/") : -len(".npy")]
+
+        def edit(m):
+            m["arrays"][name]["shape"] = [7, 7, 7]
+            return m
+
+        _rewrite(saved, bad, manifest=edit)
+    elif corrupt == "classes":
+        _rewrite(saved, bad, manifest=lambda m: {**m, "num_classes": m["num_classes"] + 1})
+    with pytest.raises(ArtefactError, match=message) as e:
+        PlaceClassifier.load(bad)
+    assert str(bad) in str(e.value)
+
+
+def test_missing_file_is_a_file_not_found(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"nope\.placejax"):
+        PlaceClassifier.load(tmp_path / "nope.placejax")
+
+
+def test_from_run_errors_name_the_problem(smoke_run, tmp_path, monkeypatch):
+    _, workdir, _ = smoke_run
+    with pytest.raises(KeyError, match=r"'XX'.*WI"):
+        PlaceClassifier.from_run(workdir, "XX")
+    with pytest.raises(FileNotFoundError, match=r"classifiers\.json"):
+        PlaceClassifier.from_run(tmp_path, TRAIN)
+    real = _run_layout.locate_run
+    monkeypatch.setattr(
+        _run_layout, "locate_run", lambda w, s: dataclasses.replace(real(w, s), depth={"source": "true"})
+    )
+    with pytest.raises(ValueError, match="no depth network"):
+        PlaceClassifier.from_run(workdir, TRAIN)
+
+
+# ---------------------------------------------------------------------------------------------------- bad images
+
+
+@pytest.mark.parametrize(
+    "images, error, message",
+    [
+        (np.zeros((2, 32, 32, 3), np.float32), TypeError, r"dtype uint8.*\(N, H, W, 3\).*float32"),
+        (np.zeros((32, 32, 3), np.uint8), ValueError, r"\(N, H, W, 3\).*\(32, 32, 3\).*images\[None\]"),
+        (np.zeros((2, 32, 32), np.uint8), ValueError, r"\(N, H, W, 3\).*\(2, 32, 32\)"),
+        (np.zeros((2, 32, 32, 4), np.uint8), ValueError, r"\(N, H, W, 3\).*\(2, 32, 32, 4\)"),
+        (np.zeros((0, 32, 32, 3), np.uint8), ValueError, r"empty batch"),
+        ([[0]], TypeError, r"uint8 array of shape \(N, H, W, 3\).*list"),
+    ],
+)
+def test_bad_images_are_explained(clf, images, error, message):
+    with pytest.raises(error, match=message) as e:
+        clf.predict(images)
+    assert "rgb_uint8_batch" in str(e.value)
+
+
+# ---------------------------------------------------------------------------------------------------- command
+
+
+def _png(path: Path, image: np.ndarray) -> Path:
+    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    return path
+
+
+def test_command_text_json_and_figure(saved, experiment_outputs, tmp_path, capsys):
+    imgs = experiment_outputs[TEST]["images"]
+    a, b = _png(tmp_path / "a.png", imgs[0]), _png(tmp_path / "b.png", imgs[len(imgs) // 2])
+    assert classify_main([str(saved), str(a), str(b)]) == 0
+    text = capsys.readouterr().out
+    assert "a.png: class" in text and "confidence" in text and "cell centre" in text and "place" in text
+    assert classify_main([str(saved), str(a), str(b), "--json", "--figure", str(tmp_path / "fig.png")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    expected = PlaceClassifier.load(saved).predict(np.stack([imgs[0], imgs[len(imgs) // 2]])).records()
+    assert [r["image"] for r in doc["images"]] == [str(a), str(b)]
+    for got, want in zip(doc["images"], expected, strict=True):
+        assert got["class"] == want["class"] and got["rejected"] == want["rejected"]
+        assert got["confidence"] == pytest.approx(want["confidence"], abs=1e-6)
+    assert cv2.imread(str(tmp_path / "fig.png")) is not None
+
+
+def test_command_from_a_run_directory(smoke_run, experiment_outputs, tmp_path, capsys):
+    _, workdir, _ = smoke_run
+    a = _png(tmp_path / "a.png", experiment_outputs[TRAIN]["images"][0])
+    assert classify_main([str(workdir), "--session", TRAIN, str(a), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["model"]["train_session"] == TRAIN
+    assert classify_main([str(workdir), str(a)]) == 2
+    assert "--session" in capsys.readouterr().err
+
+
+def test_command_errors_name_the_file(saved, tmp_path, capsys):
+    text = tmp_path / "notes.txt"
+    text.write_text("not an image")
+    assert classify_main([str(saved), str(text)]) == 2
+    err = capsys.readouterr().err
+    assert "notes.txt" in err and "not an image file" in err
+    assert classify_main([str(saved), str(tmp_path / "missing.png")]) == 2
+    assert "missing.png: no such file" in capsys.readouterr().err
+    png = _png(tmp_path / "ok.png", np.zeros((8, 8, 3), np.uint8))
+    assert classify_main([str(text), str(png)]) == 2
+    assert "MODEL" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------------- unknown
+
+
+def test_auroc_matches_pair_counting():
+    rng = np.random.default_rng(0)
+    s = rng.integers(0, 5, 60).astype(float)  # many ties
+    pos = rng.random(60) < 0.3
+    pairs = [(a > b) + 0.5 * (a == b) for a in s[pos] for b in s[~pos]]
+    assert unknown.auroc(s, pos) == pytest.approx(np.mean(pairs))
+    assert np.isnan(unknown.auroc(s, np.zeros(60, bool)))
+
+
+def test_threshold_rejects_the_target_share_of_training_frames():
+    s = np.random.default_rng(1).random(1000)
+    t = unknown.fit_threshold(s, 0.05)
+    assert 0.04 <= (s > t).mean() <= 0.05
+
+
+def test_scores_grow_with_uncertainty():
+    sure = np.array([[10.0, 0.0, 0.0]])
+    unsure = np.array([[1.0, 0.9, 0.8]])
+    for name in unknown.SCORES:
+        assert float(unknown.unknown_score(unsure, name)[0]) > float(unknown.unknown_score(sure, name)[0]), name
+
+
+def test_results_and_table_carry_the_unknown_columns(smoke_run):
+    _, workdir, results = smoke_run
+    pair = results["pairs"][0]
+    for k in ("unknown_msp_auroc", "unknown_rejected_unseen", "unknown_rejected_seen"):
+        assert k in pair
+    table = (workdir / "table.md").read_text()
+    assert "| train | test | Ours | RGB-Net | gain | HHA-Net | gain |" in table
+    assert "AUROC msp" in table and "unseen rejected" in table
+    index = json.loads((workdir / "classifiers.json").read_text())
+    assert set(index["sessions"]) == {TRAIN, TEST}
+    assert jax.tree_util.tree_leaves(index["sessions"][TRAIN]["unknown"])
+
+
+def test_top_level_name_is_lazy():
+    import subprocess
+    import sys
+
+    import placejax
+
+    assert placejax.PlaceClassifier is PlaceClassifier
+    # ``import placejax`` alone does not pull in JAX (the classifier is imported on first use).
+    code = "import sys, placejax; assert 'jax' not in sys.modules, 'jax imported'"
+    subprocess.run([sys.executable, "-c", code], check=True)
