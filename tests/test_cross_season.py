@@ -293,3 +293,23 @@ def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smok
     other.seed = 1
     with pytest.raises(PermissionError, match="read-only"):
         run(other, workdir)
+
+
+def test_two_processes_train_exactly_like_one_process_with_two_devices(smoke, tmp_path):
+    """2 JAX processes × 1 device (JAX's distributed runtime, gloo collectives on CPU, started by
+    placejax.training.launch) against the smoke fixture's 1 process × 2 devices: every accuracy of every pair
+    identical (each process reads its rows of the same global batches; the gradient all-reduce adds the same
+    two partial sums)."""
+    _, one = smoke
+    workdir = tmp_path / "mp"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache")}
+    cmd = [sys.executable, "-m", "placejax.training.launch", "--processes", "2", "--devices-per-process", "1", "--"]
+    done = subprocess.run([*cmd, *_cli(workdir)], cwd=REPO, env=env, capture_output=True, text=True, timeout=1200)
+    assert done.returncode == 0, done.stderr[-3000:]
+    two = json.loads((workdir / "results.json").read_text())
+    assert two["devices"] == {"count": 2, "platform": "cpu", "processes": 2}
+    assert one["devices"]["processes"] == 1 and one["devices"]["count"] == 2
+    assert _accuracies(two) == _accuracies(one)
+    # Process 0 alone holds the work-directory lock (and writes the shared files).
+    assert (workdir / ".lock").read_text().startswith("pid ")
+    assert "[process 0]" in done.stdout and "[process 1]" in done.stdout

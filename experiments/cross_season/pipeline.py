@@ -78,8 +78,12 @@ class Context:
     config: ml_collections.ConfigDict
     workdir: Path
     mesh: jax.sharding.Mesh
-    local_mesh: jax.sharding.Mesh
+    local_mesh: jax.sharding.Mesh | None = None  # default: this process's devices
     timings: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.local_mesh is None:
+            self.local_mesh = data_mesh(jax.local_devices())
 
     @property
     def cache_root(self) -> Path:
@@ -671,7 +675,7 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
 
 
 def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Mesh, t_start: float) -> dict:
-    ctx = Context(config=config, workdir=workdir, mesh=mesh, local_mesh=data_mesh(jax.local_devices()))
+    ctx = Context(config=config, workdir=workdir, mesh=mesh)
     if jax.process_index() == 0:
         io.write_json(workdir / "config.json", config.to_dict())
 

@@ -88,7 +88,10 @@ def launch(
 
     code = 0
     try:
-        while any(p.poll() is None for p in procs):
+        while True:
+            running = [p.poll() is None for p in procs]  # poll every process (any() would stop at the first)
+            if not any(running):
+                break
             failed = [(k, p.returncode) for k, p in enumerate(procs) if p.returncode not in (None, 0)]
             if failed:
                 k, code = failed[0]
@@ -96,9 +99,8 @@ def launch(
                 stop_all()
                 break
             time.sleep(poll_s)
-        else:
-            codes = [p.returncode for p in procs]
-            code = next((c for c in codes if c != 0), 0)
+        if code == 0:
+            code = next((p.returncode for p in procs if p.returncode != 0), 0)
     except KeyboardInterrupt:
         stop_all()
         code = 130

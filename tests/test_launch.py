@@ -1,0 +1,70 @@
+"""placejax.training.launch: N cooperating processes, their environment, and a clean stop when one fails."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+_CHILD = textwrap.dedent(
+    """
+    import os, sys, time
+    from pathlib import Path
+    k = int(os.environ["JAX_PROCESS_ID"])
+    out = Path(sys.argv[1])
+    (out / f"env{k}").write_text(" ".join([os.environ["JAX_COORDINATOR_ADDRESS"], os.environ["JAX_NUM_PROCESSES"],
+                                           os.environ["XLA_FLAGS"]]))
+    if sys.argv[2] == "fail" and k == 1:
+        time.sleep(0.5)
+        sys.exit(3)
+    time.sleep(float(sys.argv[3]))
+    (out / f"done{k}").write_text("ok")
+    print(f"hello from {k}")
+    """
+)
+
+
+def _launch(tmp_path, mode: str, sleep_s: float) -> subprocess.CompletedProcess:
+    script = tmp_path / "child.py"
+    script.write_text(_CHILD)
+    cmd = [
+        sys.executable,
+        "-m",
+        "placejax.training.launch",
+        "-n",
+        "3",
+        "--devices-per-process",
+        "1",
+        "--",
+        sys.executable,
+        str(script),
+        str(tmp_path),
+        mode,
+        str(sleep_s),
+    ]
+    return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
+
+
+def test_every_process_gets_its_id_and_the_same_coordinator(tmp_path):
+    done = _launch(tmp_path, "ok", 0.2)
+    assert done.returncode == 0, done.stderr
+    envs = [(tmp_path / f"env{k}").read_text().split() for k in range(3)]
+    assert len({e[0] for e in envs}) == 1 and envs[0][0].startswith("127.0.0.1:")
+    assert all(e[1] == "3" and "--xla_force_host_platform_device_count=1" in e[2:] for e in envs)
+    assert all((tmp_path / f"done{k}").exists() for k in range(3))
+    for k in range(3):
+        assert f"[process {k}] hello from {k}" in done.stdout
+
+
+def test_one_failing_process_stops_the_others_at_once(tmp_path):
+    t0 = time.monotonic()
+    done = _launch(tmp_path, "fail", 60.0)
+    took = time.monotonic() - t0
+    assert done.returncode == 3
+    assert "launch: process 1 exited with code 3; stopping the other processes" in done.stderr
+    assert took < 30  # the others (sleeping 60 s) were stopped, not waited for
+    assert not any((tmp_path / f"done{k}").exists() for k in range(3))
