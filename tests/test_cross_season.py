@@ -49,7 +49,8 @@ def test_smoke_table_and_results(smoke):
         assert t[stage] > 0, stage  # each did real work in this fresh run
     assert t["nets"] > t["evaluate"]  # training dominates evaluation
     assert sum(t[s] for s in stages) <= t["total"] * 1.01 + 1.0  # stages are disjoint parts of the run
-    table = (workdir / "table.md").read_text().splitlines()
+    text = (workdir / "table.md").read_text()
+    table = text.split("\n\n")[0].splitlines()  # the paper's table (the baselines table follows)
     assert table[0].split("|")[1:8] == [" train ", " test ", " Ours ", " RGB-Net ", " gain ", " HHA-Net ", " gain "]
     rows = [r for r in table[2:] if r.startswith("|")]
     assert len(rows) == 13 and rows[-1].startswith("| **mean**")
@@ -313,3 +314,59 @@ def test_two_processes_train_exactly_like_one_process_with_two_devices(smoke, tm
     # Process 0 alone holds the work-directory lock (and writes the shared files).
     assert (workdir / ".lock").read_text().startswith("pid ")
     assert "[process 0]" in done.stdout and "[process 1]" in done.stdout
+
+
+def test_ceilings_and_nearest_neighbour_baselines(smoke):
+    """The second table: ceilings from poses and labels, 1-NN baselines; recomputed independently here."""
+    workdir, results = smoke
+    grid = PlaceGrid.load(workdir / "grid.json")
+    caches = workdir / "cache"
+    poses = {}
+    for s in SEASONS:
+        (rgb,) = [d for d in caches.iterdir() if re.fullmatch(rf"{s}-rgb32x32-[0-9a-f]{{16}}", d.name)]
+        poses[s] = open_array_cache(rgb).extras["poses"]
+    labels = {s: grid.label(poses[s]) for s in SEASONS}
+    for p in results["pairs"]:
+        tr, te = p["train"], p["test"]
+        # Heading ceiling, brute force: a training frame of the same class within 45° (angles wrapped).
+        ok = []
+        for i in range(len(labels[te])):
+            same = labels[tr] == labels[te][i]
+            d = np.abs((poses[tr][same, 2] - poses[te][i, 2] + np.pi) % (2 * np.pi) - np.pi)
+            ok.append(bool((d <= np.radians(45) + 1e-9).any()))
+        assert p["heading_ceiling"] == pytest.approx(np.mean(ok))
+        assert p["heading_ceiling"] <= p["seen_class_fraction"] + 1e-9
+        for k in ("nn_rgb", "nn_gradient", "nn_hha", "nn_hha_true"):
+            assert 0.0 <= p[k] <= p["seen_class_fraction"] + 1e-9  # 1-NN can only answer a visited class
+        assert p["nn_hha"] == p["nn_hha_true"]  # smoke: the run's depth source is the rendered depth
+    assert set(results["ceilings_and_baselines"]) == {
+        "seen_class_fraction",
+        "heading_ceiling",
+        "nn_rgb",
+        "nn_gradient",
+        "nn_hha",
+        "nn_hha_true",
+    }
+    table = (workdir / "table.md").read_text()
+    assert "ceiling: seen class and heading ±45°" in table and "1-NN HHA 16² (rendered depth)" in table
+
+
+def test_nearest_neighbour_and_heading_ceiling_on_analytic_cases():
+    from experiments.cross_season import baselines
+
+    train = baselines._standardise(np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], np.float32))
+    test = baselines._standardise(np.array([[0, 0.9, 0.1, 0], [1, 0.2, 0, 0]], np.float32))
+    np.testing.assert_array_equal(baselines.nearest_neighbour_labels(train, np.array([5, 6, 7]), test), [6, 5])
+    yaw = np.radians
+    train_poses = np.array([[0, 0, yaw(0)], [0, 0, yaw(170)], [0, 0, yaw(90)]])
+    test_poses = np.array([[0, 0, yaw(40)], [0, 0, yaw(-170)], [0, 0, yaw(-90)], [0, 0, yaw(0)]])
+    # class 1: 40° from 0° (ok); class 1: −170° is 20° from 170° across the wrap (ok); class 2: 180° off; class 3
+    # was never visited.
+    ceiling = baselines.heading_ceiling(train_poses, np.array([1, 1, 2]), test_poses, np.array([1, 1, 2, 3]))
+    assert ceiling == pytest.approx(0.5)
+    rgb = np.zeros((2, 8, 8, 3), np.uint8)
+    rgb[1, :, 4:] = 255
+    t = baselines.thumbnails(rgb, 4)
+    assert t.shape == (2, 48) and np.allclose(np.linalg.norm(t[1]), 1.0) and np.allclose(t[0], 0.0)
+    g = baselines.gradient_thumbnails(rgb, 4)
+    assert g.shape == (2, 16) and np.allclose(g[0], 0.0) and np.allclose(np.linalg.norm(g[1]), 1.0)

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from experiments.cross_season import baselines as _baselines
 from experiments.cross_season import config as _config
 from placejax import hha as _hha
 from placejax import io
@@ -170,15 +171,15 @@ def fit_grid(ctx: Context, sessions: list[SessionData]) -> PlaceGrid:
 # ---------------------------------------------------------------------------------------------------- depth, HHA
 
 
-def _depth_source(ctx: Context) -> tuple[dict, Callable[[SessionData, int, int], np.ndarray]]:
-    """``(key, fn(session, start, stop) → float32 metric depth (n, H, W))`` of ``depth.source``."""
+def _depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionData, int, int], np.ndarray]]:
+    """``(key, fn(session, start, stop) → float32 metric depth (n, H, W))`` of a depth source."""
     c = ctx.config.depth
     metric = dict(near_m=c.near_m, far_m=c.far_m)
 
     def to_metric(inv: np.ndarray) -> np.ndarray:
         return np.asarray(_hha.inverse_depth_to_metric(inv, **metric), np.float32)
 
-    if c.source == "true":
+    if source == "true":
         if ctx.config.data.source != "simcampus":
             raise ValueError("depth.source='true' needs rendered depth: only data.source='simcampus' has it")
 
@@ -186,7 +187,7 @@ def _depth_source(ctx: Context) -> tuple[dict, Callable[[SessionData, int, int],
             return s.source.depths(np.arange(a, b)).astype(np.float32)
 
         return {"source": "true (rendered z-depth)"}, true_depth
-    if c.source == "midas":
+    if source == "midas":
         from placejax import depth as _depth
         from placejax.models import MidasSmall
         from placejax.weights import convert_midas_small, load, read_torch_checkpoint
@@ -204,7 +205,7 @@ def _depth_source(ctx: Context) -> tuple[dict, Callable[[SessionData, int, int],
 
         key = {"source": "midas", "weights": ident, "model": [c.midas_features, c.midas_encoder_width], **metric}
         return key, midas
-    if c.source == "trained":
+    if source == "trained":
         # The placejax-trained depth network: trained once per machine into the cache, then reused.
         from placejax import depth as _depth
 
@@ -216,47 +217,59 @@ def _depth_source(ctx: Context) -> tuple[dict, Callable[[SessionData, int, int],
             return to_metric(trained.predict(np.asarray(s.cached.images[a:b])))
 
         return {"source": "trained", "fingerprint": trained.fingerprint, **metric}, trained_depth
-    raise ValueError(f"depth.source must be 'trained', 'midas' or 'true', got {c.source!r}")
+    raise ValueError(f"depth.source must be 'trained', 'midas' or 'true', got {source!r}")
 
 
 def compute_depth_and_hha(ctx: Context, sessions: list[SessionData]) -> None:
-    """Caches metric depth then HHA for every session."""
+    """Caches metric depth then HHA of ``depth.source`` for every session (``s.depth``, ``s.hha``)."""
+    for s, (d, h) in zip(sessions, depth_and_hha_caches(ctx, sessions, ctx.config.depth.source), strict=True):
+        s.depth, s.hha = d, h
+
+
+def depth_and_hha_caches(ctx: Context, sessions: list[SessionData], source: str) -> list[tuple[Any, Any]]:
+    """``[(depth cache, HHA cache)]`` of every session for a depth source (built once, then read back)."""
     c = ctx.config.depth
+    depths, hhas = [], []
     with ctx.timed("depth"):
-        key, fn = _depth_source(ctx)
+        key, fn = _depth_source(ctx, source)
         for s in sessions:
             hw = s.cached.image_shape
-            s.depth = build_array_cache(
-                ctx.cache_root,
-                f"{s.name}-depth-{c.source}",
-                len(s),
-                lambda a, b, s=s: fn(s, a, b),
-                hw,
-                np.float32,
-                key={"kind": "depth", "images": s.cached.key, **key},
-                chunk=c.batch_size,
-                progress=ctx.progress,
-                desc=f"depth {s.name}",
+            depths.append(
+                build_array_cache(
+                    ctx.cache_root,
+                    f"{s.name}-depth-{source}",
+                    len(s),
+                    lambda a, b, s=s: fn(s, a, b),
+                    hw,
+                    np.float32,
+                    key={"kind": "depth", "images": s.cached.key, **key},
+                    chunk=c.batch_size,
+                    progress=ctx.progress,
+                    desc=f"depth {s.name}",
+                )
             )
     with ctx.timed("hha"):
-        for s in sessions:
+        for s, depth in zip(sessions, depths, strict=True):
             k = np.asarray(s.cached.intrinsics)
 
-            def encode(a: int, b: int, s=s, k=k) -> np.ndarray:
-                return map_batches(lambda d: _hha.encode(d, k), np.asarray(s.depth.data[a:b]), c.batch_size)
+            def encode(a: int, b: int, depth=depth, k=k) -> np.ndarray:
+                return map_batches(lambda d: _hha.encode(d, k), np.asarray(depth.data[a:b]), c.batch_size)
 
-            s.hha = build_array_cache(
-                ctx.cache_root,
-                f"{s.name}-hha-{c.source}",
-                len(s),
-                encode,
-                (*s.cached.image_shape, 3),
-                np.uint8,
-                key={"kind": "hha", "depth": s.depth.key},
-                chunk=c.batch_size,
-                progress=ctx.progress,
-                desc=f"HHA {s.name}",
+            hhas.append(
+                build_array_cache(
+                    ctx.cache_root,
+                    f"{s.name}-hha-{source}",
+                    len(s),
+                    encode,
+                    (*s.cached.image_shape, 3),
+                    np.uint8,
+                    key={"kind": "hha", "depth": depth.key},
+                    chunk=c.batch_size,
+                    progress=ctx.progress,
+                    desc=f"HHA {s.name}",
+                )
             )
+    return list(zip(depths, hhas, strict=True))
 
 
 def modality_images(s: SessionData, modality: str) -> np.ndarray:
@@ -584,6 +597,26 @@ def train_mlp(ctx: Context, s: SessionData, embeddings: np.ndarray, num_classes:
     return state, _features_prepare, folder
 
 
+def baseline_features(ctx: Context, sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
+    """Standardised thumbnails of every session for the nearest-neighbour baselines (``baselines`` module)."""
+    sizes = _baselines.THUMB_SIZES
+    feats = {
+        "nn_rgb": {s.name: _baselines.thumbnails(s.cached.images, sizes["nn_rgb"]) for s in sessions},
+        "nn_gradient": {
+            s.name: _baselines.gradient_thumbnails(s.cached.images, sizes["nn_gradient"]) for s in sessions
+        },
+        "nn_hha": {s.name: _baselines.thumbnails(s.hha.data, sizes["nn_hha"]) for s in sessions},
+    }
+    if ctx.config.data.source == "simcampus":
+        # Geometry alone: HHA of rendered depth (the same caches as depth.source=true, built once).
+        true = depth_and_hha_caches(ctx, sessions, "true")
+        feats["nn_hha_true"] = {
+            s.name: _baselines.thumbnails(h.data, sizes["nn_hha_true"])
+            for s, (_, h) in zip(sessions, true, strict=True)
+        }
+    return feats
+
+
 def _softmax(logits: np.ndarray) -> np.ndarray:
     z = logits - logits.max(axis=1, keepdims=True)
     e = np.exp(z)
@@ -708,6 +741,9 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
                     "logits"
                 ]
 
+    with ctx.timed("baselines"):
+        thumbs = baseline_features(ctx, sessions)
+
     with ctx.timed("evaluate"):
         pairs = []
         for s in sessions:
@@ -724,6 +760,10 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
                     row["average"] = top1(avg, t.labels)
                 # The best any classifier trained on s can do: test frames in classes s never visited are errors.
                 row["seen_class_fraction"] = float(np.isin(t.labels, seen).mean())
+                row["heading_ceiling"] = _baselines.heading_ceiling(s.cached.poses, s.labels, t.cached.poses, t.labels)
+                for name, feats in thumbs.items():
+                    guess = _baselines.nearest_neighbour_labels(feats[s.name], s.labels, feats[t.name])
+                    row[name] = float(np.mean(guess == t.labels))
                 if t.name == s.name:
                     row["same_session"] = True
                 else:
@@ -737,6 +777,9 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         "pairs": cross,
         "same_session": [p for p in pairs if p["train"] == p["test"]],
         "mean": {m: float(np.mean([p[m] for p in cross])) for m in methods},
+        "ceilings_and_baselines": {
+            k: float(np.mean([p[k] for p in cross])) for k in ("seen_class_fraction", "heading_ceiling", *thumbs)
+        },
         "unknown": _unknown_summary(cross),
         "num_classes": num_classes,
         "grid": grid.to_dict(),

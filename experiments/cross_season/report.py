@@ -79,6 +79,35 @@ def table_markdown(results: dict) -> str:
             f"and top-1 on the accepted seen frames (%). '–': undefined for that pair (no unseen or no accepted "
             f"frame); the mean is over the pairs where it is defined.\n"
         )
+    return "\n".join(lines) + "\n" + note + _baselines_markdown(results)
+
+
+_BASELINE_COLUMNS = {
+    "seen_class_fraction": "ceiling: seen classes",
+    "heading_ceiling": "ceiling: seen class and heading ±45°",
+    "nn_rgb": "1-NN RGB 12²",
+    "nn_gradient": "1-NN gradient 12²",
+    "nn_hha": "1-NN HHA 16² (this run's depth)",
+    "nn_hha_true": "1-NN HHA 16² (rendered depth)",
+}
+
+
+def _baselines_markdown(results: dict) -> str:
+    """The second table: ceilings and nearest-neighbour baselines per pair (top-1 %), and their mean."""
+    if "ceilings_and_baselines" not in results:
+        return ""
+    cols = [k for k in _BASELINE_COLUMNS if k in results["ceilings_and_baselines"]]
+    head = ["train", "test", *[_BASELINE_COLUMNS[k] for k in cols]]
+    lines = ["", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for p in results["pairs"]:
+        lines.append("| " + " | ".join([p["train"], p["test"], *[_pct(p[k]) for k in cols]]) + " |")
+    mean = results["ceilings_and_baselines"]
+    lines.append("| " + " | ".join(["**mean**", "", *[_pct(mean[k]) for k in cols]]) + " |")
+    note = (
+        "\nCeilings and baselines (%): the best a classifier trained on the training session can score (test frames "
+        "in classes it visited; and also seen from within 45° of heading), and 1-nearest-neighbour on standardised "
+        "thumbnails — no learning — of RGB, of the gray image's gradient magnitude and of HHA images.\n"
+    )
     return "\n".join(lines) + "\n" + note
 
 
