@@ -58,7 +58,13 @@ def test_smoke_table_and_results(smoke):
         cells = [c.strip() for c in r.strip("|").split("|")]
         assert cells[:2] == [p["train"], p["test"]]
         assert float(cells[2]) == pytest.approx(100 * p["ours"], abs=0.051)
-        assert float(cells[4]) == pytest.approx(100 * (p["ours"] - p["rgb_net"]), abs=0.11)
+        assert float(cells[4].split()[0]) == pytest.approx(100 * (p["ours"] - p["rgb_net"]), abs=0.11)
+        g = p["gain_vs_rgb_net"]
+        assert g["gain"] == pytest.approx(p["ours"] - p["rgb_net"])
+        assert g["lo"] <= g["gain"] <= g["hi"]
+        assert cells[4].endswith("*") == g["excludes_zero"] == (g["lo"] > 0 or g["hi"] < 0)
+    assert set(results["gains"]) == {"ours_vs_rgb_net", "ours_vs_hha_net"}
+    assert results["seeds"] == {"seed": 0, "seeds": [0]}
     for name in ("workspace_map", "samples", "depth_hha", "examples", "accuracy"):
         assert (workdir / "figures" / f"{name}.png").stat().st_size > 1000
 

@@ -70,7 +70,8 @@ HELP: dict[str, str] = {
     "eval.batch_size": "inference batch (divisible by the device count)",
     "ablations.depth1": "also train a net on the 1-channel depth image (the HHA disparity channel ×3)",
     "ablations.average": "also report equal-weight averaging of RGB-Net and HHA-Net softmax outputs",
-    "seed": "seed of initialisation, shuffling and dropout",
+    "seed": "seed of initialisation, shuffling and dropout (the first of n_seeds)",
+    "n_seeds": "train every net and MLP with seeds seed, seed+1, ...; the table reports mean ± sd over them",
     "devices": "devices of the data mesh (0: all)",
     "figures": "write the figures",
     "progress": "show progress bars",
@@ -128,6 +129,7 @@ def _base() -> ml_collections.ConfigDict:
     c.eval = dict(batch_size=128)
     c.ablations = dict(depth1=True, average=True)
     c.seed = 0
+    c.n_seeds = 1
     c.devices = 0
     c.figures = True
     c.progress = True
@@ -202,6 +204,7 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
         "mlp.batch_size",
         "mlp.save_every",
         "eval.batch_size",
+        "n_seeds",
     ]
     for key in positive_ints:
         v = get(c, key)

@@ -38,6 +38,7 @@ import numpy as np
 
 from experiments.cross_season import baselines as _baselines
 from experiments.cross_season import config as _config
+from experiments.cross_season import stats as _stats
 from placejax import hha as _hha
 from placejax import io
 from placejax.data import PlaceGrid, build_array_cache, cache_session, eval_dataset, train_dataset, truncated
@@ -597,6 +598,60 @@ def train_mlp(ctx: Context, s: SessionData, embeddings: np.ndarray, num_classes:
     return state, _features_prepare, folder
 
 
+def _train_and_predict(ctx: Context, sessions: list[SessionData], num_classes: int, seed: int):
+    """Nets, their outputs, the fusion MLPs and the fused logits of one seed: ``(nets, outputs, fused, mlp_dirs)``."""
+    cfg = ctx.config.copy_and_resolve_references()
+    cfg.seed = seed
+    ctx = dataclasses.replace(ctx, config=cfg)  # shares the timings, workdir and meshes
+    nets = train_nets(ctx, sessions, num_classes)
+    with ctx.timed("outputs"):
+        outputs = {
+            (a, m, s.name): net_outputs(ctx, net, s, num_classes) for (a, m), net in nets.items() for s in sessions
+        }
+    fused: dict[tuple[str, str], np.ndarray] = {}
+    mlp_dirs: dict[str, Path] = {}
+    with ctx.timed("mlp"):
+        for si, s in enumerate(sessions):
+            emb = np.concatenate([outputs[(s.name, "rgb", s.name)]["fc7"], outputs[(s.name, "hha", s.name)]["fc7"]], 1)
+            upstream = {m: cache_digest(nets[(s.name, m)].key) for m in ("rgb", "hha")}
+            state, prepare, mlp_dirs[s.name] = train_mlp(ctx, s, emb, num_classes, si, upstream)
+            for t in sessions:
+                emb_t = np.concatenate(
+                    [outputs[(s.name, "rgb", t.name)]["fc7"], outputs[(s.name, "hha", t.name)]["fc7"]], 1
+                )
+                ds = eval_dataset(emb_t, batch_size=cfg.eval.batch_size // jax.process_count())
+                fused[(s.name, t.name)] = predict(state, ds, len(t), mesh=ctx.mesh, prepare=prepare, progress=False)[
+                    "logits"
+                ]
+    return nets, outputs, fused, mlp_dirs
+
+
+def _method_logits(run, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
+    """Logits (or averaged probabilities) of every method of one seed's run on one pair."""
+    nets, outputs, fused, _ = run
+    out = {"ours": fused[(train, test)]}
+    for m in nets_modalities(nets, train):
+        out[f"{m}_net"] = outputs[(train, m, test)]["logits"]
+    if config.ablations.average:
+        out["average"] = _softmax(outputs[(train, "rgb", test)]["logits"]) + _softmax(
+            outputs[(train, "hha", test)]["logits"]
+        )
+    return out
+
+
+def _gain_intervals(cross: list[dict], seed: int) -> dict:
+    """Paired bootstrap 95 % intervals of Ours − each baseline, per pair and for the mean (``stats``); drops the
+    per-frame correctness the rows carried for it."""
+    correct = [p.pop("_correct") for p in cross]
+    out = {}
+    for base in ("rgb_net", "hha_net"):
+        per_pair, mean = _stats.gain_intervals([_stats.frame_gains(c["ours"], c[base]) for c in correct], seed=seed)
+        for p, g in zip(cross, per_pair, strict=True):
+            p[f"gain_vs_{base}"] = g
+        out[f"ours_vs_{base}"] = mean
+    return out
+
+
 def baseline_features(ctx: Context, sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
     """Standardised thumbnails of every session for the nearest-neighbour baselines (``baselines`` module)."""
     sizes = _baselines.THUMB_SIZES
@@ -718,28 +773,9 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         grid = fit_grid(ctx, sessions)
     num_classes = grid.num_classes
     compute_depth_and_hha(ctx, sessions)
-    nets = train_nets(ctx, sessions, num_classes)
-
-    with ctx.timed("outputs"):
-        outputs = {
-            (a, m, s.name): net_outputs(ctx, net, s, num_classes) for (a, m), net in nets.items() for s in sessions
-        }
-
-    fused: dict[tuple[str, str], np.ndarray] = {}
-    mlp_dirs: dict[str, Path] = {}
-    with ctx.timed("mlp"):
-        for si, s in enumerate(sessions):
-            emb = np.concatenate([outputs[(s.name, "rgb", s.name)]["fc7"], outputs[(s.name, "hha", s.name)]["fc7"]], 1)
-            upstream = {m: cache_digest(nets[(s.name, m)].key) for m in ("rgb", "hha")}
-            state, prepare, mlp_dirs[s.name] = train_mlp(ctx, s, emb, num_classes, si, upstream)
-            for t in sessions:
-                emb_t = np.concatenate(
-                    [outputs[(s.name, "rgb", t.name)]["fc7"], outputs[(s.name, "hha", t.name)]["fc7"]], 1
-                )
-                ds = eval_dataset(emb_t, batch_size=config.eval.batch_size // jax.process_count())
-                fused[(s.name, t.name)] = predict(state, ds, len(t), mesh=mesh, prepare=prepare, progress=False)[
-                    "logits"
-                ]
+    # Every net and MLP is trained once per seed (seed, seed + 1, ...); the table reports the mean over seeds.
+    runs = [_train_and_predict(ctx, sessions, num_classes, config.seed + k) for k in range(config.n_seeds)]
+    nets, outputs, fused, mlp_dirs = runs[0]  # the first seed's models: figures and PlaceClassifier
 
     with ctx.timed("baselines"):
         thumbs = baseline_features(ctx, sessions)
@@ -750,14 +786,11 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
             seen = np.unique(s.labels)
             for t in sessions:
                 row: dict[str, Any] = {"train": s.name, "test": t.name, "n_test": len(t)}
-                row["ours"] = top1(fused[(s.name, t.name)], t.labels)
-                for m in nets_modalities(nets, s.name):
-                    row[f"{m}_net"] = top1(outputs[(s.name, m, t.name)]["logits"], t.labels)
-                if config.ablations.average:
-                    avg = _softmax(outputs[(s.name, "rgb", t.name)]["logits"]) + _softmax(
-                        outputs[(s.name, "hha", t.name)]["logits"]
-                    )
-                    row["average"] = top1(avg, t.labels)
+                per_seed = [_method_logits(r, s.name, t.name, config) for r in runs]
+                for m in per_seed[0]:
+                    accs = [top1(logits[m], t.labels) for logits in per_seed]
+                    row[m], row[f"{m}_sd"] = _stats.mean_sd(accs)
+                    row[f"{m}_per_seed"] = accs
                 # The best any classifier trained on s can do: test frames in classes s never visited are errors.
                 row["seen_class_fraction"] = float(np.isin(t.labels, seen).mean())
                 row["heading_ceiling"] = _baselines.heading_ceiling(s.cached.poses, s.labels, t.cached.poses, t.labels)
@@ -768,15 +801,24 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
                     row["same_session"] = True
                 else:
                     row.update(_unknown_columns(fused, s, t))
+                    row["_correct"] = {
+                        m: np.stack([np.argmax(lg[m], 1) == t.labels for lg in per_seed]) for m in per_seed[0]
+                    }
                 pairs.append(row)
     cross = [p for p in pairs if p["train"] != p["test"]]
     methods = [k for k in ("ours", "rgb_net", "hha_net", "depth1_net", "average") if k in cross[0]]
+    gains = _gain_intervals(cross, config.seed)
     ctx.timings["total"] = time.perf_counter() - t_start
     results = {
         "preset": config.preset,
         "pairs": cross,
         "same_session": [p for p in pairs if p["train"] == p["test"]],
         "mean": {m: float(np.mean([p[m] for p in cross])) for m in methods},
+        "mean_sd_over_seeds": {
+            m: _stats.mean_sd([np.mean([p[f"{m}_per_seed"][k] for p in cross]) for k in range(config.n_seeds)])[1]
+            for m in methods
+        },
+        "gains": gains,
         "ceilings_and_baselines": {
             k: float(np.mean([p[k] for p in cross])) for k in ("seen_class_fraction", "heading_ceiling", *thumbs)
         },
@@ -785,7 +827,7 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         "grid": grid.to_dict(),
         "sessions": {s.name: {"frames": len(s), "classes_visited": len(np.unique(s.labels))} for s in sessions},
         "config": config.to_dict(),
-        "seeds": {"seed": config.seed},
+        "seeds": {"seed": config.seed, "seeds": [config.seed + k for k in range(config.n_seeds)]},
         "devices": {"count": mesh.size, "platform": jax.devices()[0].platform, "processes": jax.process_count()},
         "versions": versions(),
         "timings_s": {k: round(v, 3) for k, v in ctx.timings.items()},

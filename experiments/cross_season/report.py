@@ -48,26 +48,51 @@ def table_markdown(results: dict) -> str:
     head += list(unknown.values())
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
-    def row(train: str, test: str, r: dict) -> str:
+    n_seeds = len(results.get("seeds", {}).get("seeds", [0]))
+
+    def acc(r: dict, m: str, sd: dict | None = None) -> str:
+        sd_value = (sd or r).get(f"{m}_sd" if sd is None else m)
+        return _pct(r[m]) if n_seeds < 2 or sd_value is None else f"{_pct(r[m])} ± {_pct(sd_value)}"
+
+    def gain(r: dict, base: str, interval: dict | None) -> str:
+        text = f"{100 * (r['ours'] - r[base]):+.1f}"
+        if interval is None:
+            return text
+        mark = "*" if interval["excludes_zero"] else ""
+        return f"{text} [{100 * interval['lo']:+.1f}, {100 * interval['hi']:+.1f}]{mark}"
+
+    def row(train: str, test: str, r: dict, intervals: dict | None = None, sd: dict | None = None) -> str:
+        intervals = intervals if intervals is not None else {b: r.get(f"gain_vs_{b}") for b in ("rgb_net", "hha_net")}
         cells = [
             train,
             test,
-            _pct(r["ours"]),
-            _pct(r["rgb_net"]),
-            f"{100 * (r['ours'] - r['rgb_net']):+.1f}",
-            _pct(r["hha_net"]),
-            f"{100 * (r['ours'] - r['hha_net']):+.1f}",
+            acc(r, "ours", sd),
+            acc(r, "rgb_net", sd),
+            gain(r, "rgb_net", intervals.get("rgb_net")),
+            acc(r, "hha_net", sd),
+            gain(r, "hha_net", intervals.get("hha_net")),
         ]
-        cells += [_pct(r[m]) for m in extra]
+        cells += [acc(r, m, sd) for m in extra]
         cells += [_unknown_cell(k, r.get(k)) for k in unknown]
         return "| " + " | ".join(cells) + " |"
 
     for p in results["pairs"]:
         lines.append(row(p["train"], p["test"], p))
-    lines.append(row("**mean**", "", {**results["mean"], **results.get("unknown", {}).get("mean", {})}))
+    gains = results.get("gains", {})
+    mean_intervals = {b: gains.get(f"ours_vs_{b}") for b in ("rgb_net", "hha_net")}
+    mean_row = {**results["mean"], **results.get("unknown", {}).get("mean", {})}
+    lines.append(row("**mean**", "", mean_row, mean_intervals, results.get("mean_sd_over_seeds")))
+    seeds = (
+        f"mean ± sd over {n_seeds} seeds (the mean row's sd: of the per-seed means)"
+        if n_seeds > 1
+        else "one seed (no spread over seeds)"
+    )
     note = (
         f"\nTop-1 accuracy (%) on every other session; {results['num_classes']} place classes; test frames in "
-        "classes the training session never visited count as errors. gain = Ours − baseline (points).\n"
+        f"classes the training session never visited count as errors; {seeds}. gain = Ours − baseline (points), "
+        "with its paired bootstrap 95 % interval over test frames (same frames for both methods, averaged over the "
+        "seeds; for the mean row, frames resampled within each pair); * marks a gain whose interval excludes "
+        "zero.\n"
     )
     if unknown:
         u = results["unknown"]
