@@ -84,3 +84,26 @@ def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall():
 def test_config_refuses_an_evaluation_seed_equal_to_the_training_seed():
     with pytest.raises(ValueError, match="held out"):
         dataclasses.replace(pretrain.PRESETS["smoke"], eval_seed=0)
+
+
+def test_export_round_trip_keeps_trunk_and_fc6_fc7_only(tmp_path):
+    cfg = pretrain.PRESETS["smoke"]
+    params = pretrain.init_params(cfg, 5)
+    pretrain.save_npz(params, tmp_path / "t.npz", {"config": dataclasses.asdict(cfg)})
+    got, meta = pretrain.read_npz(tmp_path / "t.npz")
+    assert meta["config"]["width"] == cfg.width
+    assert set(got["classifier"]) == {"fc6", "fc7"}
+    for a, b in zip(jax.tree_util.tree_leaves(got["trunk"]), jax.tree_util.tree_leaves(params["trunk"]), strict=True):
+        np.testing.assert_array_equal(a, np.asarray(b))
+
+
+def test_cli_overrides_are_typed_and_cache_folder_follows_the_config(tmp_path):
+    from experiments import pretrain_trunk
+
+    cfg = pretrain_trunk.parse_overrides(pretrain.PRESETS["smoke"], ["steps=7", "pair_weight=0"])
+    assert (cfg.steps, cfg.pair_weight) == (7, 0.0)
+    with pytest.raises(ValueError):
+        pretrain_trunk.parse_overrides(pretrain.PRESETS["smoke"], ["no_such_key=1"])
+    a = pretrain.run_dir(cfg, "smoke", tmp_path)
+    assert a == pretrain.run_dir(dataclasses.replace(cfg, checkpoint_every=3), "smoke", tmp_path)
+    assert a != pretrain.run_dir(dataclasses.replace(cfg, seed=5), "smoke", tmp_path)
