@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import shlex
 import sys
 import time
@@ -46,7 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--preset", default="default", choices=presets)
     parser.add_argument("--workdir", type=Path, default=None, help="run folder (default: the cache)")
-    parser.add_argument("--export", type=Path, default=None, help="write trunk + fc6/fc7 and the record here")
+    parser.add_argument("--export", type=Path, default=None, help="write the trunk and the run's record here")
+    parser.add_argument("--export-heads", default="", help="also export these layers, e.g. fc6,fc7 (large)")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     args = parser.parse_args(argv)
     try:
@@ -62,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\ninterrupted: rerun the same command to resume from the last checkpoint in {workdir}", file=sys.stderr)
         return 130
     t_train = time.perf_counter() - t0
+    record = Path(workdir) / "pretrain_eval.json"
+    if record.exists():  # a finished run re-evaluated: keep the time its training took, not this call's
+        t_train = json.loads(record.read_text()).get("train_seconds", t_train)
     params = pretrain.load_trained(workdir, cfg)
     report = pretrain.heldout_report(params["trunk"], cfg)
     payload = {
@@ -83,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
             "preset": args.preset,
             "quick_check": pretrain.quick_check(params["trunk"], cfg),
         }
-        pretrain.save_npz(params, args.export, meta)
+        heads = tuple(h for h in args.export_heads.split(",") if h)
+        pretrain.save_npz(params, args.export, meta, heads)
         print(f"exported {args.export}")
     print(f"training {t_train:.0f} s; report in {workdir}")
     return 0

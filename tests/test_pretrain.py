@@ -71,8 +71,8 @@ def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall():
     assert_spatial_map(s, cfg.width)
     template = VGG16(num_classes=100, width=cfg.width).init(jax.random.key(0), jnp.zeros((1, s, s, 3)))["params"]
     shapes = lambda t: jax.tree_util.tree_map(np.shape, t)
+    assert set(params) == {"trunk"}
     assert shapes(params["trunk"]) == shapes(template["trunk"])
-    assert shapes(params["classifier"]) == shapes({k: template["classifier"][k] for k in ("fc6", "fc7")})
     got = pretrain.quick_check(params["trunk"], cfg)
     want = meta["quick_check"]
     # Same frames, same weights: equal up to a tie flipped by float noise.
@@ -86,13 +86,15 @@ def test_config_refuses_an_evaluation_seed_equal_to_the_training_seed():
         dataclasses.replace(pretrain.PRESETS["smoke"], eval_seed=0)
 
 
-def test_export_round_trip_keeps_trunk_and_fc6_fc7_only(tmp_path):
+def test_export_round_trip_keeps_the_trunk_and_the_named_heads(tmp_path):
     cfg = pretrain.PRESETS["smoke"]
     params = pretrain.init_params(cfg, 5)
-    pretrain.save_npz(params, tmp_path / "t.npz", {"config": dataclasses.asdict(cfg)})
+    pretrain.save_npz(params, tmp_path / "t.npz", {"config": dataclasses.asdict(cfg)}, heads=("fc6", "fc7"))
     got, meta = pretrain.read_npz(tmp_path / "t.npz")
     assert meta["config"]["width"] == cfg.width
     assert set(got["classifier"]) == {"fc6", "fc7"}
+    pretrain.save_npz(params, tmp_path / "trunk.npz", {})
+    assert set(pretrain.read_npz(tmp_path / "trunk.npz")[0]) == {"trunk"}
     for a, b in zip(jax.tree_util.tree_leaves(got["trunk"]), jax.tree_util.tree_leaves(params["trunk"]), strict=True):
         np.testing.assert_array_equal(a, np.asarray(b))
 

@@ -36,17 +36,22 @@ def run_dir(cfg: PretrainConfig, preset: str, root: str | Path | None = None) ->
     return (cache_dir() if root is None else Path(root)) / "pretrain" / f"{preset}-{cfg.fingerprint()}"
 
 
-def export_params(params: dict[str, Any]) -> dict[str, np.ndarray]:
-    """The shippable part of a pretrained VGG16's parameters — trunk and fc6/fc7, not the pretext's fc8 — as
-    flat ``"trunk/conv1_1/kernel"``-style float32 arrays (the layout of ``VGG16(width=...)``'s tree)."""
-    keep = {"trunk": params["trunk"], "classifier": {k: params["classifier"][k] for k in ("fc6", "fc7")}}
+def export_params(params: dict[str, Any], heads: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """The shippable part of a pretrained VGG16's parameters as flat ``"trunk/conv1_1/kernel"``-style float32
+    arrays (the layout of ``VGG16(width=...)``'s tree): the trunk, and the fully connected layers named in
+    ``heads`` (e.g. ``("fc6", "fc7")``). The shipped file holds the trunk only: at 1/8 width fc6 alone has
+    3136 × 512 weights (6.4 MB, 7× the trunk), and the pretext's fc6/fc7 are a contrastive projection head that the
+    paper's path retrains anyway."""
+    keep = {"trunk": params["trunk"]}
+    if heads:
+        keep["classifier"] = {k: params["classifier"][k] for k in heads}
     flat = traverse_util.flatten_dict(keep, sep="/")
     return {k: np.asarray(v, np.float32) for k, v in flat.items()}
 
 
-def save_npz(params: dict[str, Any], path: str | Path, meta: dict) -> None:
+def save_npz(params: dict[str, Any], path: str | Path, meta: dict, heads: tuple[str, ...] = ()) -> None:
     """Writes :func:`export_params` plus ``meta`` (JSON under the key ``"meta"``) as a compressed npz."""
-    arrays = export_params(params)
+    arrays = export_params(params, heads)
     arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
     buf = _io.BytesIO()
     np.savez_compressed(buf, **arrays)
@@ -54,8 +59,8 @@ def save_npz(params: dict[str, Any], path: str | Path, meta: dict) -> None:
 
 
 def read_npz(source) -> tuple[dict[str, Any], dict]:
-    """``(params, meta)`` of a file written by :func:`save_npz`: ``params`` ``{"trunk": ..., "classifier":
-    {"fc6", "fc7"}}`` ready to drop into ``VGG16(width=meta["config"]["width"])``'s parameter tree."""
+    """``(params, meta)`` of a file written by :func:`save_npz`: ``params`` ``{"trunk": ...[, "classifier":
+    {...}]}`` ready to drop into ``VGG16(width=meta["config"]["width"])``'s parameter tree."""
     with np.load(source) as z:
         meta = json.loads(bytes(z["meta"]).decode())
         flat = {k: np.asarray(z[k]) for k in z.files if k != "meta"}
@@ -63,7 +68,7 @@ def read_npz(source) -> tuple[dict[str, Any], dict]:
 
 
 def load_shipped(name: str = SHIPPED) -> tuple[dict[str, Any], dict]:
-    """The trunk (and fc6/fc7) shipped in ``placejax/pretrain/weights/<name>.npz`` and its record (config, seed,
+    """The trunk shipped in ``placejax/pretrain/weights/<name>.npz`` and its record (config, seed,
     command, held-out metrics).
 
     Example::
