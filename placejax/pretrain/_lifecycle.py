@@ -136,8 +136,11 @@ def ensure_trained(
             file=sys.stderr,
         )
     t0 = time.perf_counter()
-    train(config, workdir, progress=progress)
-    params = load_trained(workdir, config)
+    try:
+        params = load_trained(workdir, config)
+    except FileNotFoundError:  # not trained yet, or interrupted: (resume and) finish it
+        train(config, workdir, progress=progress)
+        params = load_trained(workdir, config)
     if report_path.exists():
         return params, json.loads(report_path.read_text())
     report = {

@@ -121,17 +121,17 @@ class PretrainConfig:
 PRESETS = {
     # Seconds on one core: the tests' preset (a pretext that visibly learns, not a useful trunk).
     "smoke": PretrainConfig(
-        image_size=32,
+        image_size=64,
         width=0.0625,
         n_worlds=1,
         frames_per_world=64,
         grid=3,
         headings=2,
         batch_size=16,
-        steps=40,
+        steps=150,
         learning_rate=1e-3,
-        warmup_steps=4,
-        checkpoint_every=20,
+        warmup_steps=15,
+        checkpoint_every=75,
         eval_frames=32,
     ),
     # The shipped trunk (placejax/pretrain/weights): ~45 min on 2 shared CPU cores.
