@@ -20,6 +20,9 @@ from placejax.data.simcampus import _depth_worlds, _render, _seasons, _session
 # training worlds (7_000_000 + ...), so neither network has seen the other's worlds.
 PLACE_WORLD_SEED_BASE = 8_000_000
 
+# One random look per frame (created once: a fresh jit wrapper per call would recompile every time).
+_random_looks = jax.jit(jax.vmap(_depth_worlds._random_look))
+
 
 def place_world_seeds(seed: int, n_worlds: int, exclude_world_seeds=(0,)) -> list[int]:
     """World seeds of pretraining (or held-out validation) campuses; never one of ``exclude_world_seeds``."""
@@ -62,7 +65,6 @@ def render_random_looks(world_seed: int, poses6: np.ndarray, hw: tuple[int, int]
     world = _session.make_world(world_seed)
     geo, _ = _session._scene(world, "SU")
     kmat = jnp.asarray(_session.intrinsics(hw), jnp.float32)
-    looks = jax.jit(jax.vmap(_depth_worlds._random_look))
     out = {"rgb": [], "depth": [], "sky": []}
     for lo in range(0, len(poses6), batch):
         p = np.asarray(poses6[lo : lo + batch], np.float32)
@@ -72,7 +74,13 @@ def render_random_looks(world_seed: int, poses6: np.ndarray, hw: tuple[int, int]
         keys = jax.random.split(jax.random.fold_in(key, lo), batch)
         ids = jnp.asarray(lo + np.arange(batch), jnp.int32)
         rgb, depth, sky = _render.render_batch(
-            geo, looks(keys), jnp.asarray(p), jnp.broadcast_to(kmat, (batch, 3, 3)), ids, hw=hw, look_per_frame=True
+            geo,
+            _random_looks(keys),
+            jnp.asarray(p),
+            jnp.broadcast_to(kmat, (batch, 3, 3)),
+            ids,
+            hw=hw,
+            look_per_frame=True,
         )
         for k, v in zip(("rgb", "depth", "sky"), (rgb, depth, sky), strict=True):
             out[k].append(np.asarray(v)[:n])
