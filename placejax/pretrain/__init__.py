@@ -1,0 +1,74 @@
+"""The ImageNet stand-in: pretraining of the VGG16 trunk on domain-randomised SimCampus worlds.
+
+The paper fine-tunes fc6–fc8 of an ImageNet VGG16 with frozen convolutions. Here the trunk is pretrained on
+SimCampus worlds other than the evaluation campus (random looks per object and frame, never the season
+palettes), on :class:`PretextObjective`, through ``placejax.training``'s one engine; its held-out quality is
+cross-look place retrieval on worlds it never saw (:func:`heldout_report`). The result of the ``default`` preset
+is shipped as ``placejax/pretrain/weights/<SHIPPED>.npz`` (:func:`load_shipped`), because a fresh machine cannot
+afford to pretrain; :func:`ensure_trained` reproduces it into the cache.
+"""
+
+from placejax.pretrain._data import place_frames, place_labels, place_world_seeds, render_random_looks
+from placejax.pretrain._evaluate import (
+    baselines,
+    evaluate_trunk,
+    gradient_thumbnail,
+    heldout_frames,
+    recall_at_1,
+    trunk_descriptor,
+)
+from placejax.pretrain._lifecycle import (
+    CHECK_FRAMES,
+    SHIPPED,
+    ensure_trained,
+    export_params,
+    heldout_report,
+    load_shipped,
+    quick_check,
+    read_npz,
+    run_dir,
+    save_npz,
+)
+from placejax.pretrain._shape import trunk_map_size
+from placejax.pretrain._train import (
+    PRESETS,
+    PretextObjective,
+    PretrainConfig,
+    init_params,
+    load_trained,
+    num_classes,
+    train,
+    training_frames,
+)
+
+__all__ = [
+    "CHECK_FRAMES",
+    "PRESETS",
+    "SHIPPED",
+    "PretextObjective",
+    "PretrainConfig",
+    "baselines",
+    "ensure_trained",
+    "evaluate_trunk",
+    "export_params",
+    "gradient_thumbnail",
+    "heldout_frames",
+    "heldout_report",
+    "init_params",
+    "load_shipped",
+    "load_trained",
+    "num_classes",
+    "place_frames",
+    "place_labels",
+    "place_world_seeds",
+    "quick_check",
+    "read_npz",
+    "recall_at_1",
+    "render_random_looks",
+    "run_dir",
+    "save_npz",
+    "train",
+    "training_frames",
+    "trunk_descriptor",
+    "trunk_map_size",
+]

@@ -1,0 +1,153 @@
+"""The pretrained trunk's lifecycle: train once and cache, evaluate on held-out worlds, export and load the small
+weights file shipped inside the package (``placejax/pretrain/weights/``).
+
+A fresh machine's default run cannot afford the pretraining (tens of CPU minutes), so its result is shipped:
+:func:`load_shipped` reads it with ``importlib.resources``; :func:`ensure_trained` reproduces it (or trains any
+other preset) into the placejax cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.resources
+import io as _io
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from flax import traverse_util
+
+from placejax import io
+from placejax.pretrain import _evaluate
+from placejax.pretrain._train import PRESETS, PretrainConfig, load_trained, train
+
+# The trunk shipped with the package (its README records command, seed, config and held-out metrics).
+SHIPPED = "simcampus_places_w0125_s64"
+_EXPECTED_MINUTES = {"smoke": 1, "default": 45}
+
+
+def run_dir(cfg: PretrainConfig, preset: str, root: str | Path | None = None) -> Path:
+    """``<root>/pretrain/<preset>-<config hash>``; ``root`` defaults to ``placejax.weights.cache_dir()``."""
+    from placejax.weights import cache_dir
+
+    return (cache_dir() if root is None else Path(root)) / "pretrain" / f"{preset}-{cfg.fingerprint()}"
+
+
+def export_params(params: dict[str, Any], heads: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """The shippable part of a pretrained VGG16's parameters as flat ``"trunk/conv1_1/kernel"``-style float32
+    arrays (the layout of ``VGG16(width=...)``'s tree): the trunk, and the fully connected layers named in
+    ``heads`` (e.g. ``("fc6", "fc7")``). The shipped file holds the trunk only: at 1/8 width fc6 alone has
+    3136 × 512 weights (6.4 MB, 7× the trunk), and the pretext's fc6/fc7 are a contrastive projection head that the
+    paper's path retrains anyway."""
+    keep = {"trunk": params["trunk"]}
+    if heads:
+        keep["classifier"] = {k: params["classifier"][k] for k in heads}
+    flat = traverse_util.flatten_dict(keep, sep="/")
+    return {k: np.asarray(v, np.float32) for k, v in flat.items()}
+
+
+def save_npz(params: dict[str, Any], path: str | Path, meta: dict, heads: tuple[str, ...] = ()) -> None:
+    """Writes :func:`export_params` plus ``meta`` (JSON under the key ``"meta"``) as a compressed npz."""
+    arrays = export_params(params, heads)
+    arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
+    buf = _io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    io.write_bytes(path, buf.getvalue())
+
+
+def read_npz(source) -> tuple[dict[str, Any], dict]:
+    """``(params, meta)`` of a file written by :func:`save_npz`: ``params`` ``{"trunk": ...[, "classifier":
+    {...}]}`` ready to drop into ``VGG16(width=meta["config"]["width"])``'s parameter tree."""
+    with np.load(source) as z:
+        meta = json.loads(bytes(z["meta"]).decode())
+        flat = {k: np.asarray(z[k]) for k in z.files if k != "meta"}
+    return traverse_util.unflatten_dict(flat, sep="/"), meta
+
+
+def load_shipped(name: str = SHIPPED) -> tuple[dict[str, Any], dict]:
+    """The trunk shipped in ``placejax/pretrain/weights/<name>.npz`` and its record (config, seed,
+    command, held-out metrics).
+
+    Example::
+
+        params, meta = load_shipped()
+        model = VGG16(num_classes=100, width=meta["config"]["width"])
+        pooled = model.apply({"params": {"trunk": params["trunk"]}}, x, method=VGG16.conv_features)
+    """
+    res = importlib.resources.files("placejax.pretrain") / "weights" / f"{name}.npz"
+    if not res.is_file():
+        raise FileNotFoundError(f"no shipped pretrained trunk {name!r} in placejax/pretrain/weights")
+    with res.open("rb") as f:
+        return read_npz(_io.BytesIO(f.read()))
+
+
+def heldout_report(trunk_params, cfg: PretrainConfig, *, n_worlds: int = 2) -> dict:
+    """Cross-look recall@1 of the trunk and of the baselines on ``n_worlds`` held-out validation worlds."""
+    s = cfg.image_size
+    per_world = []
+    for w in range(n_worlds):
+        frames = _evaluate.heldout_frames(cfg.eval_seed, cfg.eval_frames, (s, s), world=w)
+        per_world.append(
+            {
+                "trunk": _evaluate.evaluate_trunk(trunk_params, frames, cfg.width),
+                **_evaluate.baselines(frames, cfg.width, seed=cfg.seed),
+            }
+        )
+    mean = {m: {k: float(np.mean([r[m][k] for r in per_world])) for k in per_world[0][m]} for m in per_world[0]}
+    return {"per_world": per_world, "mean": mean, "eval_seed": cfg.eval_seed, "eval_frames": cfg.eval_frames}
+
+
+# The held-out check the tests repeat (fast): views of validation world 0, a shipped file records its recall.
+CHECK_FRAMES = 48
+
+
+def quick_check(trunk_params, cfg: PretrainConfig) -> dict[str, float]:
+    """Cross-look recall@1 on ``CHECK_FRAMES`` views of held-out world 0 (a few seconds): the number a shipped
+    file records under ``meta["quick_check"]`` and ``tests/test_pretrain.py`` reproduces."""
+    s = cfg.image_size
+    frames = _evaluate.heldout_frames(cfg.eval_seed, CHECK_FRAMES, (s, s), world=0)
+    return _evaluate.evaluate_trunk(trunk_params, frames, cfg.width)
+
+
+def ensure_trained(
+    preset: str = "default",
+    cache_root: str | Path | None = None,
+    *,
+    config: PretrainConfig | None = None,
+    progress: bool = True,
+) -> tuple[dict[str, Any], dict]:
+    """The pretrained parameters of ``preset`` (or ``config``) and their held-out report: loaded from the cache,
+    or trained there first (resuming an interrupted run). The report ``pretrain_eval.json`` is written once."""
+    if config is None:
+        if preset not in PRESETS:
+            raise ValueError(f"unknown pretraining preset {preset!r}; choose one of {sorted(PRESETS)}")
+        config = PRESETS[preset]
+    workdir = run_dir(config, preset, cache_root)
+    report_path = workdir / "pretrain_eval.json"
+    if progress and not report_path.exists():
+        minutes = _EXPECTED_MINUTES.get(preset)
+        took = f"about {minutes} min on 2 CPU cores" if minutes else "its length depends on the preset"
+        print(
+            f"placejax: pretraining the VGG16 trunk '{preset}' ({config.steps} steps, {took}); cached in {workdir} "
+            "(interrupt and rerun to resume)",
+            file=sys.stderr,
+        )
+    t0 = time.perf_counter()
+    try:
+        params = load_trained(workdir, config)
+    except FileNotFoundError:  # not trained yet, or interrupted: (resume and) finish it
+        train(config, workdir, progress=progress)
+        params = load_trained(workdir, config)
+    if report_path.exists():
+        return params, json.loads(report_path.read_text())
+    report = {
+        "config": dataclasses.asdict(config),
+        "fingerprint": config.fingerprint(),
+        "train_seconds_this_call": time.perf_counter() - t0,
+        "heldout": heldout_report(params["trunk"], config),
+    }
+    io.write_json(report_path, report)
+    return params, report

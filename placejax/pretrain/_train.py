@@ -1,0 +1,335 @@
+"""Pretraining the VGG16 trunk on place classification across domain-randomised SimCampus worlds.
+
+The ImageNet stand-in of the built-in path. The paper fine-tunes fc6–fc8 of an ImageNet VGG16 with the
+convolutions frozen (§IV); SimCampus has no ImageNet, so the trunk is pretrained here on worlds other than the
+evaluation campus, with a pretext that needs what cross-season recognition needs: *which place is this*, when
+every object's colour, texture, the sky and the light are drawn anew for every frame. The class of a frame is its
+grid cell and 90° heading bin in its world (``placejax.pretrain._data``), so only geometry tells classes apart.
+
+What is specific here is the data and the config; the step, schedule, optimiser, batch order and orbax
+checkpoints are ``placejax.training``'s, with the default ``classification_loss``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from placejax import training
+from placejax.models import VGG16, he_init, imagenet_normalise
+
+# Bumped whenever the recipe changes in a way the config does not show.
+_RECIPE_VERSION = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class PretrainConfig:
+    """Everything that determines a pretrained trunk (its hash names the run's folder).
+
+    Attributes:
+        image_size: square input (multiple of 32; ≥ 64 so that the trunk leaves ≥ 2 × 2 cells before fc6).
+        width: VGG16 channel multiplier (0.125 = the built-in path's net).
+        n_worlds: pretraining worlds (seeds ``placejax.pretrain.place_world_seeds``, never the evaluation campus).
+        frames_per_world: frames rendered per world, each with its own random look.
+        grid: place cells per axis of a world's grid (5: coarser than the paper's 10 × 10, so that a class has
+            several views; with 10 × 10 × 4 a world's few hundred views give ~1.5 per class, which no net fits).
+        headings: heading bins per cell (4: 90° bins, so a class is a view, determined by geometry).
+        batch_size: global batch.
+        steps: optimiser steps.
+        learning_rate: peak AdamW learning rate (linear warm-up, cosine decay).
+        warmup_steps: linear warm-up steps.
+        weight_decay: AdamW decoupled weight decay.
+        dropout: dropout after fc6 and fc7.
+        place_weight: weight of the place-classification term (``PretextObjective``).
+        pair_weight: weight of the cross-look contrastive term.
+        temperature: InfoNCE temperature.
+        seed: worlds, poses, looks, data order and initialisation.
+        checkpoint_every: steps between checkpoints.
+        eval_seed: seed of the held-out validation worlds (``heldout_frames``); must differ from ``seed``.
+        eval_frames: held-out views per validation world.
+        world_seed: the evaluation campus (never rendered here).
+    """
+
+    image_size: int = 64
+    width: float = 0.125
+    n_worlds: int = 8
+    frames_per_world: int = 384
+    grid: int = 5
+    headings: int = 4
+    batch_size: int = 32
+    steps: int = 2500
+    learning_rate: float = 5e-4
+    warmup_steps: int = 100
+    weight_decay: float = 1e-4
+    dropout: float = 0.0
+    place_weight: float = 1.0
+    pair_weight: float = 1.0
+    temperature: float = 0.1
+    seed: int = 0
+    checkpoint_every: int = 250
+    eval_seed: int = 99
+    eval_frames: int = 256
+    world_seed: int = 0
+
+    def __post_init__(self):
+        for name in (
+            "image_size",
+            "n_worlds",
+            "frames_per_world",
+            "grid",
+            "headings",
+            "batch_size",
+            "steps",
+            "checkpoint_every",
+            "eval_frames",
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        if self.image_size % 32:
+            raise ValueError(f"image_size must be a multiple of 32, got {self.image_size}")
+        if self.n_worlds * self.frames_per_world < self.batch_size:
+            raise ValueError("n_worlds · frames_per_world must be at least batch_size")
+        for name in ("learning_rate", "width"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0 and 0 <= self.dropout < 1):
+            raise ValueError("weight_decay must be finite and >= 0, dropout in [0, 1)")
+        if self.eval_seed == self.seed:
+            raise ValueError("eval_seed must differ from seed: validation worlds must be held out")
+
+    def fingerprint(self) -> str:
+        """Short hash of every field that changes the trained weights."""
+        fields = dataclasses.asdict(self)
+        for k in ("checkpoint_every", "eval_seed", "eval_frames"):
+            fields.pop(k)
+        fields["recipe_version"] = _RECIPE_VERSION
+        return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
+
+
+PRESETS = {
+    # Seconds on one core: the tests' preset (a pretext that visibly learns, not a useful trunk).
+    "smoke": PretrainConfig(
+        image_size=64,
+        width=0.0625,
+        n_worlds=1,
+        frames_per_world=64,
+        grid=3,
+        headings=2,
+        batch_size=16,
+        steps=150,
+        learning_rate=1e-3,
+        warmup_steps=15,
+        checkpoint_every=75,
+        eval_frames=32,
+    ),
+    # The shipped trunk (placejax/pretrain/weights): ~45 min on 2 shared CPU cores.
+    "default": PretrainConfig(),
+}
+
+
+def training_frames(cfg: PretrainConfig, progress: bool = True) -> dict[str, np.ndarray]:
+    """The rendered, place-labelled pretraining frames; labels renumbered densely ``0..C−1``."""
+    from placejax.pretrain._data import place_frames
+
+    s = cfg.image_size
+    f = place_frames(
+        cfg.seed,
+        cfg.frames_per_world,
+        (s, s),
+        n_worlds=cfg.n_worlds,
+        grid=cfg.grid,
+        headings=cfg.headings,
+        exclude_world_seeds=(cfg.world_seed,),
+        progress=progress,
+    )
+    _, f["label"] = np.unique(f["label"], return_inverse=True)
+    f["label"] = f["label"].astype(np.int32)
+    return f
+
+
+def num_classes(cfg: PretrainConfig) -> int:
+    """Occupied place classes of the pretraining set (computed from the poses alone, no rendering)."""
+    from placejax.pretrain import _data
+
+    seeds = _data.place_world_seeds(cfg.seed, cfg.n_worlds, (cfg.world_seed,))
+    labels = []
+    for w, ws in enumerate(seeds):
+        rng = np.random.default_rng([cfg.seed, 0x91ACE, w])
+        poses = _data._depth_worlds._random_poses(_data._session.make_world(ws), rng, cfg.frames_per_world)
+        labels.append(
+            w * cfg.grid**2 * cfg.headings + _data.place_labels(poses, _data.path_box(ws), cfg.grid, cfg.headings)
+        )
+    return int(np.unique(np.concatenate(labels)).size)
+
+
+def model(cfg: PretrainConfig, n_classes: int) -> VGG16:
+    return VGG16(num_classes=n_classes, width=cfg.width, dropout_rate=cfg.dropout)
+
+
+def init_params(cfg: PretrainConfig, n_classes: int) -> dict[str, Any]:
+    """He-initialised VGG16 parameters (``placejax.models.he_init``), as the built-in from-scratch path."""
+    s = cfg.image_size
+    key = jax.random.key(cfg.seed)
+    params = model(cfg, n_classes).init(key, jnp.zeros((1, s, s, 3)))["params"]
+    return he_init(params, jax.random.fold_in(key, 1))
+
+
+@dataclasses.dataclass(frozen=True)
+class PretextObjective:
+    """The pretext's objective for ``placejax.training.train_step``: place classification of both looks of each
+    view plus a cross-look contrastive term.
+
+    ``batch``: ``x``, ``x2`` normalised ``(B, H, W, 3)`` — the same views in two independent random looks —,
+    ``label`` int32 ``(B,)`` place classes, ``valid`` bool ``(B,)``. Loss::
+
+        place_weight · CE(fc8(x), label) + place_weight · CE(fc8(x2), label)  (averaged)
+        + pair_weight · InfoNCE(fc7(x), fc7(x2))
+
+    InfoNCE (van den Oord et al. 2018; SimCLR's symmetric form): cosine similarities of the L2-normalised fc7
+    embeddings over ``temperature``; each view's other look is its positive, the batch's other views negatives.
+    It asks for exactly the appearance invariance cross-season recognition needs, and — unlike the place
+    classes, of which a world has hundreds — it needs no frames per class. A frozen dataclass: hashable, so
+    each configuration compiles one step.
+    """
+
+    place_weight: float = 1.0
+    pair_weight: float = 1.0
+    temperature: float = 0.1
+
+    @classmethod
+    def of(cls, cfg: PretrainConfig) -> PretextObjective:
+        return cls(cfg.place_weight, cfg.pair_weight, cfg.temperature)
+
+    def __call__(self, state, params, batch, key):
+        b = batch["x"].shape[0]
+        x = jnp.concatenate([batch["x"], batch["x2"]])
+        logits, feats = state.apply_fn({"params": params}, x, train=True, rngs={"dropout": key})
+        logits = logits.astype(jnp.float32)
+        labels = jnp.concatenate([batch["label"], batch["label"]])
+        valid = jnp.concatenate([batch["valid"], batch["valid"]]) & (labels >= 0)
+        w = valid.astype(jnp.float32)
+        n = jnp.maximum(w.sum(), 1.0)
+        ce = optax.softmax_cross_entropy_with_integer_labels(logits, jnp.maximum(labels, 0))
+        place = (ce * w).sum() / n
+        acc = ((jnp.argmax(logits, -1) == labels) * w).sum() / n
+        z = feats["fc7"].astype(jnp.float32)
+        z = z / jnp.sqrt(jnp.sum(z * z, -1, keepdims=True) + 1e-12)
+        za, zb = z[:b], z[b:]
+        sim = za @ zb.T / self.temperature
+        vb = batch["valid"]
+        # Padding rows are neither anchors nor negatives.
+        sim = jnp.where(vb[None, :] & vb[:, None] | jnp.eye(b, dtype=bool), sim, -1e9)
+        target = jnp.arange(b)
+        nce = 0.5 * (
+            optax.softmax_cross_entropy_with_integer_labels(sim, target)
+            + optax.softmax_cross_entropy_with_integer_labels(sim.T, target)
+        )
+        wb = vb.astype(jnp.float32)
+        nb = jnp.maximum(wb.sum(), 1.0)
+        pair = (nce * wb).sum() / nb
+        pair_acc = ((jnp.argmax(sim, -1) == target) * wb).sum() / nb
+        loss = self.place_weight * place + self.pair_weight * pair
+        metrics = {"loss": loss, "place_loss": place, "accuracy": acc, "pair_loss": pair, "pair_accuracy": pair_acc}
+        return loss, (metrics, None)
+
+
+def _optimizer(cfg: PretrainConfig):
+    return training.make_optimizer("adamw", weight_decay=cfg.weight_decay, clip_norm=1.0)
+
+
+def _prepare(batch: dict) -> dict[str, np.ndarray]:
+    return {
+        "x": imagenet_normalise(batch["image"]),
+        "x2": imagenet_normalise(batch["rgb2"]),
+        "label": batch["label"],
+        "valid": batch["valid"],
+    }
+
+
+def _checkpoint_dir(workdir: Path) -> Path:
+    return Path(workdir).absolute() / "checkpoints"
+
+
+def train(
+    cfg: PretrainConfig,
+    workdir: str | os.PathLike,
+    *,
+    frames: dict[str, np.ndarray] | None = None,
+    stop_after: int | None = None,
+    progress: bool = True,
+) -> training.TrainState:
+    """Trains (or resumes) the pretext in ``workdir``; checkpoints in ``workdir/checkpoints``.
+
+    Args:
+        cfg: the run's configuration.
+        workdir: the run's folder (created).
+        frames: the rendered training frames (default: rendered from ``cfg``; pass them to reuse a rendering).
+        stop_after: stop after this step (after a checkpoint), as an interruption would.
+        progress: progress bars.
+
+    Returns:
+        The final train state.
+    """
+    from placejax.data import FrameSource, train_dataset
+
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    n_classes = num_classes(cfg)
+    with training.Checkpointer(_checkpoint_dir(workdir)) as ck:
+        latest = ck.latest_step()
+    if latest is not None and latest >= cfg.steps:
+        batches = [None] * cfg.steps  # finished: the engine restores the last checkpoint and reads no batch
+    else:
+        frames = training_frames(cfg, progress=progress) if frames is None else frames
+        n = len(frames["label"])
+        epochs = math.ceil(cfg.steps * cfg.batch_size / n)
+        source = FrameSource(frames["rgb"], frames["label"], extras={"rgb2": frames["rgb2"]})
+        batches = train_dataset(source, batch_size=cfg.batch_size, seed=cfg.seed, num_epochs=epochs)
+    return training.train(
+        training.apply_fn(model(cfg, n_classes)),
+        init_params(cfg, n_classes),
+        _optimizer(cfg),
+        batches,
+        key=jax.random.key(cfg.seed + 1),
+        mesh=training.data_mesh(),
+        prepare=_prepare,
+        learning_rate=cfg.learning_rate,
+        warmup_steps=cfg.warmup_steps,
+        num_steps=cfg.steps,
+        objective=PretextObjective.of(cfg),
+        checkpoint_dir=_checkpoint_dir(workdir),
+        save_every=cfg.checkpoint_every,
+        stop_after=stop_after,
+        desc="trunk pretraining",
+        progress=progress,
+    )
+
+
+def load_trained(workdir: str | os.PathLike, cfg: PretrainConfig) -> dict[str, Any]:
+    """The parameters of a finished run in ``workdir`` (its final checkpoint)."""
+    n_classes = num_classes(cfg)
+    with training.Checkpointer(_checkpoint_dir(Path(workdir))) as ck:
+        step = ck.latest_step()
+        if step is None or step < cfg.steps:
+            raise FileNotFoundError(f"no finished pretraining run in {workdir} (latest step {step} of {cfg.steps})")
+        template = training.create_state(
+            training.apply_fn(model(cfg, n_classes)),
+            init_params(cfg, n_classes),
+            _optimizer(cfg),
+            learning_rate=cfg.learning_rate,
+            total_steps=cfg.steps,
+        )
+        state = ck.restore(template, step)
+    return jax.device_get(state.params)
