@@ -23,8 +23,7 @@ import numpy as np
 
 from placejax import io
 from placejax.data import simcampus
-from placejax.data.simcampus import _render
-from placejax.data.simcampus._session import _scene
+from placejax.data.simcampus import _render, season_scene
 
 # (H, W), frames per call, target frames/s; baseline frames per call (it is 10-25x slower). The batch sizes
 # are the sessions' defaults (`SimCampusSession` picks ~2**18 pixels per call: intermediates stay in cache).
@@ -52,7 +51,7 @@ def main() -> None:
     args = ap.parse_args()
 
     session = simcampus.load_session("SU", image_size=(64, 64))
-    geo, look = _scene(session.world, "SU")
+    geo, look = season_scene(session.world, "SU")
     rows = []
     for hw, batch, target, base_batch in CASES:
         kmat = simcampus.intrinsics(hw)

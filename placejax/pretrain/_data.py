@@ -14,14 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 import tqdm
 
-from placejax.data.simcampus import _depth_worlds, _render, _seasons, _session
+from placejax.data import simcampus
 
 # Place-pretraining world seeds: far from the evaluation campuses (small seeds) and from the depth network's
 # training worlds (7_000_000 + ...), so neither network has seen the other's worlds.
 PLACE_WORLD_SEED_BASE = 8_000_000
 
 # One random look per frame (created once: a fresh jit wrapper per call would recompile every time).
-_random_looks = jax.jit(jax.vmap(_depth_worlds._random_look))
+_random_looks = jax.jit(jax.vmap(simcampus.random_look))
 
 
 def place_world_seeds(seed: int, n_worlds: int, exclude_world_seeds=(0,)) -> list[int]:
@@ -35,7 +35,7 @@ def place_world_seeds(seed: int, n_worlds: int, exclude_world_seeds=(0,)) -> lis
 
 def path_box(world_seed: int) -> tuple[float, float, float, float]:
     """``(x_min, x_max, y_min, y_max)`` (m) of a world's path points, the box of its place grid."""
-    pts, _ = _seasons._path_frames(_session.make_world(world_seed), 1.0)
+    pts, _ = simcampus.path_frames(simcampus.make_world(world_seed), 1.0)
     return float(pts[:, 0].min()), float(pts[:, 0].max()), float(pts[:, 1].min()), float(pts[:, 1].max())
 
 
@@ -62,9 +62,9 @@ def render_random_looks(world_seed: int, poses6: np.ndarray, hw: tuple[int, int]
     Returns:
         dict with ``rgb`` uint8 ``(N, H, W, 3)``, ``depth`` float32 ``(N, H, W)`` (m), ``sky`` bool ``(N, H, W)``.
     """
-    world = _session.make_world(world_seed)
-    geo, _ = _session._scene(world, "SU")
-    kmat = jnp.asarray(_session.intrinsics(hw), jnp.float32)
+    world = simcampus.make_world(world_seed)
+    geo, _ = simcampus.season_scene(world, "SU")
+    kmat = jnp.asarray(simcampus.intrinsics(hw), jnp.float32)
     out = {"rgb": [], "depth": [], "sky": []}
     for lo in range(0, len(poses6), batch):
         p = np.asarray(poses6[lo : lo + batch], np.float32)
@@ -73,7 +73,7 @@ def render_random_looks(world_seed: int, poses6: np.ndarray, hw: tuple[int, int]
         p = np.concatenate([p, np.repeat(p[-1:], pad, 0)])
         keys = jax.random.split(jax.random.fold_in(key, lo), batch)
         ids = jnp.asarray(lo + np.arange(batch), jnp.int32)
-        rgb, depth, sky = _render.render_batch(
+        rgb, depth, sky = simcampus.render_batch(
             geo,
             _random_looks(keys),
             jnp.asarray(p),
@@ -116,9 +116,9 @@ def place_frames(
     parts = []
     per_world = grid * grid * headings
     for w, ws in enumerate(tqdm.tqdm(seeds, desc="pretraining worlds", disable=not progress)):
-        world = _session.make_world(ws)
+        world = simcampus.make_world(ws)
         rng = np.random.default_rng([seed, 0x91ACE, w])
-        poses = _depth_worlds._random_poses(world, rng, frames_per_world)
+        poses = simcampus.random_poses(world, rng, frames_per_world)
         key = jax.random.fold_in(jax.random.key(seed), w)
         r = {
             "rgb": render_random_looks(ws, poses, hw, jax.random.fold_in(key, 0))["rgb"],

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from placejax.data import simcampus
 from placejax.models import VGG16, imagenet_normalise
 from placejax.pretrain import _data
 from placejax.training import map_batches
@@ -34,7 +35,7 @@ def heldout_frames(seed: int, n: int, hw: tuple[int, int], *, world: int = 0) ->
     """
     ws = _data.place_world_seeds(seed, world + 1)[world]
     rng = np.random.default_rng([seed, 0xE7A1, world])
-    poses = _data._depth_worlds._random_poses(_data._session.make_world(ws), rng, n)
+    poses = simcampus.random_poses(simcampus.make_world(ws), rng, n)
     key = jax.random.key(seed)
     a = _data.render_random_looks(ws, poses, hw, jax.random.fold_in(key, 1))
     b = _data.render_random_looks(ws, poses, hw, jax.random.fold_in(key, 2))

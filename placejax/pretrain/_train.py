@@ -26,6 +26,7 @@ import numpy as np
 import optax
 
 from placejax import training
+from placejax.data import simcampus
 from placejax.models import VGG16, he_init, imagenet_normalise
 
 # Bumped whenever the recipe changes in a way the config does not show.
@@ -167,7 +168,7 @@ def num_classes(cfg: PretrainConfig) -> int:
     labels = []
     for w, ws in enumerate(seeds):
         rng = np.random.default_rng([cfg.seed, 0x91ACE, w])
-        poses = _data._depth_worlds._random_poses(_data._session.make_world(ws), rng, cfg.frames_per_world)
+        poses = simcampus.random_poses(simcampus.make_world(ws), rng, cfg.frames_per_world)
         labels.append(
             w * cfg.grid**2 * cfg.headings + _data.place_labels(poses, _data.path_box(ws), cfg.grid, cfg.headings)
         )

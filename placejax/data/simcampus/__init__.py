@@ -4,6 +4,10 @@ A procedural campus (terrain, paths, buildings, trees, street furniture, landmar
 seasons. Appearance changes a lot across sessions, geometry a little, routes and viewpoints differ — so the
 cross-season experiment runs end to end anywhere. Sessions satisfy `placejax.data.session.Session`.
 
+Building blocks for other uses of the worlds (the depth-training and pretraining data): ``make_world``,
+``path_frames`` (poses along the path network), ``random_poses``, ``random_look`` (a domain-randomised
+appearance), ``season_scene`` (a world's geometry and look in a season) and ``render_batch``.
+
 Example:
     >>> from placejax.data import simcampus
     >>> s = simcampus.load_session("WI", image_size=(16, 16), max_frames=3)
@@ -11,15 +15,21 @@ Example:
     ((16, 16, 3), (16, 16))
 """
 
-from placejax.data.simcampus._depth_worlds import depth_training_batches, depth_training_frames
-from placejax.data.simcampus._render import SKY_DEPTH
-from placejax.data.simcampus._seasons import SEASONS, STYLES, SeasonStyle
+from placejax.data.simcampus._depth_worlds import (
+    depth_training_batches,
+    depth_training_frames,
+    random_look,
+    random_poses,
+)
+from placejax.data.simcampus._render import SKY_DEPTH, render_batch
+from placejax.data.simcampus._seasons import SEASONS, STYLES, SeasonStyle, path_frames
 from placejax.data.simcampus._session import (
     SimCampusSession,
     intrinsics,
     load_session,
     make_world,
     render,
+    season_scene,
 )
 from placejax.data.simcampus._trajectory import RouteConfig
 from placejax.data.simcampus._world import World
@@ -37,5 +47,10 @@ __all__ = [
     "intrinsics",
     "load_session",
     "make_world",
+    "path_frames",
+    "random_look",
+    "random_poses",
     "render",
+    "render_batch",
+    "season_scene",
 ]

@@ -26,7 +26,7 @@ def _uniform(key, shape, lo=0.0, hi=1.0):
 
 
 @jax.jit
-def _random_look(key: jax.Array) -> _render.Look:
+def random_look(key: jax.Array) -> _render.Look:
     """One fully random appearance (colours, window grids, texture scales, sky, sun, haze, exposure)."""
     k = jax.random.split(key, 20)
     nb, nc, ne, nm = _seasons.N_BOX, _seasons.N_CYL, _seasons.N_ELL, W.N_MATERIALS
@@ -57,9 +57,9 @@ def _random_look(key: jax.Array) -> _render.Look:
     )
 
 
-def _random_poses(world: W.World, rng: np.random.Generator, n: int) -> np.ndarray:
+def random_poses(world: W.World, rng: np.random.Generator, n: int) -> np.ndarray:
     """Camera poses ``(n, 6)`` near the paths, mostly along them, some looking anywhere."""
-    pts, tans = _seasons._path_frames(world, 1.0)
+    pts, tans = _seasons.path_frames(world, 1.0)
     i = rng.integers(len(pts), size=n)
     normal = np.stack([-tans[i, 1], tans[i, 0]], -1)
     xy = pts[i] + normal * rng.uniform(-3.0, 3.0, (n, 1))
@@ -102,15 +102,15 @@ def depth_training_batches(
     seeds = depth_world_seeds(seed, n_worlds, exclude_world_seeds)
     kmat = _session.intrinsics(hw, hfov_deg)
     kb = jnp.asarray(np.broadcast_to(kmat, (batch_size, 3, 3)), jnp.float32)
-    random_looks = jax.jit(jax.vmap(_random_look))
+    random_looks = jax.jit(jax.vmap(random_look))
     b = 0
     while True:
         w = b % n_worlds
         world = _session.make_world(seeds[w])
         # Geometry variety from the seasons too (foliage volume, snow banks, dynamic objects, the site).
-        geo, _ = _session._scene(world, _seasons.SEASONS[(b // n_worlds) % len(_seasons.SEASONS)])
+        geo, _ = _session.season_scene(world, _seasons.SEASONS[(b // n_worlds) % len(_seasons.SEASONS)])
         rng = np.random.default_rng([seed, 0xDE97, b])
-        poses = _random_poses(world, rng, batch_size)
+        poses = random_poses(world, rng, batch_size)
         keys = jax.random.split(jax.random.fold_in(jax.random.key(seed), b), batch_size)
         looks = random_looks(keys)
         ids = jnp.asarray(b * batch_size + np.arange(batch_size), jnp.int32)

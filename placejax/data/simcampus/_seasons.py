@@ -197,7 +197,7 @@ def season_index(season: str) -> int:
     return list(STYLES).index(season)
 
 
-def _path_frames(world: W.World, step: float) -> tuple[np.ndarray, np.ndarray]:
+def path_frames(world: W.World, step: float) -> tuple[np.ndarray, np.ndarray]:
     """Points every `step` m along all paths and the unit tangent at each."""
     pts, tans = [], []
     for line in world.edge_lines:
@@ -214,7 +214,7 @@ def dynamic_objects(world: W.World, style: SeasonStyle, rng: np.random.Generator
     """Pedestrians, bikes, parked cars, snow banks and the construction site of one session."""
     b = W._Builder()
     h = lambda x, y: float(world.height(np.asarray(x), np.asarray(y)))
-    pts, tans = _path_frames(world, 1.0)
+    pts, tans = path_frames(world, 1.0)
     clothes = [(0.15, 0.15, 0.2), (0.5, 0.1, 0.1), (0.2, 0.3, 0.55), (0.8, 0.75, 0.6), (0.3, 0.45, 0.25)]
     for _ in range(style.n_pedestrians):
         i = rng.integers(len(pts))
@@ -271,7 +271,7 @@ def dynamic_objects(world: W.World, style: SeasonStyle, rng: np.random.Generator
             )
     if style.snow_banks:
         # Ploughed snow piled along both sides of the paths (long, low ellipsoids).
-        bank_pts, bank_tans = _path_frames(world, 13.0)
+        bank_pts, bank_tans = path_frames(world, 13.0)
         for q0, t in zip(bank_pts, bank_tans, strict=True):
             n = np.array([-t[1], t[0]])
             for side in (-1.0, 1.0):

@@ -28,7 +28,7 @@ def make_world(seed: int) -> W.World:
 
 
 @functools.lru_cache(maxsize=16)
-def _scene(world: W.World, season: str):
+def season_scene(world: W.World, season: str):
     return _seasons.build_scene(world, season)
 
 
@@ -94,7 +94,7 @@ def render(
     ids = np.arange(b, dtype=np.int32) if frame_ids is None else np.asarray(frame_ids, np.int32)
     if ids.shape != (b,):
         raise ValueError(f"frame_ids must have shape ({b},), got {ids.shape}")
-    geo, look = _scene(world, season)
+    geo, look = season_scene(world, season)
     rgb, depth, sky = _render.render_batch(
         geo, look, jnp.asarray(poses6), jnp.asarray(K), jnp.asarray(ids), hw=hw
     )
