@@ -142,6 +142,14 @@ def test_load_explicit_midas_file_and_converted_cache(samples, midas_recipe_npz,
     entry = REGISTRY["midas_v21_small_256"]
     monkeypatch.setitem(REGISTRY, entry.name, dataclasses.replace(entry, converter=_fail))
     _assert_trees_equal(load("midas_v21_small_256", path=samples / "midas_fixture.pt"), want)
+    # A truncated converted file (a crash or a full disk while it was written by an older version, bit rot) is
+    # rebuilt from the checkpoint, not a failure forever.
+    monkeypatch.setitem(REGISTRY, entry.name, entry)
+    (only,) = converted
+    only.write_bytes(only.read_bytes()[: only.stat().st_size // 2])
+    _assert_trees_equal(load("midas_v21_small_256", path=samples / "midas_fixture.pt"), want)
+    with np.load(only) as f:  # rewritten whole
+        assert len(f.files) > 100
     with pytest.raises(FileNotFoundError, match="not found"):
         load("midas_v21_small_256", path=samples / "missing.pt")
     with pytest.raises(KeyError, match="registered"):

@@ -174,14 +174,12 @@ def _versions() -> dict[str, str]:
 
 def _restore_params(ckdir: Path) -> dict:
     """The ``params`` of the latest orbax checkpoint written by ``placejax.training.Checkpointer``."""
-    import orbax.checkpoint as ocp
+    from placejax.training import Checkpointer
 
-    with ocp.CheckpointManager(ckdir) as mngr:
-        step = mngr.latest_step()
-        if step is None:
-            raise FileNotFoundError(f"no checkpoint under {ckdir} (the run did not finish training it)")
-        item = mngr.restore(step, args=ocp.args.StandardRestore())
-    return jax.tree_util.tree_map(np.asarray, item["params"])
+    if not Path(ckdir).is_dir():
+        raise FileNotFoundError(f"no checkpoint under {ckdir} (the run did not finish training it)")
+    with Checkpointer(ckdir) as ck:
+        return ck.latest_params()
 
 
 class PlaceClassifier:

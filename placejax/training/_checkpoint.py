@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
+import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
 from placejax.training._state import TrainState, abstract_like
@@ -57,6 +60,15 @@ class Checkpointer:
             step=item["step"],
             batch_stats=item.get("batch_stats", template.batch_stats),
         )
+
+    def latest_params(self) -> Any:
+        """The ``params`` of the latest checkpoint as NumPy arrays, without a template (for inference users such
+        as ``placejax.PlaceClassifier``, which rebuild the model from their own description)."""
+        step = self._manager.latest_step()
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint under {self.directory} (the run did not finish training it)")
+        item = self._manager.restore(step, args=ocp.args.StandardRestore())
+        return jax.tree_util.tree_map(np.asarray, item["params"])
 
     def close(self) -> None:
         self._manager.close()
