@@ -130,3 +130,27 @@ def test_cli_overrides_are_typed_and_cache_folder_follows_the_config(tmp_path):
     a = pretrain.run_dir(cfg, "smoke", tmp_path)
     assert a == pretrain.run_dir(dataclasses.replace(cfg, checkpoint_every=3), "smoke", tmp_path)
     assert a != pretrain.run_dir(dataclasses.replace(cfg, seed=5), "smoke", tmp_path)
+
+
+def test_experiment_reads_the_shipped_trunk_as_pretrained_weights(tmp_path):
+    """``vgg.weights=shipped:NAME`` gives the experiment's frozen-trunk path the shipped trunk (fc6/fc7 then
+    start from He init), identified in cache keys by the file's hash."""
+    import jax
+    import jax.numpy as jnp
+
+    from experiments.cross_season import get_config, pipeline
+    from placejax.models import VGG16
+    from placejax.training import data_mesh
+
+    cfg = get_config("default")
+    cfg.vgg.update(pretrained=True, weights="shipped:simcampus_places_w0125_s64", width=0.125)
+    ctx = pipeline.Context(config=cfg, workdir=tmp_path, mesh=data_mesh(1))
+    params = pipeline._pretrained_vgg(ctx)
+    want = jax.eval_shape(VGG16(num_classes=100, width=0.125).init, jax.random.key(0), jnp.zeros((1, 64, 64, 3)))
+    assert set(params) == {"trunk"}
+    assert jax.tree.map(lambda a: a.shape, params["trunk"]) == jax.tree.map(lambda a: a.shape, want["params"]["trunk"])
+    ident = pipeline.weights_identity(cfg.vgg.weights, "vgg16_imagenet")
+    assert ident["shipped"] == cfg.vgg.weights and len(ident["sha256"]) == 64
+    cfg.vgg.width = 0.25
+    with pytest.raises(ValueError, match=r"width-0\.125 trunk"):
+        pipeline._pretrained_vgg(ctx)

@@ -48,7 +48,7 @@ HELP: dict[str, str] = {
     "depth.batch_size": "images per depth-network / HHA call",
     "vgg.width": "channel multiplier of VGG16 (1.0 = VGG16)",
     "vgg.pretrained": "ImageNet weights: freeze the convs, cache their features, train fc6–fc8 only",
-    "vgg.weights": "path of torchvision vgg16-397923af.pth ('' = registry / download)",
+    "vgg.weights": "vgg16-397923af.pth path ('' = registry / download), or shipped:NAME (placejax.pretrain's trunk)",
     "vgg.dropout": "dropout after fc6 and fc7",
     "train.epochs": "epochs of each VGG16 place classifier",
     "train.batch_size": "global batch (divisible by the device count)",

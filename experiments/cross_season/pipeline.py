@@ -22,6 +22,7 @@ import contextlib
 import dataclasses
 import fcntl
 import functools
+import hashlib
 import json
 import os
 import socket
@@ -312,9 +313,14 @@ def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
 
 def weights_identity(path: str, registry_name: str) -> dict:
     """What identifies a weights file in cache keys: its SHA-256 (not its path: a moved file is the same
-    weights, a replaced one is not), or the registry entry."""
+    weights, a replaced one is not), the shipped file's, or the registry entry."""
     if not path:
         return {"registry": registry_name}
+    if path.startswith(SHIPPED_PREFIX):
+        import importlib.resources
+
+        res = importlib.resources.files("placejax.pretrain") / "weights" / f"{path[len(SHIPPED_PREFIX) :]}.npz"
+        return {"shipped": path, "sha256": hashlib.sha256(res.read_bytes()).hexdigest()}
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"weights file {path!r} not found")
@@ -322,11 +328,28 @@ def weights_identity(path: str, registry_name: str) -> dict:
     return {"sha256": _file_sha256(str(p.resolve()), st.st_size, st.st_mtime_ns)}
 
 
+SHIPPED_PREFIX = "shipped:"
+
+
 def _pretrained_vgg(ctx: Context) -> dict:
-    """ImageNet VGG16 parameters (trunk and fc6/fc7) at ``vgg.width``."""
+    """Pretrained VGG16 parameters at ``vgg.width``: the trunk, and fc6/fc7 where the weights have them.
+
+    ``vgg.weights``: a torchvision-layout ``torch.save`` file, ``shipped:<name>`` (a trunk pretrained on other
+    SimCampus worlds that ships with placejax, ``placejax.pretrain.load_shipped``; trunk only, so fc6/fc7 start
+    from He init and are trained), or empty for the registry's ImageNet weights.
+    """
     from placejax.weights import convert_vgg16, load, read_torch_checkpoint
 
     c = ctx.config.vgg
+    if c.weights.startswith(SHIPPED_PREFIX):
+        from placejax.pretrain import load_shipped
+
+        params, meta = load_shipped(c.weights[len(SHIPPED_PREFIX) :])
+        if meta["config"]["width"] != c.width:
+            raise ValueError(
+                f"vgg.weights={c.weights!r} is a width-{meta['config']['width']} trunk, vgg.width={c.width}"
+            )
+        return {"trunk": params["trunk"]}
     if c.weights:
         sd = read_torch_checkpoint(c.weights)
         fc8 = sd.get("classifier.6.weight")
@@ -511,9 +534,12 @@ def train_nets(ctx: Context, sessions: list[SessionData], num_classes: int) -> d
                 init_key, run_key = jax.random.split(jax.random.fold_in(key, 1000 * mi + si))
                 params = he_init(init(init_key, jnp.zeros((1, h, w, 3)))["params"], init_key)
                 if pretrained is not None:
-                    # Paper §IV: ImageNet convs frozen (features cached), fc6/fc7 fine-tuned, fc8 new.
+                    # Paper §IV: pretrained convs frozen (features cached), fc6/fc7 fine-tuned, fc8 new; weights
+                    # without fc6/fc7 (a shipped trunk) start them from He init.
                     cls = dict(params["classifier"])
-                    cls["fc6"], cls["fc7"] = pretrained["classifier"]["fc6"], pretrained["classifier"]["fc7"]
+                    for layer in ("fc6", "fc7"):
+                        if layer in pretrained.get("classifier", {}):
+                            cls[layer] = pretrained["classifier"][layer]
                     params = {"classifier": cls}
                 folder = ctx.workdir / "nets" / f"{name}-{cache_digest(net_key)}"
                 state = train_classifier(
