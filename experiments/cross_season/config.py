@@ -37,7 +37,7 @@ HELP: dict[str, str] = {
     "data.camera": "NCLT Ladybug3 camera (5 faces forward)",
     "data.undistort": "NCLT: remap with the official U2D tables",
     "grid.n": "cells per axis of the place grid (n × n classes)",
-    "depth.source": "'trained' (placejax depth net, issue 5), 'midas' (official MiDaS v2.1 small), 'true' (rendered)",
+    "depth.source": "'trained' (placejax depth net), 'midas' (official MiDaS v2.1 small), 'true' (rendered)",
     "depth.midas_weights": "path of midas_v21_small_256.pt ('' = placejax.weights registry / download)",
     "depth.midas_features": "MiDaS decoder width (64 official; smaller only for tests)",
     "depth.midas_encoder_width": "MiDaS encoder channel multiplier (1.0 official)",

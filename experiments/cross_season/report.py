@@ -18,7 +18,7 @@ _METHOD_NAMES = {
 }
 
 
-# Extra columns of the unseen-place detection (issue 12): results key → header.
+# Extra columns of the unseen-place detection: results key → header.
 _UNKNOWN_COLUMNS = {
     "unknown_msp_auroc": "AUROC msp",
     "unknown_entropy_auroc": "AUROC entropy",
