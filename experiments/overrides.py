@@ -9,11 +9,12 @@ truthy string ``"False"``), strings need no quotes, unknown keys are refused wit
 from __future__ import annotations
 
 import ast
+import dataclasses
 from typing import Any
 
 import ml_collections
 
-__all__ = ["apply_overrides", "get", "leaf_keys"]
+__all__ = ["apply_overrides", "dataclass_overrides", "get", "leaf_keys", "presets_epilog"]
 
 
 def _leaf_keys(c: ml_collections.ConfigDict, prefix: str = "") -> list[str]:
@@ -87,3 +88,23 @@ def apply_overrides(c: ml_collections.ConfigDict, overrides: list[str]) -> ml_co
         except ValueError as e:
             raise ValueError(f"override {key}: {e}") from None
     return c
+
+
+def dataclass_overrides(cfg: Any, overrides: list[str]) -> Any:
+    """A frozen-dataclass config (``DepthTrainConfig``, ``PretrainConfig``) with ``key=value`` overrides applied by
+    the same typed parser; the dataclass's own checks run on the result.
+
+    Raises:
+        ValueError: unknown key, unparsable or mistyped value, or a config the dataclass refuses.
+    """
+    c = apply_overrides(ml_collections.ConfigDict(dataclasses.asdict(cfg)), overrides)
+    return type(cfg)(**c.to_dict())
+
+
+def presets_epilog(presets: dict[str, Any]) -> str:
+    """``--help`` text listing every field of a dataclass config with its value in each preset."""
+    names = sorted(presets)
+    lines = ["config keys (override with key=value; values of every preset):"]
+    for f in dataclasses.fields(next(iter(presets.values()))):
+        lines.append(f"  {f.name}: " + ", ".join(f"{p}={getattr(presets[p], f.name)!r}" for p in names))
+    return "\n".join(lines)

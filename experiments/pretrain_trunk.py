@@ -21,28 +21,21 @@ import sys
 import time
 from pathlib import Path
 
-import ml_collections
-
-from experiments.overrides import apply_overrides
+from experiments.overrides import dataclass_overrides, presets_epilog
 from placejax import pretrain
 
 
 def parse_overrides(cfg: pretrain.PretrainConfig, overrides: list[str]) -> pretrain.PretrainConfig:
     """Applies ``key=value`` overrides with the experiments' typed parser; ValueError on a bad key or value."""
-    c = apply_overrides(ml_collections.ConfigDict(dataclasses.asdict(cfg)), overrides)
-    return pretrain.PretrainConfig(**c.to_dict())
+    return dataclass_overrides(cfg, overrides)
 
 
 def main(argv: list[str] | None = None) -> int:
     presets = sorted(pretrain.PRESETS)
-    lines = []
-    for f in dataclasses.fields(pretrain.PretrainConfig):
-        values = ", ".join(f"{p}={getattr(pretrain.PRESETS[p], f.name)!r}" for p in presets)
-        lines.append(f"  {f.name}: {values}")
     parser = argparse.ArgumentParser(
         prog="python -m experiments.pretrain_trunk",
         description=__doc__,
-        epilog="config keys (override with key=value; values of every preset):\n" + "\n".join(lines),
+        epilog=presets_epilog(pretrain.PRESETS),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--preset", default="default", choices=presets)

@@ -19,20 +19,12 @@ predicted / true depth per season) into the run's folder.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
 
-import ml_collections
-
-from experiments.overrides import apply_overrides
+from experiments.overrides import dataclass_overrides, presets_epilog
 from placejax import depth
-
-
-def config_dict(cfg: depth.DepthTrainConfig) -> ml_collections.ConfigDict:
-    """A preset as the experiments' ConfigDict (so that it takes the same typed overrides)."""
-    return ml_collections.ConfigDict(dataclasses.asdict(cfg))
 
 
 def parse_overrides(cfg: depth.DepthTrainConfig, overrides: list[str]) -> depth.DepthTrainConfig:
@@ -41,20 +33,15 @@ def parse_overrides(cfg: depth.DepthTrainConfig, overrides: list[str]) -> depth.
     Raises:
         ValueError: unknown key, unparsable or mistyped value, or a config that ``DepthTrainConfig`` refuses.
     """
-    c = apply_overrides(config_dict(cfg), overrides)
-    return depth.DepthTrainConfig(**c.to_dict())
+    return dataclass_overrides(cfg, overrides)
 
 
 def main(argv: list[str] | None = None) -> int:
     presets = sorted(depth.PRESETS)
-    lines = []
-    for f in dataclasses.fields(depth.DepthTrainConfig):
-        values = ", ".join(f"{p}={getattr(depth.PRESETS[p], f.name)!r}" for p in presets)
-        lines.append(f"  {f.name}: {values}")
     parser = argparse.ArgumentParser(
         prog="python -m experiments.train_depth",
         description=__doc__,
-        epilog="config keys (override with key=value; values of every preset):\n" + "\n".join(lines),
+        epilog=presets_epilog(depth.PRESETS),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--preset", default="default", choices=presets)
