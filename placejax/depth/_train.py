@@ -273,17 +273,15 @@ def train(
     if cfg.batch_size % mesh.size:
         raise ValueError(f"batch_size {cfg.batch_size} must be divisible by the {mesh.size} devices")
     variables = init_variables(cfg)
-    with training.Checkpointer(_checkpoint_dir(workdir)) as ck:
-        latest = ck.latest_step()
-    if latest is not None and latest >= cfg.steps:
-        batches = [None] * cfg.steps  # finished: the engine restores the last checkpoint and reads no batch
-    else:
+
+    def batches():  # rendered only when steps remain
         frames = training_frames(cfg, progress=progress)
         source = FrameSource(frames["rgb"], extras={"depth": frames["depth"], "sky": frames["sky"]})
         epochs = math.ceil(cfg.steps * cfg.batch_size / cfg.frames)
-        batches = train_dataset(
+        return train_dataset(
             source, batch_size=cfg.batch_size // jax.process_count(), seed=cfg.seed, num_epochs=epochs
         )
+
     return training.train(
         training.apply_fn(cfg.model()),
         variables["params"],

@@ -288,16 +288,13 @@ def train(
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     n_classes = num_classes(cfg)
-    with training.Checkpointer(_checkpoint_dir(workdir)) as ck:
-        latest = ck.latest_step()
-    if latest is not None and latest >= cfg.steps:
-        batches = [None] * cfg.steps  # finished: the engine restores the last checkpoint and reads no batch
-    else:
+
+    def batches(frames=frames):  # rendered only when steps remain
         frames = training_frames(cfg, progress=progress) if frames is None else frames
-        n = len(frames["label"])
-        epochs = math.ceil(cfg.steps * cfg.batch_size / n)
+        epochs = math.ceil(cfg.steps * cfg.batch_size / len(frames["label"]))
         source = FrameSource(frames["rgb"], frames["label"], extras={"rgb2": frames["rgb2"]})
-        batches = train_dataset(source, batch_size=cfg.batch_size, seed=cfg.seed, num_epochs=epochs)
+        return train_dataset(source, batch_size=cfg.batch_size, seed=cfg.seed, num_epochs=epochs)
+
     return training.train(
         training.apply_fn(model(cfg, n_classes)),
         init_params(cfg, n_classes),

@@ -63,12 +63,12 @@ def fit(
     Returns:
         ``(final state, per-step metrics of the steps run in this call)``.
     """
-    if len(batches) < num_steps:
-        raise ValueError(f"{desc}: {len(batches)} batches for {num_steps} steps")
     if checkpointer is not None and checkpointer.latest_step() is not None:
         state = checkpointer.restore(state)
     start = int(state.step)
     last = num_steps if stop_after is None else min(num_steps, stop_after)
+    if start < last and len(batches) < last:
+        raise ValueError(f"{desc}: {len(batches)} batches for {num_steps} steps")
     history: list[dict[str, float]] = []
     pending: list[dict[str, jax.Array]] = []
     with tqdm(total=num_steps, initial=start, desc=desc, unit="step", disable=not progress) as bar:
@@ -92,7 +92,7 @@ def train(
     apply_fn: Callable[..., Any],
     params: Any,
     tx: Any,
-    batches: Sequence[Batch],
+    batches: Sequence[Batch] | Callable[[], Sequence[Batch]],
     *,
     key: jax.Array,
     mesh: Mesh,
@@ -114,13 +114,14 @@ def train(
         apply_fn: from :func:`placejax.training.apply_fn` (one stable function per model).
         params: initial parameters.
         tx: from :func:`placejax.training.make_optimizer`.
-        batches: random-access batches (:func:`placejax.data.train_dataset`): batch k is read at step k.
+        batches: random-access batches (:func:`placejax.data.train_dataset`): batch k is read at step k; or a
+            function making them, called only when steps remain (a finished run renders or reads no data).
         key: base key of the run (step keys are folded from it).
         mesh: the data mesh.
         prepare: raw batch → what ``objective`` reads.
         learning_rate: peak of the warmup + cosine schedule, which ends at ``num_steps``.
         warmup_steps: linear warmup.
-        num_steps: steps of the run (default ``len(batches)``).
+        num_steps: steps of the run (default ``len(batches)``; required when ``batches`` is a function).
         batch_stats: initial BatchNorm statistics, for models that have them.
         objective: the loss; default cross-entropy of a classifier.
         checkpoint_dir: orbax checkpoints (resumed from when present); ``None``: none.
@@ -129,6 +130,14 @@ def train(
         desc: progress-bar label.
         progress: show a progress bar.
     """
+    if callable(batches):
+        if num_steps is None:
+            raise ValueError(f"{desc}: num_steps is required when batches is a function")
+        done = None
+        if checkpoint_dir is not None:
+            with Checkpointer(checkpoint_dir) as ck:
+                done = ck.latest_step()
+        batches = () if done is not None and done >= num_steps else batches()
     num_steps = len(batches) if num_steps is None else num_steps
     state = create_state(
         apply_fn,
