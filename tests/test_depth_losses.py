@@ -121,3 +121,29 @@ def test_midas_loss_passes_the_trim_share(batch):
         want = L.ssi_trimmed_mae(pred, target, mask, trim) + 0.5 * grad
         np.testing.assert_allclose(L.midas_loss(pred, target, mask, trim=trim), want, rtol=1e-6)
     assert L.midas_loss(pred, target, mask, trim=0.5) < L.midas_loss(pred, target, mask, trim=0.0)
+
+
+def test_log_metric_loss_is_metric_and_zero_only_when_exact(batch):
+    """The metric log-depth loss is not scale invariant (a constant offset in log depth — a scale error in metres —
+    costs exactly the offset in the data term and nothing in the gradient term), is zero for the exact target,
+    ignores masked pixels, and its targets round-trip to metres."""
+    _, target, mask = batch
+    assert float(L.log_metric_loss(target, target, mask)) == pytest.approx(0.0, abs=1e-7)
+    shifted = L.log_metric_loss(target + 0.3, target, mask, alpha=0.5)
+    assert float(shifted) == pytest.approx(0.3, rel=1e-5)
+    assert float(L.gradient_matching(target + 0.3, target, mask, align=False)) == pytest.approx(0.0, abs=1e-6)
+    garbage = jnp.where(mask > 0, target, 1e3)
+    assert float(L.log_metric_loss(garbage, target, mask)) == pytest.approx(0.0, abs=1e-7)
+    depth_m = jnp.asarray([[0.25, 1.0, 12.5, 80.0]], jnp.float32)
+    np.testing.assert_allclose(np.asarray(L.depth_from_log(L.log_depth(depth_m))), np.asarray(depth_m), rtol=1e-6)
+    assert float(L.log_depth(jnp.float32(0.01))) == 0.0  # below the unit: clamped, never negative
+
+
+def test_log_metric_targets_put_the_sky_at_the_far_limit():
+    from placejax.depth._train import log_metric_targets
+
+    depth_m = jnp.asarray([[2.0, 100.0, jnp.inf, jnp.nan]], jnp.float32)[None]
+    sky = jnp.asarray([[False, False, True, False]])[None]
+    t, m = log_metric_targets(depth_m, sky, 80.0)
+    np.testing.assert_allclose(np.asarray(L.depth_from_log(t))[0, 0, :3], [2.0, 80.0, 80.0], rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(m)[0, 0], [1.0, 1.0, 1.0, 0.0])

@@ -104,6 +104,7 @@ def test_ensure_trained_trains_once_and_reports(uninterrupted_dir, tmp_path, mon
         assert set(season) == {"model", "constant", "farther_toward_top"}
         for m in season.values():
             assert 0 <= m["delta1"] <= 1 and m["abs_rel"] >= 0
+            assert 0 <= m["delta1_with_sky"] <= 1 and m["abs_rel_with_sky"] >= 0
     assert (workdir / "depth_eval.png").stat().st_size > 1000
     out = trained.predict(np.zeros((2, 40, 48, 3), np.uint8))
     assert out.shape == (2, 40, 48) and np.all(np.isfinite(out))
@@ -150,3 +151,29 @@ def test_bool_overrides_are_bools_and_change_the_fingerprint():
             train_depth.parse_overrides(CFG, [bad])
     with pytest.raises(ValueError, match="positive int"):
         train_depth.parse_overrides(CFG, ["steps=0"])
+
+
+def test_evaluation_with_and_without_sky_on_an_analytic_scene():
+    """A ground plane under a sky: predicting the sky as near as the horizon costs nothing without the sky and a
+    lot with it; the exact inverse depth (sky at the far clamp) scores perfectly both ways."""
+    h, w, far = 16, 8, 80.0
+    rows = np.arange(h, dtype=np.float32)[:, None].repeat(w, 1)
+    sky = rows < h // 2
+    ground = np.where(sky, np.inf, 40.0 / np.maximum(rows - h // 2 + 1, 1)).astype(np.float32)
+    depth_m = ground[None]
+    frames = {
+        "S": {
+            "rgb": np.zeros((1, h, w, 3), np.uint8),
+            "depth": depth_m,
+            "mask": ~sky[None],
+            "depth_with_sky": np.where(sky, far, ground)[None].astype(np.float32),
+            "mask_with_sky": np.ones((1, h, w), bool),
+        }
+    }
+    exact = np.where(sky, 1.0 / far, 1.0 / np.where(sky, 1.0, ground))[None].astype(np.float32)
+    sky_near = np.where(sky, 1.0 / 40.0, exact[0])[None].astype(np.float32)
+    good = depth.evaluate(lambda rgb: exact, frames)["S"]["model"]
+    bad = depth.evaluate(lambda rgb: sky_near, frames)["S"]["model"]
+    assert good["abs_rel"] < 1e-4 and good["abs_rel_with_sky"] < 1e-4 and good["delta1_with_sky"] == 1.0
+    assert bad["abs_rel"] < 1e-4  # the sky is not scored without it
+    assert bad["abs_rel_with_sky"] > 0.1 and bad["delta1_with_sky"] < 1.0, bad

@@ -6,8 +6,12 @@ from placejax.depth._evaluate import baseline_predictions, evaluate, evaluation_
 from placejax.depth._inference import network_size, predict, preprocess
 from placejax.depth._lifecycle import ensure_trained, report_markdown, run_dir, write_report
 from placejax.depth._losses import (
+    LOG_DEPTH_UNIT_M,
     align_least_squares,
+    depth_from_log,
     gradient_matching,
+    log_depth,
+    log_metric_loss,
     midas_loss,
     normalise_median_mad,
     ssi_mse,
@@ -17,6 +21,7 @@ from placejax.depth._metrics import aligned_depth, depth_metrics
 from placejax.depth._train import PRESETS, DepthObjective, DepthTrainConfig, TrainedDepth, load_trained, train
 
 __all__ = [
+    "LOG_DEPTH_UNIT_M",
     "PRESETS",
     "DepthObjective",
     "DepthTrainConfig",
@@ -24,12 +29,15 @@ __all__ = [
     "align_least_squares",
     "aligned_depth",
     "baseline_predictions",
+    "depth_from_log",
     "depth_metrics",
     "ensure_trained",
     "evaluate",
     "evaluation_frames",
     "gradient_matching",
     "load_trained",
+    "log_depth",
+    "log_metric_loss",
     "midas_loss",
     "network_size",
     "normalise_median_mad",

@@ -11,7 +11,12 @@ def evaluation_frames(
     image_size: int, n_per_season: int, *, world_seed: int = 0, max_depth_m: float = 80.0
 ) -> dict[str, dict[str, np.ndarray]]:
     """Frames of the evaluation campus (the experiment's world, never trained on), evenly spaced along each
-    season's drive: ``{season: {"rgb", "depth", "mask"}}``; the mask drops sky and pixels beyond ``max_depth_m``."""
+    season's drive: ``{season: {"rgb", "depth", "mask", "depth_with_sky", "mask_with_sky"}}``.
+
+    ``mask`` drops sky and pixels beyond ``max_depth_m`` (the scene's objects and ground); ``depth_with_sky`` puts
+    sky and everything beyond at ``max_depth_m`` (where aligned predictions are clamped) and ``mask_with_sky``
+    keeps every such pixel, so that a net that paints objects into the sky, or the sky onto objects, pays for it.
+    """
     from placejax.data import simcampus
 
     out = {}
@@ -19,8 +24,16 @@ def evaluation_frames(
         session = simcampus.load_session(season, world_seed=world_seed, image_size=(image_size, image_size))
         idx = np.linspace(0, len(session) - 1, n_per_season).round().astype(int)
         r = session.render(idx)
-        mask = (~r["sky"]) & np.isfinite(r["depth"]) & (r["depth"] > 0) & (r["depth"] < max_depth_m)
-        out[season] = {"rgb": r["rgb"], "depth": r["depth"], "mask": mask}
+        finite = np.isfinite(r["depth"]) & (r["depth"] > 0)
+        mask = (~r["sky"]) & finite & (r["depth"] < max_depth_m)
+        far = r["sky"] | (finite & (r["depth"] >= max_depth_m))
+        out[season] = {
+            "rgb": r["rgb"],
+            "depth": r["depth"],
+            "mask": mask,
+            "depth_with_sky": np.where(far, np.float32(max_depth_m), r["depth"]).astype(np.float32),
+            "mask_with_sky": mask | far,
+        }
     return out
 
 
@@ -40,7 +53,8 @@ def evaluate(predict, frames: dict[str, dict[str, np.ndarray]]) -> dict[str, dic
         frames: from :func:`evaluation_frames`.
 
     Returns:
-        ``{season: {method: {"abs_rel": mean, "delta1": mean}}}`` with methods ``"model"``, ``"constant"``,
+        ``{season: {method: {"abs_rel", "delta1", "abs_rel_with_sky", "delta1_with_sky"}}}`` (means over the
+        season's frames; without sky: objects and ground only) with methods ``"model"``, ``"constant"``,
         ``"farther_toward_top"``.
     """
     report = {}
@@ -49,7 +63,11 @@ def evaluate(predict, frames: dict[str, dict[str, np.ndarray]]) -> dict[str, dic
         report[season] = {}
         for name, p in preds.items():
             m = depth_metrics(p, f["depth"], f["mask"])
-            report[season][name] = {k: float(np.mean(np.asarray(v))) for k, v in m.items()}
+            sky = depth_metrics(p, f["depth_with_sky"], f["mask_with_sky"])
+            report[season][name] = {
+                **{k: float(np.mean(np.asarray(v))) for k, v in m.items()},
+                **{f"{k}_with_sky": float(np.mean(np.asarray(v))) for k, v in sky.items()},
+            }
     return report
 
 

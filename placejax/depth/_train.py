@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import training
-from placejax.depth._losses import midas_loss
+from placejax.depth._losses import depth_from_log, log_depth, log_metric_loss, midas_loss
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall
 
 # Bumped whenever the training recipe changes in a way the config does not show, so that a cached network of an
@@ -47,6 +47,11 @@ class DepthTrainConfig:
         learning_rate: peak AdamW learning rate (linear warm-up, cosine decay).
         warmup_steps: linear warm-up steps.
         weight_decay: AdamW weight decay.
+        target: ``"inverse"``: relative inverse depth with MiDaS's scale- and shift-invariant loss (``loss``,
+            ``trim``, ``sky_in_loss`` apply), converted to metres downstream by a percentile mapping, like MiDaS;
+            ``"log_metric"``: metric log depth (:func:`placejax.depth.log_metric_loss`; sky and everything
+            beyond ``max_depth_m`` at ``max_depth_m``), in metres with no mapping — possible because the
+            camera and its height are the same in every frame.
         loss: ``"trimmed"`` (ssitrim) or ``"mse"`` (ssimse); plus the gradient-matching term.
         alpha: weight of the gradient-matching term (0.5 in the paper).
         trim: share of each image's largest residuals left out of the "trimmed" loss (MiDaS: 0.2, for noisy
@@ -71,6 +76,7 @@ class DepthTrainConfig:
     learning_rate: float = 2e-3
     warmup_steps: int = 50
     weight_decay: float = 1e-4
+    target: str = "inverse"
     loss: str = "trimmed"
     trim: float = 0.0
     sky_in_loss: bool = True
@@ -84,6 +90,8 @@ class DepthTrainConfig:
     def __post_init__(self):
         if self.image_size % 32:
             raise ValueError(f"image_size must be a multiple of 32, got {self.image_size}")
+        if self.target not in ("inverse", "log_metric"):
+            raise ValueError(f"target must be 'inverse' or 'log_metric', got {self.target!r}")
         if self.loss not in ("trimmed", "mse"):
             raise ValueError(f"loss must be 'trimmed' or 'mse', got {self.loss!r}")
         if not 0.0 <= self.trim < 1.0:
@@ -104,9 +112,16 @@ class DepthTrainConfig:
     def model(self) -> MidasSmall:
         return MidasSmall(features=self.features, encoder_width=self.encoder_width)
 
+    @property
+    def metric(self) -> bool:
+        """Whether the network predicts metric depth (``target="log_metric"``)."""
+        return self.target == "log_metric"
+
     def fingerprint(self) -> str:
         """Short hash of every field that changes the trained weights (not the report-only fields)."""
         fields = dataclasses.asdict(self)
+        if self.target == "inverse":
+            fields.pop("target")  # the field came later: inverse-depth networks keep their cache folders
         fields.pop("eval_frames")
         fields.pop("checkpoint_every")
         fields["recipe_version"] = _RECIPE_VERSION
@@ -116,6 +131,7 @@ class DepthTrainConfig:
 PRESETS = {
     # A few steps of a tiny network: the tests' preset.
     "smoke": DepthTrainConfig(
+        target="log_metric",
         image_size=32,
         features=8,
         encoder_width=0.25,
@@ -127,8 +143,9 @@ PRESETS = {
         checkpoint_every=2,
         eval_frames=4,
     ),
-    # CPU-sized: 1200 steps, about 7 minutes on two cores; the default depth source of the experiment.
-    "default": DepthTrainConfig(),
+    # CPU-sized: 1200 steps, about 7 minutes on two cores; the default depth source of the experiment. Metric log
+    # depth: the inverse-depth objective at this size learnt a ground ramp under a flat sky, with no objects.
+    "default": DepthTrainConfig(target="log_metric"),
     # The official architecture at MiDaS's resolution: for an accelerator.
     "full": DepthTrainConfig(
         image_size=256,
@@ -172,10 +189,20 @@ def targets(
     return inv, mask.astype(jnp.float32)
 
 
+def log_metric_targets(depth_m: jax.Array, sky: jax.Array, max_depth_m: float) -> tuple[jax.Array, jax.Array]:
+    """Metric log-depth targets (:func:`placejax.depth.log_depth`) and the loss mask: sky, and anything beyond
+    ``max_depth_m``, at ``max_depth_m``; every pixel counts but non-finite non-sky depth."""
+    finite = jnp.isfinite(depth_m) & (depth_m > 0)
+    far = sky | (finite & (depth_m >= max_depth_m))
+    d = jnp.where(far, max_depth_m, jnp.where(finite, depth_m, 1.0))
+    return log_depth(d), (far | finite).astype(jnp.float32)
+
+
 @dataclasses.dataclass(frozen=True)
 class DepthObjective:
-    """The depth network's objective for ``placejax.training.train_step``: L = L_ssi + α·L_grad (MiDaS) on
-    random horizontal flips, with BatchNorm statistics updated over the global batch.
+    """The depth network's objective for ``placejax.training.train_step`` on random horizontal flips, with
+    BatchNorm statistics updated over the global batch: L = L_ssi + α·L_grad (MiDaS) on inverse depth, or the
+    metric log-depth loss (``target="log_metric"``).
 
     Reads ``batch["image"]`` uint8 ``(B, H, W, 3)``, ``batch["depth"]`` metres ``(B, H, W)``, ``batch["sky"]``.
     A frozen dataclass: hashable, so each configuration compiles one step.
@@ -186,23 +213,30 @@ class DepthObjective:
     trim: float = 0.0
     max_depth_m: float = 80.0
     sky_in_loss: bool = True
+    target: str = "inverse"
 
     @classmethod
     def of(cls, cfg: DepthTrainConfig) -> DepthObjective:
-        return cls(cfg.loss, cfg.alpha, cfg.trim, cfg.max_depth_m, cfg.sky_in_loss)
+        return cls(cfg.loss, cfg.alpha, cfg.trim, cfg.max_depth_m, cfg.sky_in_loss, cfg.target)
 
     def __call__(self, state, params, batch, key):
         x = normalise(batch["image"])
-        inv, mask = targets(batch["depth"], batch["sky"], self.max_depth_m, self.sky_in_loss)
+        if self.target == "log_metric":
+            tgt, mask = log_metric_targets(batch["depth"], batch["sky"], self.max_depth_m)
+        else:
+            tgt, mask = targets(batch["depth"], batch["sky"], self.max_depth_m, self.sky_in_loss)
         # Horizontal flips: a scene and its mirror image have mirrored depth.
         flip = jax.random.bernoulli(key, 0.5, (x.shape[0],))
         x = jnp.where(flip[:, None, None, None], x[:, :, ::-1], x)
-        inv = jnp.where(flip[:, None, None], inv[:, :, ::-1], inv)
+        tgt = jnp.where(flip[:, None, None], tgt[:, :, ::-1], tgt)
         mask = jnp.where(flip[:, None, None], mask[:, :, ::-1], mask)
         pred, updates = state.apply_fn(
             {"params": params, "batch_stats": state.batch_stats}, x, train=True, mutable=["batch_stats"]
         )
-        loss = midas_loss(pred, inv, mask, variant=self.loss, alpha=self.alpha, trim=self.trim)
+        if self.target == "log_metric":
+            loss = log_metric_loss(pred, tgt, mask, alpha=self.alpha)
+        else:
+            loss = midas_loss(pred, tgt, mask, variant=self.loss, alpha=self.alpha, trim=self.trim)
         return loss, ({"loss": loss}, updates["batch_stats"])
 
 
@@ -318,11 +352,30 @@ class TrainedDepth:
     def fingerprint(self) -> str:
         return self.config.fingerprint()
 
+    @property
+    def metric(self) -> bool:
+        """Whether :meth:`predict_metric` gives metres (a ``target="log_metric"`` network)."""
+        return self.config.metric
+
     def predict(self, images: np.ndarray) -> np.ndarray:
-        """``(N, H, W, 3)`` uint8 RGB → float32 ``(N, H, W)`` relative inverse depth (bigger = closer).
+        """``(N, H, W, 3)`` uint8 RGB → float32 ``(N, H, W)`` inverse depth (bigger = closer): relative (unknown
+        scale and shift) for an inverse-depth network, 1 / metres for a metric one.
 
         Images are resized to the training resolution (square), the prediction back to ``(H, W)``.
         """
+        out = self._raw(images)
+        return np.asarray(1.0 / depth_from_log(out), np.float32) if self.metric else out
+
+    def predict_metric(self, images: np.ndarray) -> np.ndarray:
+        """``(N, H, W, 3)`` uint8 RGB → float32 ``(N, H, W)`` depth in metres (metric networks only)."""
+        if not self.metric:
+            raise ValueError(
+                "this depth network predicts relative inverse depth (target='inverse'): map it to metres with "
+                "placejax.hha.inverse_depth_to_metric"
+            )
+        return np.asarray(depth_from_log(self._raw(images)), np.float32)
+
+    def _raw(self, images: np.ndarray) -> np.ndarray:
         from placejax.depth._inference import predict
 
         return predict(self.variables, images, model=self.model, size=self.config.image_size, square=True)
