@@ -18,7 +18,7 @@ from placejax.classify import _artefact, _run_layout
 from placejax.classify import _unknown as unknown
 from placejax.data import PlaceGrid
 from placejax.data.camera import resize_image
-from placejax.depth import network_size
+from placejax.depth import depth_from_log, network_size
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, VGG16, FusionMLP, MidasSmall, cpu_compiler_options, resize
 
 BRANCHES = ("fusion", "rgb", "hha")
@@ -94,6 +94,7 @@ class _Spec:
     mean: tuple[float, float, float]
     std: tuple[float, float, float]
     features_float16: bool  # pretrained VGG16: the experiment caches conv features as float16
+    depth_metric: bool = False  # the depth network predicts metric log depth
 
 
 # ---------------------------------------------------------------------------------------------------- stages
@@ -103,15 +104,18 @@ def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
     """uint8 ``(N, H, W, 3)`` → float32 metric depth ``(N, H, W)`` (metres), as the experiment computes it.
 
     The MiDaS transform (bicubic resize to the network size, ImageNet normalisation), the network, the bicubic
-    resize back and the percentile mapping to metres (``hha.inverse_depth_to_metric``).
+    resize back and the percentile mapping to metres (``hha.inverse_depth_to_metric``) — or, for a metric
+    log-depth network, ``placejax.depth.depth_from_log``.
     """
     x = rgb.astype(jnp.float32) / 255.0
     if tuple(x.shape[1:3]) != spec.depth_net_size:
         x = resize(x, spec.depth_net_size, "bicubic", align_corners=False)
     x = (x - jnp.asarray(IMAGENET_MEAN).reshape(1, 1, 1, 3)) / jnp.asarray(IMAGENET_STD).reshape(1, 1, 1, 3)
-    inv = spec.depth_model.apply(depth_vars, x, train=False)
-    inv = resize(inv[..., None], tuple(rgb.shape[1:3]), "bicubic", align_corners=False)[..., 0]
-    return _hha.inverse_depth_to_metric(inv, near_m=spec.near_m, far_m=spec.far_m)
+    out = spec.depth_model.apply(depth_vars, x, train=False)
+    out = resize(out[..., None], tuple(rgb.shape[1:3]), "bicubic", align_corners=False)[..., 0]
+    if spec.depth_metric:  # a metric log-depth network (placejax.depth, target="log_metric")
+        return depth_from_log(out)
+    return _hha.inverse_depth_to_metric(out, near_m=spec.near_m, far_m=spec.far_m)
 
 
 def stage_hha(spec: _Spec, depth_m: jax.Array) -> jax.Array:
@@ -229,6 +233,7 @@ class PlaceClassifier:
             mean=tuple(float(v) for v in meta["normalise"]["mean"]),
             std=tuple(float(v) for v in meta["normalise"]["std"]),
             features_float16=bool(vgg["pretrained"]),
+            depth_metric=bool(d.get("metric", False)),
         )
 
     def _check_params(self) -> None:
@@ -276,6 +281,7 @@ class PlaceClassifier:
                 "features": dcfg.features,
                 "encoder_width": dcfg.encoder_width,
                 "size": dcfg.image_size,
+                "metric": dcfg.metric,
                 "source": {"dir": d["dir"], "fingerprint": dcfg.fingerprint()},
             }
         elif d["source"] == "midas":
@@ -471,13 +477,7 @@ def _plain(tree: Any) -> Any:
 
 
 def _pretrained_trunk(vgg_cfg: dict) -> dict:
-    from placejax.weights import convert_vgg16, load, read_torch_checkpoint
+    from placejax.pretrain import pretrained_vgg16
 
-    if vgg_cfg["weights"]:
-        sd = read_torch_checkpoint(vgg_cfg["weights"])
-        fc8 = sd.get("classifier.6.weight")
-        n_out = int(np.shape(fc8)[0]) if fc8 is not None else 1000
-        params = convert_vgg16(sd, VGG16(num_classes=n_out, width=vgg_cfg["width"]))["params"]
-    else:
-        params = load("vgg16_imagenet")["params"]
+    params = pretrained_vgg16(vgg_cfg["weights"], vgg_cfg["width"])
     return jax.tree_util.tree_map(np.asarray, _plain(params["trunk"]))

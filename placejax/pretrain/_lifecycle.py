@@ -84,6 +84,39 @@ def load_shipped(name: str = SHIPPED) -> tuple[dict[str, Any], dict]:
         return read_npz(_io.BytesIO(f.read()))
 
 
+SHIPPED_PREFIX = "shipped:"
+
+
+def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
+    """Pretrained VGG16 parameters at ``width``: the trunk, and fc6/fc7(/fc8) where the weights have them.
+
+    Args:
+        weights: ``""`` for the registry's ImageNet weights (``placejax.weights.load("vgg16_imagenet")``, width
+            1.0), ``"shipped:<name>"`` for a trunk shipped with placejax (:func:`load_shipped`; trunk only), or
+            the path of a torchvision-layout ``torch.save`` file (read by the safe reader).
+        width: the VGG16 channel multiplier the weights must have.
+
+    Returns:
+        ``{"trunk": ..., "classifier": ...}`` (no ``"classifier"`` for a shipped trunk).
+    """
+    from placejax.models import VGG16
+    from placejax.weights import convert_vgg16, load, read_torch_checkpoint
+
+    if weights.startswith(SHIPPED_PREFIX):
+        params, meta = load_shipped(weights[len(SHIPPED_PREFIX) :])
+        if meta["config"]["width"] != width:
+            raise ValueError(f"{weights!r} is a width-{meta['config']['width']} trunk, not width {width}")
+        return {"trunk": params["trunk"]}
+    if weights:
+        sd = read_torch_checkpoint(weights)
+        fc8 = sd.get("classifier.6.weight")
+        n_out = int(np.shape(fc8)[0]) if fc8 is not None else 1000
+        return convert_vgg16(sd, VGG16(num_classes=n_out, width=width))["params"]
+    if width != 1.0:
+        raise ValueError("the registry's ImageNet VGG16 has width 1.0 (pass the path of other weights)")
+    return load("vgg16_imagenet")["params"]
+
+
 def heldout_report(trunk_params, cfg: PretrainConfig, *, n_worlds: int = 2) -> dict:
     """Cross-look recall@1 of the trunk and of the baselines on ``n_worlds`` held-out validation worlds."""
     s = cfg.image_size
