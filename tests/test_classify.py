@@ -93,13 +93,18 @@ def test_predict_matches_the_experiments_evaluation(clf, experiment_outputs, ses
     ref = experiment_outputs[session]
     got = clf.logits(ref["images"])
     # HHA: the jitted bicubic resize replaces OpenCV's in the depth network's input transform (float rounding).
-    # Measured on WI / SU: 99.998% of HHA values equal, the rest ±1; logits |Δ| ≤ 1.3e-5 (RGB-Net, scale ~20),
-    # ≤ 3.5e-3 (HHA-Net, scale ~13), ≤ 6e-4 (fusion, scale ~4.5); every arg-max equal.
+    # The frozen trunk's features are rounded to float16 as the experiment caches them, so a last-bit difference
+    # of the convolution (another batch size, another fusion) can flip one rounding: errors are relative to the
+    # logits' scale (~50–200 here). Measured on WI / SU: logits |Δ| ≤ 2e-5 of their scale; every arg-max equal.
     diff = np.abs(got["hha_image"].astype(int) - ref["hha"].astype(int))
     assert diff.max() <= 1 and (diff == 0).mean() > 0.999, (diff.max(), (diff == 0).mean())
-    np.testing.assert_allclose(got["rgb"], ref["rgb"], rtol=0, atol=1e-4)
-    np.testing.assert_allclose(got["hha"], ref["hha_logits"], rtol=0, atol=2e-2)
-    np.testing.assert_allclose(got["fusion"], ref["fusion"], rtol=0, atol=5e-3)
+
+    def close(a, b, rel):
+        np.testing.assert_allclose(a, b, rtol=0, atol=rel * np.abs(b).max())
+
+    close(got["rgb"], ref["rgb"], 1e-4)
+    close(got["hha"], ref["hha_logits"], 1e-3)
+    close(got["fusion"], ref["fusion"], 1e-3)
     pred = clf.predict(ref["images"])
     assert (pred.label == ref["fusion"].argmax(1)).mean() >= 0.98
     np.testing.assert_allclose(pred.probabilities.sum(1), 1.0, rtol=1e-5)
@@ -123,7 +128,8 @@ def test_batch_equals_loop_and_buckets_bound_compiles(clf, experiment_outputs):
     images = experiment_outputs[TEST]["images"][:6]
     batch = clf.logits(images)["fusion"]
     loop = np.concatenate([clf.logits(images[i : i + 1])["fusion"] for i in range(6)])
-    np.testing.assert_allclose(batch, loop, rtol=1e-5, atol=1e-5)
+    # float16-rounded trunk features (see above): equal up to a last-bit flip, relative to the logits' scale.
+    np.testing.assert_allclose(batch, loop, rtol=0, atol=1e-4 * np.abs(loop).max())
     from placejax.classify._classifier import _jitted_forward
 
     fn = _jitted_forward(clf._spec)

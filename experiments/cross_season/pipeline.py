@@ -216,9 +216,13 @@ def _depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionDat
         )
 
         def trained_depth(s: SessionData, a: int, b: int) -> np.ndarray:
-            return to_metric(trained.predict(np.asarray(s.cached.images[a:b])))
+            x = np.asarray(s.cached.images[a:b])
+            return trained.predict_metric(x) if trained.metric else to_metric(trained.predict(x))
 
-        return {"source": "trained", "fingerprint": trained.fingerprint, **metric}, trained_depth
+        # A metric network's output is used as it is; a relative one goes through the percentile mapping.
+        return {"source": "trained", "fingerprint": trained.fingerprint, **({} if trained.metric else metric)}, (
+            trained_depth
+        )
     raise ValueError(f"depth.source must be 'trained', 'midas' or 'true', got {source!r}")
 
 
@@ -316,6 +320,8 @@ def weights_identity(path: str, registry_name: str) -> dict:
     weights, a replaced one is not), the shipped file's, or the registry entry."""
     if not path:
         return {"registry": registry_name}
+    from placejax.pretrain import SHIPPED_PREFIX
+
     if path.startswith(SHIPPED_PREFIX):
         import importlib.resources
 
@@ -328,36 +334,16 @@ def weights_identity(path: str, registry_name: str) -> dict:
     return {"sha256": _file_sha256(str(p.resolve()), st.st_size, st.st_mtime_ns)}
 
 
-SHIPPED_PREFIX = "shipped:"
-
-
 def _pretrained_vgg(ctx: Context) -> dict:
-    """Pretrained VGG16 parameters at ``vgg.width``: the trunk, and fc6/fc7 where the weights have them.
+    """Pretrained VGG16 parameters of ``vgg.weights`` at ``vgg.width`` (``placejax.pretrain.pretrained_vgg16``):
+    a torchvision-layout file, ``shipped:<name>`` (a trunk pretrained on other SimCampus worlds; fc6/fc7 then
+    start from He init and are trained), or empty for the registry's ImageNet weights."""
+    from placejax.pretrain import pretrained_vgg16
 
-    ``vgg.weights``: a torchvision-layout ``torch.save`` file, ``shipped:<name>`` (a trunk pretrained on other
-    SimCampus worlds that ships with placejax, ``placejax.pretrain.load_shipped``; trunk only, so fc6/fc7 start
-    from He init and are trained), or empty for the registry's ImageNet weights.
-    """
-    from placejax.weights import convert_vgg16, load, read_torch_checkpoint
-
-    c = ctx.config.vgg
-    if c.weights.startswith(SHIPPED_PREFIX):
-        from placejax.pretrain import load_shipped
-
-        params, meta = load_shipped(c.weights[len(SHIPPED_PREFIX) :])
-        if meta["config"]["width"] != c.width:
-            raise ValueError(
-                f"vgg.weights={c.weights!r} is a width-{meta['config']['width']} trunk, vgg.width={c.width}"
-            )
-        return {"trunk": params["trunk"]}
-    if c.weights:
-        sd = read_torch_checkpoint(c.weights)
-        fc8 = sd.get("classifier.6.weight")
-        n_out = int(np.shape(fc8)[0]) if fc8 is not None else 1000
-        return convert_vgg16(sd, VGG16(num_classes=n_out, width=c.width))["params"]
-    if c.width != 1.0:
-        raise ValueError("vgg.pretrained with the registry weights needs vgg.width=1.0 (or pass vgg.weights=PATH)")
-    return load("vgg16_imagenet")["params"]
+    try:
+        return pretrained_vgg16(ctx.config.vgg.weights, ctx.config.vgg.width)
+    except ValueError as e:
+        raise ValueError(f"vgg.weights={ctx.config.vgg.weights!r}, vgg.width={ctx.config.vgg.width}: {e}") from None
 
 
 def training_labels(config: ml_collections.ConfigDict, s: SessionData, si: int) -> np.ndarray:
@@ -497,17 +483,25 @@ def _features_prepare(b: dict) -> dict:
     return {"x": np.asarray(b["image"], np.float32), "label": b["label"], "valid": b["valid"]}
 
 
-def train_nets(ctx: Context, sessions: list[SessionData], num_classes: int) -> dict[tuple[str, str], TrainedNet]:
-    """Trains (or resumes, or reloads) a VGG16 per (training session, modality)."""
+def train_nets(
+    ctx: Context, sessions: list[SessionData], num_classes: int, modalities: tuple[str, ...] | None = None
+) -> dict[tuple[str, str], TrainedNet]:
+    """Trains (or resumes, or reloads) a VGG16 per (training session, modality).
+
+    ``modalities`` defaults to rgb and hha (and depth1 with ``ablations.depth1``); the world calibration trains
+    rgb alone. A net's seed and key depend on the modality's index in ``MODALITIES``, not in this tuple.
+    """
     cfg = ctx.config
-    modalities = ("rgb", "hha", "depth1") if cfg.ablations.depth1 else ("rgb", "hha")
+    if modalities is None:
+        modalities = ("rgb", "hha", "depth1") if cfg.ablations.depth1 else ("rgb", "hha")
     model = _vgg(ctx, num_classes)
     key = jax.random.key(cfg.seed)
     h, w = sessions[0].cached.image_shape
     nets = {}
     pretrained = _pretrained_vgg(ctx) if cfg.vgg.pretrained else None
     init = jax.jit(model.init)
-    for mi, modality in enumerate(modalities):
+    for modality in modalities:
+        mi = MODALITIES.index(modality)
         if pretrained is not None:
             with ctx.timed("features"):
                 feats = _conv_features(ctx, sessions, modality, pretrained["trunk"])
@@ -586,7 +580,12 @@ def net_outputs(ctx: Context, net: TrainedNet, s: SessionData, num_classes: int)
         compute,
         (num_classes + d,),
         np.float32,
-        key={"kind": "net_outputs", "net": cache_digest(net.key), "frames": s.cached.key, "hha": s.hha.key},
+        key={
+            "kind": "net_outputs",
+            "net": cache_digest(net.key),
+            "frames": s.cached.key,
+            "hha": None if s.hha is None else s.hha.key,  # None: an RGB-only calibration run
+        },
         chunk=max(cfg.eval.batch_size * 4, 256),
         progress=ctx.progress,
         desc=f"{net.name} on {s.name}",
@@ -678,16 +677,22 @@ def _gain_intervals(cross: list[dict], seed: int) -> dict:
     return out
 
 
-def baseline_features(ctx: Context, sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
-    """Standardised thumbnails of every session for the nearest-neighbour baselines (``baselines`` module)."""
+def rgb_baseline_features(sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
+    """Standardised RGB and gradient-magnitude thumbnails of every session (the RGB-only baselines)."""
     sizes = _baselines.THUMB_SIZES
-    feats = {
+    return {
         "nn_rgb": {s.name: _baselines.thumbnails(s.cached.images, sizes["nn_rgb"]) for s in sessions},
         "nn_gradient": {
             s.name: _baselines.gradient_thumbnails(s.cached.images, sizes["nn_gradient"]) for s in sessions
         },
-        "nn_hha": {s.name: _baselines.thumbnails(s.hha.data, sizes["nn_hha"]) for s in sessions},
     }
+
+
+def baseline_features(ctx: Context, sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
+    """Standardised thumbnails of every session for the nearest-neighbour baselines (``baselines`` module)."""
+    sizes = _baselines.THUMB_SIZES
+    feats = rgb_baseline_features(sessions)
+    feats["nn_hha"] = {s.name: _baselines.thumbnails(s.hha.data, sizes["nn_hha"]) for s in sessions}
     if ctx.config.data.source == "simcampus":
         # Geometry alone: HHA of rendered depth (the same caches as depth.source=true, built once).
         true = depth_and_hha_caches(ctx, sessions, "true")
