@@ -129,18 +129,43 @@ def project(sizes: list[dict], target: int, quadratic: dict[str, float] | None =
 def _child(spec_path: Path) -> None:
     """Runs the experiment described by ``spec`` in this process and writes its measurements."""
     spec = json.loads(spec_path.read_text())
-    from experiments.cross_season import apply_overrides, get_config, run
+    from experiments.cross_season import apply_overrides, get_config, pipeline, run
 
     peak = {"anon": 0.0, "rss": 0.0}
+    by_stage: dict[str, dict[str, float]] = {}  # stage -> peak {"anon", "rss"} sampled while it ran
+    current = [None]
     stop = threading.Event()
+
+    # Which stage is running: the pipeline's own stage timer, wrapped (stages do not nest).
+    timed = pipeline.Context.timed
+
+    def tracked(self, stage: str):
+        timer = timed(self, stage)
+
+        class _Tracked:
+            def __enter__(self):
+                current[0] = stage
+                return timer.__enter__()
+
+            def __exit__(self, *exc):
+                current[0] = None
+                return timer.__exit__(*exc)
+
+        return _Tracked()
+
+    pipeline.Context.timed = tracked
 
     def sample() -> None:
         while not stop.is_set():
+            now = {}
             with open("/proc/self/status") as f:
                 for line in f:
                     if line.startswith(("RssAnon:", "VmRSS:")):
-                        key = "anon" if line.startswith("RssAnon") else "rss"
-                        peak[key] = max(peak[key], int(line.split()[1]) / 1024)
+                        now["anon" if line.startswith("RssAnon") else "rss"] = int(line.split()[1]) / 1024
+            stage = by_stage.setdefault(current[0] or "other", {"anon": 0.0, "rss": 0.0})
+            for key, v in now.items():
+                peak[key] = max(peak[key], v)
+                stage[key] = max(stage[key], v)
             stop.wait(0.2)
 
     sampler = threading.Thread(target=sample, daemon=True)
@@ -159,6 +184,7 @@ def _child(spec_path: Path) -> None:
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "peak_anon_mb": peak["anon"],
         "peak_rss_sampled_mb": peak["rss"],
+        "peak_by_stage_mb": by_stage,
     }
     Path(spec["out"]).write_text(json.dumps(out))
 
@@ -303,6 +329,19 @@ def main() -> None:
     ]
     print()
     print_table(mem_rows, [(k, k) for k in mem_rows[0]])
+    stage_mem = [
+        {
+            "stage": stage,
+            **{
+                f"{k}@{r['frames']:g}": r["peak_by_stage_mb"].get(stage, {}).get(k)
+                for r in sizes
+                for k in ("rss", "anon")
+            },
+        }
+        for stage in [*STAGES, "other"]
+    ]
+    print("\npeak memory (MB) sampled while each stage ran")
+    print_table(stage_mem, [(k, k) for k in stage_mem[0]])
 
     nn_s = _nn_pair_seconds(args.nn_frames, cfg)
     n_pairs = n_sessions * (n_sessions - 1) + n_sessions  # every (train, test), same-session rows included
