@@ -85,7 +85,7 @@ def project(sizes: list[dict], target: int, quadratic: dict[str, float] | None =
     ``fixed = t_small − per_frame · n_small`` (compilation, weight loading, one-off files), and the projection
     ``fixed + per_frame · target``. A stage whose time did not grow (noise on a shared machine) is projected
     proportionally from the larger size instead (``t_large · target / n_large``, an upper bound). Memory uses
-    the same line; its slope is reported in MB per 1000 frames.
+    the same line when it grew (slope reported in MB per 1000 frames), else the larger of the two peaks.
     """
     quadratic = quadratic or {}
     small, large = min(sizes, key=lambda r: r["frames"]), max(sizes, key=lambda r: r["frames"])
@@ -118,7 +118,8 @@ def project(sizes: list[dict], target: int, quadratic: dict[str, float] | None =
                 "small": small[key],
                 "large": large[key],
                 "mb_per_1000_frames": 1000 * slope,
-                "projected": large[key] + slope * (target - n1),
+                # Flat (or lower at the larger size: noise): the larger of the two, never extrapolated downwards.
+                "projected": large[key] + slope * (target - n1) if slope > 0 else max(small[key], large[key]),
             }
     return {"target_frames": target, "stages": stages, "total_s": total, "total_h": total / 3600, "memory": memory}
 

@@ -86,6 +86,8 @@ def test_projection_arithmetic():
     assert p["memory"]["peak_rss_mb"]["mb_per_1000_frames"] == pytest.approx(1000.0)
     assert p["memory"]["peak_rss_mb"]["projected"] == pytest.approx(3100.0 + 1.0 * 800)
     assert p["memory"]["peak_anon_mb"]["projected"] == pytest.approx(2000.0)
+    shrank = [dict(sizes[0], peak_anon_mb=2100.0), sizes[1]]  # noise: never extrapolated downwards
+    assert project(shrank, 1000)["memory"]["peak_anon_mb"]["projected"] == pytest.approx(2100.0)
     with pytest.raises(ValueError, match="two different"):
         project([sizes[0], sizes[0]], 1000)
 
