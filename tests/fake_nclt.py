@@ -13,6 +13,12 @@ Layout written (all real names):
     ladybug3_calib/cam_params/K_cam<c>.csv      3 × 3 intrinsics of the stored image
     ladybug3_calib/U2D_ALL_1616X1232/U2D_Cam<c>_<W>X<H>.txt   identity undistortion map
 
+At the real size (``stored_hw=REAL_STORED_HW``, 1232 rows × 1616 columns stored) the tree is what a full NCLT
+session looks like on disk, only shorter: ``benchmarks/nclt_rehearsal.py`` runs the ``paper`` preset on it. Frames
+are drawn one at a time from ``(seed, session, frame)`` and never all held in memory: ``FakeSession.upright[i]``
+redraws frame ``i``. ``texture="scene"`` gives smooth, structured images (a blurred random scene sliding
+sideways, with a noisy band that differs per frame) instead of per-pixel noise.
+
 Timeline of a session with ``n_frames`` frames 200 ms apart (5 Hz, like the Ladybug3): the first ``n_before``
 frames precede the ground truth (dropped: outside), ``n_gap`` frames in the middle fall in a hole of the ground
 truth (dropped: no pose within 0.1 s), every other frame is 3 ms from its nearest ground-truth row (100 Hz).
@@ -29,9 +35,49 @@ import numpy as np
 
 # First Cam5 utime of the real 2012-01-22 session (docs/nclt.md); other dates start at 15:00 UTC.
 _KNOWN_STARTS = {"2012-01-22": 1327251905811462}
+REAL_STORED_HW = (1232, 1616)  # (rows, columns) of a stored, sideways Ladybug3 image
 FRAME_STEP_US = 200_000
 GT_STEP_US = 10_000
 GT_OFFSET_US = 3_000
+
+
+class FakeFrames:
+    """The upright RGB scene of every frame of one session, uint8 ``(n, W_raw, H_raw, 3)``, drawn on demand.
+
+    ``frames[i]`` (an int) redraws frame ``i``; the same ``(seed, session, i)`` always gives the same image.
+    """
+
+    def __init__(self, n: int, upright_hw: tuple[int, int], seed: int, session: int, texture: str):
+        if texture not in ("noise", "scene"):
+            raise ValueError(f"texture must be 'noise' or 'scene', got {texture!r}")
+        self.n, self.hw, self.seed, self.session, self.texture = n, tuple(upright_hw), seed, session, texture
+        self._base = None
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        return (self.n, *self.hw, 3)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i) -> np.ndarray:
+        i = int(i)
+        if not -self.n <= i < self.n:
+            raise IndexError(f"frame {i} of {self.n}")
+        i %= self.n
+        rng = np.random.default_rng([self.seed, self.session, i])
+        h, w = self.hw
+        if self.texture == "noise":
+            return rng.integers(0, 256, size=(h, w, 3), dtype=np.uint8)
+        if self._base is None:  # a smooth random scene, made once per session
+            small = np.random.default_rng([self.seed, self.session]).integers(
+                0, 256, size=(max(2, h // 16), max(2, w // 16), 3), dtype=np.uint8
+            )
+            self._base = cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+        img = np.roll(self._base, 9 * i, axis=1)  # the scene slides sideways as the robot drives
+        band = slice(h // 2, h // 2 + max(1, h // 32))
+        img[band] = rng.integers(0, 256, size=img[band].shape, dtype=np.uint8)
+        return img
 
 
 @dataclasses.dataclass
@@ -45,7 +91,7 @@ class FakeSession:
     outside: np.ndarray  # bool: before/after the ground-truth span
     in_gap: np.ndarray  # bool: inside the span, no ground-truth row within 0.1 s
     poses: np.ndarray  # float64 (n_kept, 3) x, y, yaw of the kept frames (nearest ground-truth row)
-    upright: np.ndarray  # uint8 (n_frames, W_raw, H_raw, 3): the upright RGB scene of every frame
+    upright: FakeFrames  # upright[i]: uint8 (W_raw, H_raw, 3), the upright RGB scene of frame i
     n_gt_rows: int  # rows in the CSV, NaN row included
 
     @property
@@ -75,13 +121,19 @@ def _start_utime(date: str) -> int:
 
 
 def write_identity_u2d(path: Path, hw: tuple[int, int]) -> None:
-    """An undistortion map that leaves the image unchanged (header + ``i j v u`` lines)."""
+    """An undistortion map that leaves the image unchanged (header + ``i j v u`` lines, one per pixel).
+
+    Written a row of pixels at a time, so the real 1616 × 1232 map (about 2M lines, ~60 MB) takes a few seconds.
+    """
     h, w = hw
-    ii, jj = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    lines = [f"width/cols = {w} , height/rows = {h}"]
-    lines += [f"{i} {j} {float(i):.6f} {float(j):.6f}" for i, j in zip(ii.ravel(), jj.ravel(), strict=True)]
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
+    cols = [str(j) for j in range(w)]
+    cols_f = [f"{j:.6f}" for j in range(w)]
+    with path.open("w") as f:
+        f.write(f"width/cols = {w} , height/rows = {h}\n")
+        for i in range(h):
+            i_s, i_f = str(i), f"{i:.6f}"
+            f.write("".join(f"{i_s} {c} {i_f} {cf}\n" for c, cf in zip(cols, cols_f, strict=True)))
 
 
 def make_fake_nclt(
@@ -94,6 +146,8 @@ def make_fake_nclt(
     n_before: int = 1,
     n_gap: int = 1,
     seed: int = 0,
+    texture: str = "noise",
+    tiff_compression: int | None = None,
 ) -> FakeNclt:
     """Writes a fake NCLT tree under ``root`` and returns where everything is and what a loader must find.
 
@@ -106,11 +160,13 @@ def make_fake_nclt(
         n_before: frames before the first ground-truth row.
         n_gap: frames in a hole of the ground truth (placed in the middle of the session).
         seed: image contents and trajectories.
+        texture: ``"noise"`` (every pixel random) or ``"scene"`` (smooth and structured; see :class:`FakeFrames`).
+        tiff_compression: ``cv2.IMWRITE_TIFF_COMPRESSION`` value (1: none, 5: LZW); ``None``: OpenCV's default
+            (LZW). Uncompressed real-size frames write about 10x faster.
     """
     root = Path(root)
     if n_frames < n_before + n_gap + 2:
         raise ValueError("n_frames too small for the requested dropped frames")
-    rng = np.random.default_rng(seed)
     h_raw, w_raw = stored_hw
     images_root, gt_root, calib_root = root / "images", root / "ground_truth", root / "ladybug3_calib"
 
@@ -168,12 +224,13 @@ def make_fake_nclt(
 
         img_dir = images_root / date / "lb3" / f"Cam{camera}"
         img_dir.mkdir(parents=True, exist_ok=True)
-        upright = rng.integers(0, 256, size=(n_frames, w_raw, h_raw, 3), dtype=np.uint8)
+        upright = FakeFrames(n_frames, (w_raw, h_raw), seed, s, texture)
+        params = [] if tiff_compression is None else [cv2.IMWRITE_TIFF_COMPRESSION, tiff_compression]
         files = []
         for i, t in enumerate(utimes):
             stored = np.rot90(upright[i], k=1)  # sideways, like NCLT: rotating clockwise makes it upright
             path = img_dir / f"{t}.tiff"
-            if not cv2.imwrite(str(path), np.ascontiguousarray(stored[:, :, ::-1])):  # OpenCV writes BGR
+            if not cv2.imwrite(str(path), np.ascontiguousarray(stored[:, :, ::-1]), params):  # OpenCV writes BGR
                 raise OSError(f"could not write {path}")
             files.append(path)
         sessions[date] = FakeSession(

@@ -1,0 +1,398 @@
+"""The NCLT-scale rehearsal: the ``paper`` preset end to end on fake NCLT trees at the real image size and format.
+
+    python -m benchmarks.nclt_rehearsal --frames 60 120 [--sessions 4] [--target 26000] [--root DIR]
+
+For each ``--frames`` value (images per session, two of them dropped by the ground-truth timeline of the fake
+tree), this writes a fake NCLT tree (``tests/fake_nclt.py``: 1616 × 1232 sideways TIFFs, the real-size U2D map,
+``K_cam5.csv``, ground truth at 100 Hz), then runs ``experiments.cross_season`` with the ``paper`` preset on it in a
+fresh subprocess, so that peak memory is per size. Random weights in the official file formats at full size (MiDaS
+v2.1 small, torchvision VGG16) are written once (``tests/torch_refs/make_random_official_weights.py``, needs
+torch). The overrides are only what a fake tree needs (paths, no progress bars, no figures) and
+``data.undistort=True`` (the costlier reading path, so the U2D map is exercised); every override is printed and
+stored. Image size, network widths, epochs and batch sizes are the preset's.
+
+Measured per size: wall time and throughput of each pipeline stage (``results.json``'s ``timings_s``), peak
+resident memory of the child (``ru_maxrss``, which counts touched pages of memory-mapped caches) and its sampled
+peak anonymous memory (``RssAnon``: heap and JAX buffers, not file pages), and the disk size of the work
+directory (caches and checkpoints). Then the cost of the real run (``--target`` frames per session) on this machine
+is projected stage by stage from the two sizes: time = fixed + per-frame × frames (see :func:`project`), and the
+quadratic part of the nearest-neighbour baselines (every test frame against every training frame) is timed on
+its own at ``--nn-frames`` and scaled by the square of the frame ratio.
+
+Prints tables and writes ``benchmarks/results/nclt_rehearsal.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks._report import print_table, write_json
+
+REPO = Path(__file__).resolve().parents[1]
+TESTS = REPO / "tests"
+
+# Stage keys of results.json's timings_s, what each one does, and the frames it processes per session frame
+# (S sessions, M = 3 modality nets per session, E = epochs): used for the images/s column.
+STAGES = {
+    "sessions": "read TIFF + undistort + rotate + resize to 256² (RGB cache)",
+    "grid": "place grid from the poses",
+    "depth": "MiDaS v2.1 small → metric depth",
+    "hha": "HHA encoding",
+    "features": "frozen VGG16 conv features (rgb, hha, depth1)",
+    "nets": "training fc6–fc8 of 3 nets per session",
+    "outputs": "every net on every session (logits, fc7)",
+    "mlp": "fusion MLP training + fused logits",
+    "baselines": "nearest-neighbour thumbnails",
+    "evaluate": "accuracies, NN baselines, ceilings",
+}
+
+
+def images_per_frame(stage: str, cfg: dict) -> float:
+    """Images a stage processes per frame of the whole run (all sessions), for the images/s column."""
+    s = len(cfg["data"]["sessions"])
+    m = 3 if cfg["ablations"]["depth1"] else 2
+    return {
+        "features": m,
+        "nets": m * cfg["train"]["epochs"],
+        "outputs": m * s,  # each session's nets read every session
+        "mlp": cfg["mlp"]["epochs"] + s,
+    }.get(stage, 1.0)
+
+
+def project(sizes: list[dict], target: int, quadratic: dict[str, float] | None = None) -> dict:
+    """Projects each stage's time and the peak memory to ``target`` frames per session.
+
+    Args:
+        sizes: two (or more) measurements, each ``{"frames": kept frames per session, "stages": {name: s},
+            "peak_rss_mb": ..., "peak_anon_mb": ...}``.
+        target: frames per session of the projected run.
+        quadratic: seconds per stage that grow with the square of the frames, as measured at ``frames`` of the
+            largest size (``{"stage": s}``): added as ``s · ((target / frames)² − 1)``.
+
+    The two extreme sizes give, per stage, ``per_frame = (t_large − t_small) / (n_large − n_small)`` and
+    ``fixed = t_small − per_frame · n_small`` (compilation, weight loading, one-off files), and the projection
+    ``fixed + per_frame · target``. A stage whose time did not grow (noise on a shared machine) is projected
+    proportionally from the larger size instead (``t_large · target / n_large``, an upper bound). Memory uses
+    the same line when it grew (slope reported in MB per 1000 frames), else the larger of the two peaks.
+    """
+    quadratic = quadratic or {}
+    small, large = min(sizes, key=lambda r: r["frames"]), max(sizes, key=lambda r: r["frames"])
+    n0, n1 = small["frames"], large["frames"]
+    if n1 <= n0:
+        raise ValueError("need two different frame counts")
+
+    def line(y0: float, y1: float) -> dict:
+        per = (y1 - y0) / (n1 - n0)
+        if per <= 0:
+            return {"fixed": 0.0, "per_frame": y1 / n1, "rule": "proportional", "projected": y1 * target / n1}
+        fixed = y0 - per * n0
+        return {"fixed": fixed, "per_frame": per, "rule": "fixed + per_frame·n", "projected": fixed + per * target}
+
+    stages = {}
+    for name in large["stages"]:
+        if name == "total" or name not in small["stages"]:
+            continue
+        p = line(small["stages"][name], large["stages"][name])
+        if name in quadratic:
+            p["quadratic_extra"] = quadratic[name] * ((target / n1) ** 2 - 1)
+            p["projected"] += p["quadratic_extra"]
+        stages[name] = p
+    total = sum(p["projected"] for p in stages.values())
+    memory = {}
+    for key in ("peak_rss_mb", "peak_anon_mb"):
+        if key in small and key in large:
+            slope = (large[key] - small[key]) / (n1 - n0)
+            memory[key] = {
+                "small": small[key],
+                "large": large[key],
+                "mb_per_1000_frames": 1000 * slope,
+                # Flat (or lower at the larger size: noise): the larger of the two, never extrapolated downwards.
+                "projected": large[key] + slope * (target - n1) if slope > 0 else max(small[key], large[key]),
+            }
+    return {"target_frames": target, "stages": stages, "total_s": total, "total_h": total / 3600, "memory": memory}
+
+
+# ---------------------------------------------------------------------------------------------------- the child
+
+
+def _child(spec_path: Path) -> None:
+    """Runs the experiment described by ``spec`` in this process and writes its measurements."""
+    spec = json.loads(spec_path.read_text())
+    from experiments.cross_season import apply_overrides, get_config, pipeline, run
+
+    peak = {"anon": 0.0, "rss": 0.0}
+    by_stage: dict[str, dict[str, float]] = {}  # stage -> peak {"anon", "rss"} sampled while it ran
+    current = [None]
+    stop = threading.Event()
+
+    # Which stage is running: the pipeline's own stage timer, wrapped (stages do not nest).
+    timed = pipeline.Context.timed
+
+    def tracked(self, stage: str):
+        timer = timed(self, stage)
+
+        class _Tracked:
+            def __enter__(self):
+                current[0] = stage
+                return timer.__enter__()
+
+            def __exit__(self, *exc):
+                current[0] = None
+                return timer.__exit__(*exc)
+
+        return _Tracked()
+
+    pipeline.Context.timed = tracked
+
+    def sample() -> None:
+        while not stop.is_set():
+            now = {}
+            with open("/proc/self/status") as f:
+                for line in f:
+                    if line.startswith(("RssAnon:", "VmRSS:")):
+                        now["anon" if line.startswith("RssAnon") else "rss"] = int(line.split()[1]) / 1024
+            stage = by_stage.setdefault(current[0] or "other", {"anon": 0.0, "rss": 0.0})
+            for key, v in now.items():
+                peak[key] = max(peak[key], v)
+                stage[key] = max(stage[key], v)
+            stop.wait(0.2)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    cfg = apply_overrides(get_config("paper"), spec["overrides"])
+    t0 = time.perf_counter()
+    results = run(cfg, spec["workdir"])
+    wall = time.perf_counter() - t0
+    stop.set()
+    sampler.join()
+    out = {
+        "wall_s": wall,
+        "timings_s": results["timings_s"],
+        "sessions": results["sessions"],
+        "config": results["config"],
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "peak_anon_mb": peak["anon"],
+        "peak_rss_sampled_mb": peak["rss"],
+        "peak_by_stage_mb": by_stage,
+    }
+    Path(spec["out"]).write_text(json.dumps(out))
+
+
+# ---------------------------------------------------------------------------------------------------- the parent
+
+
+def _weights(folder: Path) -> tuple[Path, Path]:
+    """Random MiDaS v2.1 small and VGG16 (width 1.0) files in the official formats."""
+    sys.path.insert(0, str(TESTS))
+    from midas_recipe import recipe_state_dict
+
+    folder.mkdir(parents=True, exist_ok=True)
+    npz = folder / "midas_recipe_state_dict.npz"
+    np.savez(npz, **recipe_state_dict(with_num_batches_tracked=True))
+    script = TESTS / "torch_refs" / "make_random_official_weights.py"
+    subprocess.run([sys.executable, str(script), str(folder), str(npz), "1.0"], check=True)
+    return folder / "midas_random.pt", folder / "vgg16_random.pth"
+
+
+def _du_mb(path: Path) -> float:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
+
+
+def _nn_pair_seconds(n: int, cfg: dict) -> float:
+    """Seconds of the nearest-neighbour baselines of one (train, test) pair of ``n``-frame sessions."""
+    from experiments.cross_season.baselines import THUMB_SIZES, nearest_neighbour_labels
+
+    rng = np.random.default_rng(0)
+    labels = rng.integers(0, 100, n).astype(np.int32)
+    t = 0.0
+    for name, size in THUMB_SIZES.items():
+        if name == "nn_hha_true" and cfg["data"]["source"] != "simcampus":
+            continue
+        a, b = (rng.standard_normal((n, size * size * 3), dtype=np.float32) for _ in range(2))
+        t0 = time.perf_counter()
+        nearest_neighbour_labels(a, labels, b)
+        t += time.perf_counter() - t0
+    return t
+
+
+def _measure(n_frames: int, args, weights: tuple[Path, Path], base: Path) -> dict:
+    sys.path.insert(0, str(TESTS))
+    from fake_nclt import REAL_STORED_HW, make_fake_nclt
+
+    from experiments.cross_season import get_config
+
+    here = base / f"frames{n_frames}"
+    dates = list(get_config("paper").data.sessions)[: args.sessions]
+    t0 = time.perf_counter()
+    fake = make_fake_nclt(
+        here / "nclt", dates, n_frames=n_frames, stored_hw=REAL_STORED_HW, texture="scene", tiff_compression=1
+    )
+    write_s = time.perf_counter() - t0
+    overrides = [
+        f"data.nclt_root={fake.root}",
+        f"data.sessions={tuple(dates)!r}",
+        "data.undistort=True",
+        f"depth.midas_weights={weights[0]}",
+        f"vgg.weights={weights[1]}",
+        "progress=False",
+        "figures=False",
+        *args.set,
+    ]
+    spec = {"overrides": overrides, "workdir": str(here / "work"), "out": str(here / "child.json")}
+    (here / "spec.json").write_text(json.dumps(spec))
+    print(f"[{n_frames} frames/session] tree written in {write_s:.1f} s; running the paper preset ...", flush=True)
+    t0 = time.perf_counter()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    subprocess.run(
+        [sys.executable, "-m", "benchmarks.nclt_rehearsal", "--child", str(here / "spec.json")], check=True, env=env
+    )
+    child = json.loads((here / "child.json").read_text())
+    child["process_wall_s"] = time.perf_counter() - t0
+    child["tree_write_s"] = write_s
+    child["tree_mb"] = _du_mb(fake.root)
+    child["cache_mb"] = _du_mb(here / "work" / "cache")
+    child["workdir_mb"] = _du_mb(here / "work")
+    child["overrides"] = overrides
+    child["frames_written"] = n_frames
+    child["frames"] = float(np.mean([v["frames"] for v in child["sessions"].values()]))
+    if not args.keep:
+        shutil.rmtree(here)
+    return child
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, nargs="+", default=[60, 120], help="images per session, per size")
+    parser.add_argument("--sessions", type=int, default=4, help="the first N sessions of the paper preset")
+    parser.add_argument("--target", type=int, default=26_000, help="frames per session of the projected run")
+    parser.add_argument("--nn-frames", type=int, default=4000, help="session size of the timed NN-baseline pair")
+    parser.add_argument("--root", type=Path, default=None, help="folder for trees and work dirs (default: temp)")
+    parser.add_argument("--keep", action="store_true", help="keep the trees and work directories")
+    parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides of the paper preset")
+    parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child is not None:
+        _child(args.child)
+        return
+    if len(set(args.frames)) < 2:
+        parser.error("--frames needs two or more different sizes (the projection fits a line)")
+
+    with tempfile.TemporaryDirectory(dir=args.root) as tmp:
+        base = Path(tmp)
+        t0 = time.perf_counter()
+        weights = _weights(base / "weights")
+        print(f"random official-format weights written in {time.perf_counter() - t0:.1f} s", flush=True)
+        sizes = []
+        for n in sorted(args.frames):
+            sizes.append(_measure(n, args, weights, base))
+            write_json("nclt_rehearsal_partial", {"sizes": sizes})  # nothing measured is lost to a later error
+
+    cfg = sizes[-1]["config"]
+    n_sessions = len(cfg["data"]["sessions"])
+    rows = []
+    for stage, what in STAGES.items():
+        row = {"stage": stage, "what": what}
+        for r in sizes:
+            t = r["timings_s"].get(stage)
+            row[f"s@{r['frames']:g}"] = t
+            if t:
+                row[f"img/s@{r['frames']:g}"] = images_per_frame(stage, cfg) * n_sessions * r["frames"] / t
+        rows.append(row)
+    cols = [("stage", "stage"), ("what", "what")]
+    for r in sizes:
+        cols += [(f"s@{r['frames']:g}", f"s @ {r['frames']:g}/session"), (f"img/s@{r['frames']:g}", "images/s")]
+    print(f"\nthe paper preset on {n_sessions} fake NCLT sessions; overrides: {' '.join(sizes[0]['overrides'][2:])}")
+    print_table(rows, cols)
+    mem_rows = [
+        {
+            "frames": r["frames"],
+            "total_s": r["timings_s"]["total"],
+            "peak_rss_mb": r["peak_rss_mb"],
+            "peak_anon_mb": r["peak_anon_mb"],
+            "cache_mb": r["cache_mb"],
+            "workdir_mb": r["workdir_mb"],
+            "tree_mb": r["tree_mb"],
+            "tree_write_s": r["tree_write_s"],
+        }
+        for r in sizes
+    ]
+    print()
+    print_table(mem_rows, [(k, k) for k in mem_rows[0]])
+    stage_mem = [
+        {
+            "stage": stage,
+            **{
+                f"{k}@{r['frames']:g}": r["peak_by_stage_mb"].get(stage, {}).get(k)
+                for r in sizes
+                for k in ("rss", "anon")
+            },
+        }
+        for stage in [*STAGES, "other"]
+    ]
+    print("\npeak memory (MB) sampled while each stage ran")
+    print_table(stage_mem, [(k, k) for k in stage_mem[0]])
+
+    nn_s = _nn_pair_seconds(args.nn_frames, cfg)
+    n_pairs = n_sessions * (n_sessions - 1) + n_sessions  # every (train, test), same-session rows included
+    largest = sizes[-1]["frames"]
+    # The NN part of `evaluate` at the largest measured size, from the timed pair scaled down quadratically.
+    nn_at_largest = n_pairs * nn_s * (largest / args.nn_frames) ** 2
+    projection = project(
+        [
+            {
+                "frames": r["frames"],
+                "stages": r["timings_s"],
+                "peak_rss_mb": r["peak_rss_mb"],
+                "peak_anon_mb": r["peak_anon_mb"],
+            }
+            for r in sizes
+        ],
+        args.target,
+        quadratic={"evaluate": nn_at_largest},
+    )
+    print(
+        f"\nprojection to {n_sessions} × {args.target} frames on this machine "
+        f"(NN baselines: {nn_s:.2f} s per pair at {args.nn_frames} frames, ×{n_pairs} pairs, quadratic)"
+    )
+    prow = [
+        {"stage": k, **{kk: v for kk, v in p.items() if kk != "rule"}, "rule": p["rule"]}
+        for k, p in projection["stages"].items()
+    ]
+    print_table(
+        prow,
+        [
+            ("stage", "stage"),
+            ("fixed", "fixed s"),
+            ("per_frame", "s per frame/session"),
+            ("quadratic_extra", "quadratic s"),
+            ("projected", "projected s"),
+            ("rule", "rule"),
+        ],
+    )
+    print(f"total ≈ {projection['total_s']:.0f} s = {projection['total_h']:.1f} h")
+    for k, m in projection["memory"].items():
+        print(
+            f"{k}: {m['small']:.0f} → {m['large']:.0f} MB ({m['mb_per_1000_frames']:+.0f} MB per 1000 frames/session)"
+            f", projected {m['projected']:.0f} MB"
+        )
+    path = write_json(
+        "nclt_rehearsal",
+        {"sizes": sizes, "stages": rows, "nn_pair_s": nn_s, "nn_frames": args.nn_frames, "projection": projection},
+    )
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
