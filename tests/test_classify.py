@@ -95,7 +95,8 @@ def test_predict_matches_the_experiments_evaluation(clf, experiment_outputs, ses
     # HHA: the jitted bicubic resize replaces OpenCV's in the depth network's input transform (float rounding).
     # The frozen trunk's features are rounded to float16 as the experiment caches them, so a last-bit difference
     # of the convolution (another batch size, another fusion) can flip one rounding: errors are relative to the
-    # logits' scale (~50–200 here). Measured on WI / SU: logits |Δ| ≤ 2e-5 of their scale; every arg-max equal.
+    # logits' scale (~25–200 here). Measured on WI / SU: RGB-Net logits |Δ| ≤ 2e-5 of their scale; HHA-Net and
+    # fusion (the ±1 HHA values above) ≤ 1.2e-3 of it (as before the trunk was frozen: 3.5e-3 / 13, 6e-4 / 4.5).
     diff = np.abs(got["hha_image"].astype(int) - ref["hha"].astype(int))
     assert diff.max() <= 1 and (diff == 0).mean() > 0.999, (diff.max(), (diff == 0).mean())
 
@@ -103,8 +104,8 @@ def test_predict_matches_the_experiments_evaluation(clf, experiment_outputs, ses
         np.testing.assert_allclose(a, b, rtol=0, atol=rel * np.abs(b).max())
 
     close(got["rgb"], ref["rgb"], 1e-4)
-    close(got["hha"], ref["hha_logits"], 1e-3)
-    close(got["fusion"], ref["fusion"], 1e-3)
+    close(got["hha"], ref["hha_logits"], 3e-3)
+    close(got["fusion"], ref["fusion"], 3e-3)
     pred = clf.predict(ref["images"])
     assert (pred.label == ref["fusion"].argmax(1)).mean() >= 0.98
     np.testing.assert_allclose(pred.probabilities.sum(1), 1.0, rtol=1e-5)
