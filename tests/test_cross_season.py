@@ -186,7 +186,14 @@ def _cli(workdir: Path, *extra: str) -> list[str]:
 
 def _interrupt_when(workdir: Path, env: dict, n_nets: int, sig: int) -> subprocess.CompletedProcess:
     """Starts the smoke run and sends ``sig`` once ``n_nets`` networks have a checkpoint."""
-    proc = subprocess.Popen(_cli(workdir), cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # A shell runs background jobs with SIGINT ignored, and an ignored signal stays ignored across exec: while the
+    # run is started, this process handles SIGINT (a handler is reset to the default at exec), so that the run gets
+    # Python's KeyboardInterrupt however the test suite itself was started.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        proc = subprocess.Popen(_cli(workdir), cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     nets = workdir / "nets"
     deadline = time.monotonic() + 400
     try:
