@@ -21,13 +21,11 @@ cached there like a cross-season run's, so variants of the recipe share the rend
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from experiments.cross_season import baselines as _baselines
 from experiments.cross_season import config as _config
 from experiments.cross_season import pipeline as P
 from experiments.cross_season import stats as _stats
@@ -49,16 +47,13 @@ def measure(config, workdir: Path) -> dict:
     seeds = [config.seed + k for k in range(config.n_seeds)]
     per_seed_logits = []
     for seed in seeds:
-        cfg = config.copy_and_resolve_references()
-        cfg.seed = seed
-        sctx = dataclasses.replace(ctx, config=cfg)
+        sctx = P.seed_context(ctx, seed)
         nets = P.train_nets(sctx, sessions, c, modalities=("rgb",))
         per_seed_logits.append(
             {(a, t.name): P.net_outputs(sctx, net, t, c)["logits"] for (a, _), net in nets.items() for t in sessions}
         )
     pairs = []
     for s in sessions:
-        seen = np.unique(s.labels)
         for t in sessions:
             if s.name == t.name:
                 continue
@@ -68,16 +63,12 @@ def measure(config, workdir: Path) -> dict:
                 {
                     "train": s.name,
                     "test": t.name,
-                    "seen_class_fraction": float(np.isin(t.labels, seen).mean()),
-                    "heading_ceiling": _baselines.heading_ceiling(s.cached.poses, s.labels, t.cached.poses, t.labels),
+                    **P.pair_ceilings_and_baselines(s, t, thumbs),
                     "rgb_net": mean,
                     "rgb_net_sd": sd,
                     "rgb_net_per_seed": accs,
                 }
             )
-            for name, feats in thumbs.items():
-                guess = _baselines.nearest_neighbour_labels(feats[s.name], s.labels, feats[t.name])
-                pairs[-1][name] = float(np.mean(guess == t.labels))
     keys = ("seen_class_fraction", "heading_ceiling", "nn_rgb", "nn_gradient", "rgb_net")
     seed_means = [float(np.mean([p["rgb_net_per_seed"][k] for p in pairs])) for k in range(len(seeds))]
     out = {

@@ -320,12 +320,10 @@ def weights_identity(path: str, registry_name: str) -> dict:
     weights, a replaced one is not), the shipped file's, or the registry entry."""
     if not path:
         return {"registry": registry_name}
-    from placejax.pretrain import SHIPPED_PREFIX
+    from placejax.pretrain import SHIPPED_PREFIX, shipped_file
 
     if path.startswith(SHIPPED_PREFIX):
-        import importlib.resources
-
-        res = importlib.resources.files("placejax.pretrain") / "weights" / f"{path[len(SHIPPED_PREFIX) :]}.npz"
+        res = shipped_file(path[len(SHIPPED_PREFIX) :])
         return {"shipped": path, "sha256": hashlib.sha256(res.read_bytes()).hexdigest()}
     p = Path(path)
     if not p.is_file():
@@ -627,11 +625,17 @@ def train_mlp(ctx: Context, s: SessionData, embeddings: np.ndarray, num_classes:
     return state, _features_prepare, folder
 
 
-def _train_and_predict(ctx: Context, sessions: list[SessionData], num_classes: int, seed: int):
-    """Nets, their outputs, the fusion MLPs and the fused logits of one seed: ``(nets, outputs, fused, mlp_dirs)``."""
+def seed_context(ctx: Context, seed: int) -> Context:
+    """``ctx`` with ``config.seed = seed`` (a copy of the config; the timings, workdir and meshes are shared)."""
     cfg = ctx.config.copy_and_resolve_references()
     cfg.seed = seed
-    ctx = dataclasses.replace(ctx, config=cfg)  # shares the timings, workdir and meshes
+    return dataclasses.replace(ctx, config=cfg)
+
+
+def _train_and_predict(ctx: Context, sessions: list[SessionData], num_classes: int, seed: int):
+    """Nets, their outputs, the fusion MLPs and the fused logits of one seed: ``(nets, outputs, fused, mlp_dirs)``."""
+    ctx = seed_context(ctx, seed)
+    cfg = ctx.config
     nets = train_nets(ctx, sessions, num_classes)
     with ctx.timed("outputs"):
         outputs = {
@@ -818,7 +822,6 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
     with ctx.timed("evaluate"):
         pairs = []
         for s in sessions:
-            seen = np.unique(s.labels)
             for t in sessions:
                 row: dict[str, Any] = {"train": s.name, "test": t.name, "n_test": len(t)}
                 per_seed = [_method_logits(r, s.name, t.name, config) for r in runs]
@@ -826,12 +829,7 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
                     accs = [top1(logits[m], t.labels) for logits in per_seed]
                     row[m], row[f"{m}_sd"] = _stats.mean_sd(accs)
                     row[f"{m}_per_seed"] = accs
-                # The best any classifier trained on s can do: test frames in classes s never visited are errors.
-                row["seen_class_fraction"] = float(np.isin(t.labels, seen).mean())
-                row["heading_ceiling"] = _baselines.heading_ceiling(s.cached.poses, s.labels, t.cached.poses, t.labels)
-                for name, feats in thumbs.items():
-                    guess = _baselines.nearest_neighbour_labels(feats[s.name], s.labels, feats[t.name])
-                    row[name] = float(np.mean(guess == t.labels))
+                row.update(pair_ceilings_and_baselines(s, t, thumbs))
                 if t.name == s.name:
                     row["same_session"] = True
                 else:
@@ -877,6 +875,20 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
             with ctx.timed("figures"):
                 report.write_figures(results, sessions, grid, fused, outputs, workdir / "figures")
     return results
+
+
+def pair_ceilings_and_baselines(s: SessionData, t: SessionData, thumbs: dict) -> dict[str, float]:
+    """Pose ceilings and 1-NN baselines of training session ``s`` on test session ``t`` (``thumbs``: name →
+    session → standardised thumbnails)."""
+    # The best any classifier trained on s can do: test frames in classes s never visited are errors.
+    row = {
+        "seen_class_fraction": float(np.isin(t.labels, np.unique(s.labels)).mean()),
+        "heading_ceiling": _baselines.heading_ceiling(s.cached.poses, s.labels, t.cached.poses, t.labels),
+    }
+    for name, feats in thumbs.items():
+        guess = _baselines.nearest_neighbour_labels(feats[s.name], s.labels, feats[t.name])
+        row[name] = float(np.mean(guess == t.labels))
+    return row
 
 
 def nets_modalities(nets: dict, session: str) -> list[str]:

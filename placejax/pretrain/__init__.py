@@ -30,6 +30,7 @@ from placejax.pretrain._lifecycle import (
     read_npz,
     run_dir,
     save_npz,
+    shipped_file,
 )
 from placejax.pretrain._shape import trunk_map_size
 from placejax.pretrain._train import (
@@ -71,6 +72,7 @@ __all__ = [
     "render_random_looks",
     "run_dir",
     "save_npz",
+    "shipped_file",
     "train",
     "training_frames",
     "trunk_descriptor",

@@ -67,6 +67,14 @@ def read_npz(source) -> tuple[dict[str, Any], dict]:
     return traverse_util.unflatten_dict(flat, sep="/"), meta
 
 
+def shipped_file(name: str = SHIPPED):
+    """The packaged file of the shipped trunk ``name`` (an ``importlib.resources`` traversable)."""
+    res = importlib.resources.files("placejax.pretrain") / "weights" / f"{name}.npz"
+    if not res.is_file():
+        raise FileNotFoundError(f"no shipped pretrained trunk {name!r} in placejax/pretrain/weights")
+    return res
+
+
 def load_shipped(name: str = SHIPPED) -> tuple[dict[str, Any], dict]:
     """The trunk shipped in ``placejax/pretrain/weights/<name>.npz`` and its record (config, seed,
     command, held-out metrics).
@@ -77,10 +85,7 @@ def load_shipped(name: str = SHIPPED) -> tuple[dict[str, Any], dict]:
         model = VGG16(num_classes=100, width=meta["config"]["width"])
         pooled = model.apply({"params": {"trunk": params["trunk"]}}, x, method=VGG16.conv_features)
     """
-    res = importlib.resources.files("placejax.pretrain") / "weights" / f"{name}.npz"
-    if not res.is_file():
-        raise FileNotFoundError(f"no shipped pretrained trunk {name!r} in placejax/pretrain/weights")
-    with res.open("rb") as f:
+    with shipped_file(name).open("rb") as f:
         return read_npz(_io.BytesIO(f.read()))
 
 
