@@ -2,17 +2,22 @@
 
     python -m benchmarks.models_speed [--repeats 5] [--no-torch] [--only midas|vgg]
 
-Prints a table (median ms/image over ``--repeats`` timed runs after a warm-up/compile run, the frameworks'
-runs interleaved so they share the machine's load; images/s; and the
-ratio PyTorch time / Flax time: > 1 means Flax is faster) and writes ``benchmarks/results/models_speed.json``.
-Both frameworks run the same random weights (the PyTorch state dict goes through placejax's converter), and
-the largest output difference is reported as a sanity check. PyTorch runs under ``no_grad`` with as many
-threads as XLA uses (all cores), NCHW (its default) and, for MiDaS, also ``channels_last``.
+Prints a table and writes ``benchmarks/results/models_speed.json`` with every run's time. Per column: the
+median ms/image over ``--repeats`` timed runs (after a warm-up/compile call; each run is at least 0.2 s of
+back-to-back calls; the frameworks' runs interleaved so they share the machine's load), images/s, the spread
+(max − min) / median of the runs, and the ratio PyTorch time / Flax time (> 1: Flax is faster). Both
+frameworks run the same random weights (the PyTorch state dict goes through placejax's converter), and the
+largest output difference is reported as a sanity check. PyTorch runs under ``no_grad`` with as many threads
+as XLA uses (all cores), NCHW (its default) and ``channels_last``.
 
 The ``flax`` column is placejax's fast inference path: MiDaS with its encoder BatchNorms folded into the convs
-(``fold_batch_norm`` + ``MidasSmall(folded_bn=True)``), VGG16 jitted with
-``cpu_compiler_options("vgg16")`` (YNNPACK convolutions and dots). ``flax_plain`` is the same network as
-``Model().apply`` under a plain ``jax.jit`` (unfolded variables, default compiler options), for reference.
+(``fold_batch_norm`` + ``MidasSmall(folded_bn=True)``), VGG16 with the adaptive pool folded into fc6 where
+that shrinks fc6 (``fold_adaptive_pool`` + ``VGG16(folded_pool=True)``, inputs below 224²); both jitted with
+``cpu_compiler_options`` (YNNPACK matrix products). ``flax_plain`` is the same network as ``Model().apply``
+under a plain ``jax.jit`` (unfolded variables, default compiler options), for reference.
+
+VGG16 runs at the sizes the experiment's presets use (``default``/``smoke``: 1/8 width at 64²; ``paper``:
+full width at 256²) and at 64² and 224² at full width.
 """
 
 from __future__ import annotations
@@ -30,23 +35,48 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import io
-from placejax.models import VGG16, MidasSmall, cpu_compiler_options, fold_batch_norm
+from placejax.models import (
+    VGG16,
+    MidasSmall,
+    cpu_compiler_options,
+    fold_adaptive_pool,
+    fold_batch_norm,
+    trunk_map_size,
+)
 from placejax.weights import convert_midas_small, convert_vgg16
 
 RESULTS = Path(__file__).parent / "results"
+# VGG16 cases: (width, input side, what uses it).
+VGG_CASES: tuple[tuple[float, int, str], ...] = (
+    (0.125, 64, "presets default, smoke"),
+    (1.0, 64, "full width at 64²"),
+    (1.0, 224, "ImageNet size"),
+    (1.0, 256, "preset paper"),
+)
+
+
+# Each timed run repeats its call until it lasts at least this long (short calls, e.g. a 1/8-width VGG16 at
+# 64², would otherwise be timed one ~5 ms call at a time, at the mercy of the timer and the scheduler).
+MIN_RUN_S = 0.2
 
 
 def _interleaved_runs(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, list[float]]:
-    """Times each function ``repeats`` times, alternating between them so that all see the same machine
-    load (shared machines); one untimed warm-up call each first (JAX compilation, torch priming)."""
-    for fn in fns.values():
+    """Seconds per call of each function, ``repeats`` timed runs each, alternating between the functions so
+    that all see the same machine load (shared machines). One untimed warm-up call each first (JAX
+    compilation, torch priming), which also sets how many calls one run makes (≥ ``MIN_RUN_S`` per run)."""
+    calls = {}
+    for k, fn in fns.items():
         fn()
+        t0 = time.perf_counter()
+        fn()
+        calls[k] = max(1, int(np.ceil(MIN_RUN_S / max(time.perf_counter() - t0, 1e-6))))
     runs: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(repeats):
         for k, fn in fns.items():
             t0 = time.perf_counter()
-            fn()
-            runs[k].append(time.perf_counter() - t0)
+            for _ in range(calls[k]):
+                fn()
+            runs[k].append((time.perf_counter() - t0) / calls[k])
     return runs
 
 
@@ -78,7 +108,12 @@ def _random_torch_state(model, seed: int):
     return {k: v.numpy().copy() for k, v in model.state_dict().items()}
 
 
-def _case(name, batch, hw, flax_fns, torch_fns, repeats, rng):
+def _spread(runs: list[float]) -> float:
+    """Run-to-run spread of one column: (max − min) / median."""
+    return (max(runs) - min(runs)) / statistics.median(runs)
+
+
+def _case(name, batch, hw, flax_fns, torch_fns, repeats, rng, **extra):
     """``flax_fns``: label → (jitted fn, variables); the first is the reference output ("flax")."""
     x = rng.normal(size=(batch, *hw, 3)).astype(np.float32)
     xj = jnp.asarray(x)
@@ -109,16 +144,29 @@ def _case(name, batch, hw, flax_fns, torch_fns, repeats, rng):
         "case": name,
         "batch": batch,
         "input_hw": list(hw),
+        **extra,
         "flax_ms_per_image": 1e3 * t_flax / batch,
         "flax_runs_s": runs["flax"],
+        "flax_spread": _spread(runs["flax"]),
     }
     for label, out in outputs.items():
         t_torch = statistics.median(runs[label])
         row[f"{label}_ms_per_image"] = 1e3 * t_torch / batch
         row[f"{label}_runs_s"] = runs[label]
+        row[f"{label}_spread"] = _spread(runs[label])
         row[f"{label}_over_flax"] = t_torch / t_flax
         row[f"{label}_max_rel_diff"] = float(np.abs(out - ref).max() / (np.abs(ref).max() + 1e-12))
     return row
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
 
 
 def main() -> None:
@@ -158,24 +206,41 @@ def main() -> None:
             _print_row(rows[-1])
 
     if args.only in (None, "vgg"):
-        def fc7(v, x):
-            return VGG16(num_classes=1000).apply(v, x)[1]["fc7"]
+        opts = cpu_compiler_options("vgg16")
+        for width, side, use in VGG_CASES:
+            model = VGG16(num_classes=1000, width=width)
+            h, w = trunk_map_size((side, side))
+            fold = h * w < 7 * 7  # below 224²: fc6 on the unpooled map is smaller
+            fast_model = model.clone(folded_pool=True) if fold else model
 
-        if torch is not None:
-            tv = TorchVGG16().eval()
-            variables = convert_vgg16(_random_torch_state(tv, 1))
-            torch_fns = {"torch": (tv.fc7, "nchw")}
-        else:
-            shapes = jax.eval_shape(VGG16().init, jax.random.key(0), jnp.zeros((1, 32, 32, 3)))
-            variables = jax.tree.map(lambda s: np.asarray(rng.normal(0, 0.01, s.shape), np.float32), shapes)
-            torch_fns = {}
-        for hw in ((224, 224), (64, 64)):
+            def fc7(v, x, model=model):
+                return model.apply(v, x)[1]["fc7"]
+
+            def fast_fc7(v, x, model=fast_model):
+                return model.apply(v, x)[1]["fc7"]
+
+            if torch is not None:
+                tv = TorchVGG16(width=width).eval()
+                variables = convert_vgg16(_random_torch_state(tv, 1), model)
+                tv_cl = TorchVGG16(width=width).eval().to(memory_format=torch.channels_last)
+                tv_cl.load_state_dict(tv.state_dict())
+                torch_fns = {"torch": (tv.fc7, "nchw"), "torch_channels_last": (tv_cl.fc7, "channels_last")}
+            else:
+                shapes = jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, 32, 32, 3)))
+                variables = jax.tree.map(lambda s: np.asarray(rng.normal(0, 0.01, s.shape), np.float32), shapes)
+                torch_fns = {}
             flax_fns = {
-                "flax": (jax.jit(fc7, compiler_options=cpu_compiler_options("vgg16")), variables),
+                "flax": (
+                    jax.jit(fast_fc7, compiler_options=opts),
+                    fold_adaptive_pool(variables, (side, side)) if fold else variables,
+                ),
                 "flax_plain": (jax.jit(fc7), variables),
             }
-            rows.append(_case("vgg16_fc7", 8, hw, flax_fns, torch_fns, args.repeats, rng))
-            _print_row(rows[-1])
+            name = "vgg16_fc7" if width == 1.0 else f"vgg16_fc7_w{width:g}"
+            row = _case(name, 8, (side, side), flax_fns, torch_fns, args.repeats, rng, width=width, used_by=use,
+                        folded_pool=fold)
+            rows.append(row)
+            _print_row(row)
 
     meta = {
         "jax": jax.__version__,
@@ -183,6 +248,7 @@ def main() -> None:
         "devices": [str(d) for d in jax.devices()],
         "cpu_count": os.cpu_count(),
         "machine": platform.platform(),
+        "cpu_model": _cpu_model(),
         "repeats": args.repeats,
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         # Shared machines: a load average above the core count means the timings are contended.
@@ -193,13 +259,16 @@ def main() -> None:
 
 
 def _print_row(row: dict) -> None:
-    parts = [f"{row['case']:<12} b={row['batch']:<2} {row['input_hw'][0]}x{row['input_hw'][1]:<4}"]
-    parts.append(f"flax {row['flax_ms_per_image']:8.1f} ms/img ({1e3 / row['flax_ms_per_image']:6.1f} img/s)")
+    parts = [f"{row['case']:<16} b={row['batch']:<2} {row['input_hw'][0]}x{row['input_hw'][1]:<4}"]
+    parts.append(
+        f"flax {row['flax_ms_per_image']:7.2f} ms/img ({1e3 / row['flax_ms_per_image']:6.1f} img/s,"
+        f" ±{100 * row['flax_spread']:.0f}%)"
+    )
     for label in ("flax_plain", "torch", "torch_channels_last"):
         if f"{label}_ms_per_image" in row:
             parts.append(
-                f"{label} {row[f'{label}_ms_per_image']:8.1f} ms/img  ×{row[f'{label}_over_flax']:.2f}"
-                f"  Δ={row[f'{label}_max_rel_diff']:.1e}"
+                f"{label} {row[f'{label}_ms_per_image']:7.2f} ms/img (±{100 * row[f'{label}_spread']:.0f}%)"
+                f" ×{row[f'{label}_over_flax']:.2f}  Δ={row[f'{label}_max_rel_diff']:.1e}"
             )
     print(" | ".join(parts), flush=True)
 

@@ -155,27 +155,34 @@ class TorchMidasSmall(nn.Module):
 
 
 class TorchVGG16(nn.Module):
-    """``torchvision.models.vgg16`` module layout: ``features``, ``avgpool``, ``classifier``."""
+    """``torchvision.models.vgg16`` module layout: ``features``, ``avgpool``, ``classifier``.
 
-    def __init__(self, num_classes: int = 1000):
+    ``width`` scales every conv and fc6/fc7 as ``placejax.models.VGG16(width=...)`` does (1.0 = torchvision)."""
+
+    def __init__(self, num_classes: int = 1000, width: float = 1.0):
         super().__init__()
+
+        def scaled(c: int) -> int:
+            return max(1, round(c * width))
+
         layers, cin = [], 3
         for v in (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"):
             if v == "M":
                 layers.append(nn.MaxPool2d(2, 2))
             else:
-                layers += [nn.Conv2d(cin, v, 3, padding=1), nn.ReLU(inplace=True)]
-                cin = v
+                layers += [nn.Conv2d(cin, scaled(v), 3, padding=1), nn.ReLU(inplace=True)]
+                cin = scaled(v)
         self.features = nn.Sequential(*layers)
         self.avgpool = nn.AdaptiveAvgPool2d((7, 7))
+        hidden = scaled(4096)
         self.classifier = nn.Sequential(
-            nn.Linear(512 * 7 * 7, 4096),
+            nn.Linear(cin * 7 * 7, hidden),
             nn.ReLU(True),
             nn.Dropout(0.5),
-            nn.Linear(4096, 4096),
+            nn.Linear(hidden, hidden),
             nn.ReLU(True),
             nn.Dropout(0.5),
-            nn.Linear(4096, num_classes),
+            nn.Linear(hidden, num_classes),
         )
 
     def forward(self, x):

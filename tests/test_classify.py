@@ -127,10 +127,19 @@ def test_prediction_fields_describe_the_cell(clf, experiment_outputs):
 
 def test_batch_equals_loop_and_buckets_bound_compiles(clf, experiment_outputs):
     images = experiment_outputs[TEST]["images"][:6]
-    batch = clf.logits(images)["fusion"]
-    loop = np.concatenate([clf.logits(images[i : i + 1])["fusion"] for i in range(6)])
-    # float16-rounded trunk features (see above): equal up to a last-bit flip, relative to the logits' scale.
-    np.testing.assert_allclose(batch, loop, rtol=0, atol=1e-4 * np.abs(loop).max())
+    batch = clf.logits(images)
+    loops = [clf.logits(images[i : i + 1]) for i in range(6)]
+    loop = {k: np.concatenate([out[k] for out in loops]) for k in batch}
+    # The RGB branch: equal up to float rounding (and float16-rounded trunk features), relative to the logits'
+    # scale. The HHA branch: a matrix product blocked differently for 6 images than for 1 changes the depth in
+    # its last bits, which moves some HHA values across a uint8 rounding boundary (measured: 0.8 % of the values
+    # by ±1, none by more), so its logits agree less tightly.
+    np.testing.assert_allclose(batch["rgb"], loop["rgb"], rtol=0, atol=1e-4 * np.abs(loop["rgb"]).max())
+    diff = np.abs(batch["hha_image"].astype(int) - loop["hha_image"].astype(int))
+    assert diff.max() <= 1 and (diff == 0).mean() >= 0.98, (diff.max(), (diff == 0).mean())
+    for branch in ("hha", "fusion"):
+        np.testing.assert_allclose(batch[branch], loop[branch], rtol=0, atol=1e-2 * np.abs(loop[branch]).max())
+        np.testing.assert_array_equal(batch[branch].argmax(1), loop[branch].argmax(1))
     from placejax.classify._classifier import _jitted_forward
 
     fn = _jitted_forward(clf._spec)

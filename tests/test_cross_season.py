@@ -6,12 +6,14 @@ import itertools
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -215,9 +217,12 @@ def _interrupt_when(workdir: Path, env: dict, n_nets: int, sig: int) -> subproce
 def test_interrupted_and_killed_run_resumes_to_the_same_accuracies(smoke, tmp_path):
     """Ctrl-C, then SIGKILL during network training, then rerun the same command: same accuracies as the
     uninterrupted run. Ctrl-C ends with one line that says how to resume, not a traceback."""
-    _, uninterrupted = smoke
+    smoke_dir, uninterrupted = smoke
     workdir = tmp_path / "run"
-    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache")}
+    # The data caches (frames, depth, HHA, conv features) of the uninterrupted run, so that this run goes straight
+    # to the network stage it interrupts; the caches are verified (keys, SHA-256) before they are used.
+    shutil.copytree(smoke_dir / "cache", workdir / "cache")
+    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir}
     # Ctrl-C once the second network has its first checkpoint: mid-stage, caches complete, one net finished.
     stopped = _interrupt_when(workdir, env, 2, signal.SIGINT)
     assert stopped.returncode == 130, stopped.stderr[-2000:]
@@ -379,7 +384,7 @@ def test_two_processes_train_exactly_like_one_process_with_two_devices(smoke, tm
     two partial sums)."""
     _, one = smoke
     workdir = tmp_path / "mp"
-    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache")}
+    env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir}
     cmd = [sys.executable, "-m", "placejax.training.launch", "--processes", "2", "--devices-per-process", "1", "--"]
     done = subprocess.run([*cmd, *_cli(workdir)], cwd=REPO, env=env, capture_output=True, text=True, timeout=1200)
     assert done.returncode == 0, done.stderr[-3000:]

@@ -91,16 +91,16 @@ def test_predict_batch_equals_loop_output_size_and_no_retrace(small):
     model, variables = small
     rng = np.random.default_rng(1)
     images = rng.integers(0, 256, (2, 45, 70, 3), dtype=np.uint8)
-    before = _forward._cache_size()
+    before = _forward()._cache_size()
     batch = predict(variables, images, model=model, size=64)
     assert batch.shape == (2, 45, 70)
     loop = np.stack([predict(variables, im, model=model, size=64) for im in images])
     # Batched convolutions may sum in another order: allow float32 noise relative to the output range.
     np.testing.assert_allclose(loop, batch, rtol=0, atol=1e-5 * float(np.ptp(batch)))
-    compiled = _forward._cache_size()
+    compiled = _forward()._cache_size()
     predict(variables, images[::-1].copy(), model=model, size=64)
     predict(variables, images, model=model, size=64)
-    assert _forward._cache_size() == compiled == before + 2  # one per batch size, none on repeat calls
+    assert _forward()._cache_size() == compiled == before + 2  # one per batch size, none on repeat calls
 
 
 def test_predict_bad_input(small):

@@ -15,6 +15,7 @@ from midas_recipe import recipe_io, recipe_state_dict
 from placejax.models import (
     EfficientNetLite3Encoder,
     MidasSmall,
+    cpu_compiler_options,
     fold_batch_norm,
     interpolation_matrix,
     resize,
@@ -92,12 +93,16 @@ def test_folded_batch_norm_parity(fixture_io, fixture_variables):
     assert sorted(folded["params"]["encoder"]["blocks_1_0"]) == ["conv_dw", "conv_pw", "conv_pwl"]
     assert sorted(folded["params"]["encoder"]["blocks_1_0"]["conv_dw"]) == ["bias", "kernel"]
     model = MidasSmall(folded_bn=True)
+    # The whole fast path: folded BatchNorms and the CPU compiler options (YNNPACK matrix products).
+    assert cpu_compiler_options("midas_small"), "the YNNPACK fast path is not active on this jaxlib"
+    fast = jax.jit(model.apply, compiler_options=cpu_compiler_options("midas_small"))
     for key in ("", "_128x256"):
         x = jnp.asarray(fixture_io[f"input_nchw{key}"].transpose(0, 2, 3, 1))
-        out = jax.jit(model.apply)(folded, x)
         ref = fixture_io[f"output{key}"]
-        assert out.shape == ref.shape and float(out.min()) >= 0.0
-        assert _rel_err(out, ref) <= 1e-4
+        for fn in (jax.jit(model.apply), fast):
+            out = fn(folded, x)
+            assert out.shape == ref.shape and float(out.min()) >= 0.0
+            assert _rel_err(out, ref) <= 1e-4
     # fold_batch_norm is pure: the input keeps its BatchNorms.
     assert "batch_stats" in fixture_variables and "bn1" in fixture_variables["params"]["encoder"]["blocks_1_0"]
 

@@ -9,6 +9,7 @@ ImageNet statistics) and ``run.py``'s bicubic upsampling of the prediction back 
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import Any
 
 import cv2
@@ -16,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall, resize
+from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall, cpu_compiler_options, resize
 
 __all__ = ["network_size", "predict", "preprocess"]
 
@@ -78,11 +79,20 @@ def preprocess(image: np.ndarray, *, size: int = 256, square: bool = False) -> n
     return (x - IMAGENET_MEAN) / IMAGENET_STD
 
 
-@functools.partial(jax.jit, static_argnames=("model", "out_hw"))
-def _forward(model: MidasSmall, variables: Any, x: jax.Array, out_hw: tuple[int, int]) -> jax.Array:
+def _forward_impl(model: MidasSmall, variables: Any, x: jax.Array, out_hw: tuple[int, int]) -> jax.Array:
     depth = model.apply(variables, x, train=False)
     # run.py: F.interpolate(prediction[:, None], size=image size, mode="bicubic", align_corners=False).
     return resize(depth[..., None], out_hw, "bicubic", align_corners=False)[..., 0]
+
+
+@functools.cache
+def _forward() -> Callable[..., jax.Array]:
+    """The jitted forward pass with the CPU fast path's compiler options (YNNPACK matrix products: MiDaS small
+    ~1.6× faster on CPU; none elsewhere). Built on first use, not at import: choosing the options asks for
+    JAX's backend, which must not start before ``jax.distributed.initialize`` in multi-process runs."""
+    return jax.jit(
+        _forward_impl, static_argnames=("model", "out_hw"), compiler_options=cpu_compiler_options("midas_small")
+    )
 
 
 def predict(
@@ -118,5 +128,5 @@ def predict(
         raise ValueError(f"predict expects (N, H, W, 3) or (H, W, 3) RGB images, got shape {images.shape}")
     model = MidasSmall() if model is None else model
     x = np.stack([preprocess(im, size=size, square=square) for im in images])
-    depth = np.asarray(_forward(model, variables, jnp.asarray(x), tuple(images.shape[1:3])))
+    depth = np.asarray(_forward()(model, variables, jnp.asarray(x), tuple(images.shape[1:3])))
     return depth[0] if single else depth

@@ -13,7 +13,14 @@ from placejax.models._init import (
 )
 from placejax.models._midas import EfficientNetLite3Encoder, MidasSmall, fold_batch_norm
 from placejax.models._resize import interpolation_matrix, resize, upsample2x_align_corners
-from placejax.models._vgg import VGG16, VGG16Head, VGG16Trunk, adaptive_avg_pool
+from placejax.models._vgg import (
+    VGG16,
+    VGG16Head,
+    VGG16Trunk,
+    adaptive_avg_pool,
+    fold_adaptive_pool,
+    trunk_map_size,
+)
 
 __all__ = [
     "IMAGENET_MEAN",
@@ -28,10 +35,12 @@ __all__ = [
     "VGG16Trunk",
     "adaptive_avg_pool",
     "cpu_compiler_options",
+    "fold_adaptive_pool",
     "fold_batch_norm",
     "he_init",
     "imagenet_normalise",
     "interpolation_matrix",
     "resize",
+    "trunk_map_size",
     "upsample2x_align_corners",
 ]

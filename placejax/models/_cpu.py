@@ -1,9 +1,10 @@
 """XLA CPU compiler options for fast inference, chosen per network from measurements on this project's models.
 
-jaxlib ≥ 0.10's XLA CPU backend can hand convolutions and matrix products to YNNPACK instead of its default
-Eigen kernels, per compiled function: ``jax.jit(f, compiler_options=cpu_compiler_options("vgg16"))``. The
+jaxlib ≥ 0.10's XLA CPU backend can hand matrix products (and convolutions) to YNNPACK instead of its
+default Eigen kernels, per compiled function: ``jax.jit(f, compiler_options=cpu_compiler_options("vgg16"))``. The
 options only change which kernels run (results agree to float rounding); they are compile-time settings of
-one jitted function, so other functions (e.g. a training step, where YNNPACK did not help) keep the defaults.
+one jitted function, so other functions keep the defaults: training steps must (a MiDaS-shaped depth-network
+step ran ~4× slower with YNNPACK matrix products: 173 → 673 ms at batch 16, 64²).
 """
 
 from __future__ import annotations
@@ -15,16 +16,15 @@ import jax.numpy as jnp
 
 __all__ = ["cpu_compiler_options"]
 
-_YNN_CONV_DOT = {
-    "xla_cpu_experimental_ynn_fusion_type": (
-        "LIBRARY_FUSION_TYPE_INDIVIDUAL_CONVOLUTION,LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"
-    )
-}
+_YNN_DOT = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
 
-# Measured on a 2-core AMD EPYC (AVX2), jaxlib 0.10.2 (benchmarks/models_speed.py):
-#   vgg16: VGG16 forward (fc7) at 224², batch 8: ~400 → ~230 ms/image with YNNPACK convs and dots.
-#   midas_small: no gain from YNNPACK (≈ +5 %), so the defaults.
-_KINDS: dict[str, dict[str, str]] = {"vgg16": _YNN_CONV_DOT, "midas_small": {}}
+# Measured with jaxlib 0.10.2 on 2 cores (benchmarks/models_speed.py; ms/image, batch 8), Intel Xeon with
+# AVX-512, 2026-12-02, for XLA's defaults / YNNPACK dots / YNNPACK convolutions / both:
+#   vgg16 fc7 224²: 329 / 129 / 148 / 149;  64²: 20.0 / 17.6 / 19.0 / 20.7.
+#   midas_small 256²: 80.7 / 50.6 / 80.0 / 80.0 (dots carry MiDaS's 1×1 convolutions and most of its time).
+# "Dots only" is the fastest for both networks. (An earlier round on a 2-core AMD EPYC with AVX2 had measured
+# convolutions + dots: ~400 → ~230 ms at 224² for VGG16, no gain for MiDaS.)
+_KINDS: dict[str, dict[str, str]] = {"vgg16": _YNN_DOT, "midas_small": _YNN_DOT}
 
 
 @functools.cache
@@ -41,13 +41,14 @@ def cpu_compiler_options(kind: str = "vgg16") -> dict[str, str]:
     """``compiler_options`` for ``jax.jit`` that make inference of the given network faster on CPU.
 
     Args:
-        kind: ``"vgg16"`` (VGG16 forward / conv features: YNNPACK convolutions and dots, ~1.8× faster at
-            224²) or ``"midas_small"`` (none: YNNPACK measured slower there).
+        kind: ``"vgg16"`` (VGG16 forward / conv features: ~2.5× faster at 224²) or ``"midas_small"`` (MiDaS
+            small and the narrower depth networks: ~1.6× faster at 256²); both route matrix products to
+            YNNPACK.
 
     Returns:
         A new dict, empty when JAX's default backend is not the CPU (GPU/TPU users get the defaults), when
         the network has no useful options, or when this jaxlib does not know them (older/newer XLA). Use it
-        for inference only: for training steps (backward convolutions) the options did not help.
+        for inference only: training steps (backward convolutions) ran ~4× slower with them.
 
     >>> opts = cpu_compiler_options("vgg16")
     >>> isinstance(opts, dict)

@@ -9,7 +9,7 @@ rule table: ``encoder/stem_conv``, ``encoder/blocks_{stage}_{i}/{conv_pw,bn1,con
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import flax.linen as nn
@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from placejax.models._conv import FEW_CHANNELS, DepthwiseConv, FewChannelConv
 from placejax.models._resize import resize, upsample2x_align_corners
 
 Dtype = Any
@@ -59,53 +60,6 @@ def _relu6(x: Array) -> Array:
     return jnp.clip(x, 0.0, 6.0)
 
 
-class DepthwiseConv(nn.Module):
-    """Bias-free depthwise k×k convolution with TF "SAME" padding, as a sum of k² shifted products.
-
-    Same parameter (``kernel``, ``(k, k, 1, C)``) and result as ``nn.Conv(C, (k, k), feature_group_count=C,
-    padding="SAME", use_bias=False)``, but XLA's CPU backend runs grouped convolutions through a slow generic
-    path (10–30× slower here, e.g. 200 ms vs 6 ms for 128×128×144, k = 3), while shifted multiply-adds fuse
-    into one elementwise loop. This is what makes the EfficientNet encoder fast on CPU.
-
-    Attributes:
-        kernel_size: k (odd).
-        stride: 1 or 2.
-        use_bias: add a ``(C,)`` ``bias`` (used by the BatchNorm-folded inference model).
-    """
-
-    kernel_size: int
-    stride: int = 1
-    use_bias: bool = False
-    dtype: Dtype | None = None
-    param_dtype: Dtype = jnp.float32
-    kernel_init: Callable[..., Array] = nn.initializers.lecun_normal()
-    bias_init: Callable[..., Array] = nn.initializers.zeros_init()
-
-    @nn.compact
-    def __call__(self, x: Array) -> Array:
-        k, s = self.kernel_size, self.stride
-        n, h, w, c = x.shape
-        kernel = self.param("kernel", self.kernel_init, (k, k, 1, c), self.param_dtype)
-        x, kernel = nn.dtypes.promote_dtype(x, kernel, dtype=self.dtype)
-        oh, ow = -(-h // s), -(-w // s)
-        # TF "SAME": total padding (out−1)·s + k − in, the odd pixel going to the bottom/right.
-        ph, pw = max((oh - 1) * s + k - h, 0), max((ow - 1) * s + k - w, 0)
-        xp = jnp.pad(x, ((0, 0), (ph // 2, ph - ph // 2), (pw // 2, pw - pw // 2), (0, 0)))
-        taps = kernel.reshape(k * k, 1, 1, 1, c)  # explicit (1, 1, 1, C) broadcasting per tap
-        out = None
-        for i in range(k):
-            for j in range(k):
-                tap = jax.lax.slice(
-                    xp, (0, i, j, 0), (n, i + (oh - 1) * s + 1, j + (ow - 1) * s + 1, c), (1, s, s, 1)
-                )
-                term = tap * taps[i * k + j]
-                out = term if out is None else out + term
-        if self.use_bias:
-            bias = self.param("bias", self.bias_init, (c,), self.param_dtype)
-            out = out + bias.astype(out.dtype).reshape(1, 1, 1, c)
-        return out
-
-
 def _conv_bn(
     x: Array,
     features: int,
@@ -131,6 +85,9 @@ def _conv_bn(
         if features != x.shape[-1]:
             raise ValueError(f"depthwise conv keeps the width: {x.shape[-1]} in, {features} requested")
         x = DepthwiseConv(kernel, stride, use_bias=folded, dtype=dtype, param_dtype=param_dtype, name=names[0])(x)
+    elif x.shape[-1] <= FEW_CHANNELS:  # the RGB stem: shifted products beat XLA's CPU convolution
+        kw = dict(dtype=dtype, param_dtype=param_dtype, name=names[0])
+        x = FewChannelConv(features, kernel, stride, use_bias=folded, **kw)(x)
     else:
         x = nn.Conv(
             features,

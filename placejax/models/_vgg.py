@@ -20,6 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from placejax.models._conv import FEW_CHANNELS, FewChannelConv
+
 Dtype = Any
 
 # (block, convs in block, output channels) of VGG16 ("configuration D").
@@ -68,10 +70,12 @@ class VGG16Trunk(nn.Module):
     Attributes:
         width: channel multiplier (1.0 = VGG16; e.g. 0.25 for CPU-sized presets, same topology).
 
-    Maps ``(N, H, W, 3)`` normalised RGB (H, W ≥ 32) to the pooled ``(N, 7, 7, C)`` map, C = 512·width.
+    Maps ``(N, H, W, 3)`` normalised RGB (H, W ≥ 32) to the pooled ``(N, 7, 7, C)`` map, C = 512·width
+    (``pool=False``: the last max-pool's ``(N, H//32, W//32, C)`` map, see ``fold_adaptive_pool``).
     """
 
     width: float = 1.0
+    pool: bool = True
     dtype: Dtype | None = None
     param_dtype: Dtype = jnp.float32
 
@@ -81,19 +85,17 @@ class VGG16Trunk(nn.Module):
             raise ValueError(f"VGG16 expects NHWC images (N, H, W, 3), got shape {x.shape}")
         if x.shape[1] < 32 or x.shape[2] < 32:
             raise ValueError(f"VGG16 needs H, W ≥ 32 (five 2×2 max-pools), got {x.shape[1:3]}")
+        kw = dict(dtype=self.dtype, param_dtype=self.param_dtype)
         for b, n, c in _BLOCKS:
             for j in range(1, n + 1):
-                x = nn.Conv(
-                    _scaled(c, self.width),
-                    (3, 3),
-                    padding=((1, 1), (1, 1)),
-                    dtype=self.dtype,
-                    param_dtype=self.param_dtype,
-                    name=f"conv{b}_{j}",
-                )(x)
+                name, features = f"conv{b}_{j}", _scaled(c, self.width)
+                if x.shape[-1] <= FEW_CHANNELS:  # conv1_1 on RGB: shifted products beat XLA's CPU convolution
+                    x = FewChannelConv(features, 3, name=name, **kw)(x)
+                else:
+                    x = nn.Conv(features, (3, 3), padding=((1, 1), (1, 1)), name=name, **kw)(x)
                 x = nn.relu(x)
             x = nn.max_pool(x, (2, 2), strides=(2, 2))
-        return adaptive_avg_pool(x, (POOL_SIZE, POOL_SIZE))
+        return adaptive_avg_pool(x, (POOL_SIZE, POOL_SIZE)) if self.pool else x
 
 
 class VGG16Head(nn.Module):
@@ -131,6 +133,8 @@ class VGG16(nn.Module):
         width: channel multiplier of convs and fully connected layers (1.0 = VGG16). fc6/fc7 have
             ``round(4096·width)`` units.
         dropout_rate: dropout after fc6 and fc7 in training.
+        folded_pool: the adaptive 7×7 average pool is folded into fc6 (``fold_adaptive_pool``): fc6 reads the
+            trunk's last map directly. Same outputs, for variables folded for this input size.
         dtype: computation dtype; param_dtype: parameter dtype.
 
     ``logits, features = VGG16(num_classes=100).apply(variables, x, train=False)`` with ``x`` ``(N, H, W, 3)``
@@ -151,21 +155,73 @@ class VGG16(nn.Module):
     num_classes: int = 1000
     width: float = 1.0
     dropout_rate: float = 0.5
+    folded_pool: bool = False
     dtype: Dtype | None = None
     param_dtype: Dtype = jnp.float32
 
     def setup(self) -> None:
         kw = dict(dtype=self.dtype, param_dtype=self.param_dtype)
-        self.trunk = VGG16Trunk(self.width, **kw)
+        self.trunk = VGG16Trunk(self.width, pool=not self.folded_pool, **kw)
         self.classifier = VGG16Head(self.num_classes, _scaled(_FC_WIDTH, self.width), self.dropout_rate, **kw)
 
     def __call__(self, x: Array, train: bool = False) -> tuple[Array, dict[str, Array]]:
         return self.classifier(self.trunk(x), train=train)
 
     def conv_features(self, x: Array) -> Array:
-        """Frozen-trunk output ``(N, 7, 7, 512·width)`` (after adaptive average pooling, before flatten)."""
+        """Frozen-trunk output ``(N, 7, 7, 512·width)`` (after adaptive average pooling, before flatten;
+        ``folded_pool``: the unpooled ``(N, H//32, W//32, 512·width)`` map)."""
         return self.trunk(x)
 
     def head(self, pooled: Array, train: bool = False) -> tuple[Array, dict[str, Array]]:
         """fc6..fc8 on a ``conv_features`` output: ``(logits, {"fc6", "fc7"})``."""
         return self.classifier(pooled, train=train)
+
+
+def trunk_map_size(input_hw: tuple[int, int]) -> tuple[int, int]:
+    """``(h, w)`` of the trunk's last max-pool output for an ``(H, W)`` input: five floor-halvings, ``H // 32``."""
+    h, w = (int(v) for v in input_hw)
+    if h < 32 or w < 32:
+        raise ValueError(f"VGG16 needs H, W ≥ 32 (five 2×2 max-pools), got {(h, w)}")
+    return h // 32, w // 32
+
+
+def fold_adaptive_pool(variables: dict[str, Any], input_hw: tuple[int, int]) -> dict[str, Any]:
+    """Folds the adaptive 7×7 average pool into fc6, for ``VGG16(folded_pool=True)`` at one input size.
+
+    The pool is linear, so ``fc6(pool(x)) = fc6'(x)`` with ``fc6'`` = the kernel contracted with the two
+    pooling matrices: ``K'[a, b, c, :] = Σ_{o,p} P_h[o, a]·P_w[p, b]·K[o, p, c, :]`` (rows ``(h, w, c)``
+    ordered, as the head flattens). Below 224×224 the trunk's last map has fewer than 49 cells and fc6 shrinks
+    by 49/(h·w): at 64×64 (a 2×2 map) from 25,088 to 2,048 rows of VGG16, 392 MB less to read per call, which
+    dominates fc7 embeddings at small batches. At ≥ 224×224 (a map of ≥ 7×7 cells) it does not pay.
+
+    Args:
+        variables: ``VGG16`` variables (unfolded: fc6 has ``49·C`` rows, C = the trunk's width).
+        input_hw: the ``(H, W)`` images the folded model will see (the folded fc6 only fits maps of that size).
+
+    Returns:
+        New variables (inputs untouched); outputs of ``VGG16(..., folded_pool=True)`` on ``(H, W)`` inputs
+        equal the unfolded model's up to float rounding.
+
+    >>> import jax
+    >>> m = VGG16(num_classes=3, width=1 / 16)
+    >>> v = m.init(jax.random.key(0), jnp.zeros((1, 64, 64, 3)))
+    >>> f = fold_adaptive_pool(v, (64, 64))
+    >>> v["params"]["classifier"]["fc6"]["kernel"].shape, f["params"]["classifier"]["fc6"]["kernel"].shape
+    ((1568, 256), (128, 256))
+    """
+    h, w = trunk_map_size(input_hw)
+    params = variables["params"]
+    kernel = jnp.asarray(params["classifier"]["fc6"]["kernel"])
+    rows, hidden = kernel.shape
+    if rows % (POOL_SIZE * POOL_SIZE):
+        raise ValueError(
+            f"fold_adaptive_pool: fc6 kernel has {rows} rows, expected 49·C for the 7×7 pooled map"
+            " (already folded?)"
+        )
+    c = rows // (POOL_SIZE * POOL_SIZE)
+    ph = jnp.asarray(adaptive_avg_pool_matrix(h, POOL_SIZE), kernel.dtype)
+    pw = jnp.asarray(adaptive_avg_pool_matrix(w, POOL_SIZE), kernel.dtype)
+    k = kernel.reshape(POOL_SIZE, POOL_SIZE, c, hidden)
+    folded = jnp.einsum("oa,pb,opcj->abcj", ph, pw, k, precision="highest").reshape(h * w * c, hidden)
+    classifier = {**params["classifier"], "fc6": {**params["classifier"]["fc6"], "kernel": folded}}
+    return {**variables, "params": {**params, "classifier": classifier}}
