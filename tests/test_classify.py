@@ -20,6 +20,10 @@ from placejax.classify.__main__ import main as classify_main
 
 TRAIN, TEST = "WI", "SU"
 
+# Under pytest-xdist's --dist loadgroup (the README's test command) the classifier fixture (its own smoke run,
+# ~80 s) is built once, on one worker, instead of once per worker that runs a test of this module.
+pytestmark = pytest.mark.xdist_group("classify")
+
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):

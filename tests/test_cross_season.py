@@ -21,6 +21,9 @@ from experiments.cross_season import apply_overrides, get_config, run
 from placejax.data import PlaceGrid, open_array_cache
 
 REPO = Path(__file__).resolve().parents[1]
+# Under pytest-xdist's --dist loadgroup (the README's test command) the smoke run (module fixture, ~90 s)
+# is built once, on one worker, instead of once per worker that runs a test of this module.
+pytestmark = pytest.mark.xdist_group("cross_season")
 SEASONS = ("WI", "SP", "SU", "AU")
 
 
