@@ -41,8 +41,8 @@ from placejax.models import (
     cpu_compiler_options,
     fold_adaptive_pool,
     fold_batch_norm,
-    trunk_map_size,
 )
+from placejax.pretrain import trunk_map_size
 from placejax.weights import convert_midas_small, convert_vgg16
 
 RESULTS = Path(__file__).parent / "results"
@@ -209,7 +209,7 @@ def main() -> None:
         opts = cpu_compiler_options("vgg16")
         for width, side, use in VGG_CASES:
             model = VGG16(num_classes=1000, width=width)
-            h, w = trunk_map_size((side, side))
+            h, w = trunk_map_size((side, side), width)
             fold = h * w < 7 * 7  # below 224²: fc6 on the unpooled map is smaller
             fast_model = model.clone(folded_pool=True) if fold else model
 

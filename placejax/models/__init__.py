@@ -19,7 +19,6 @@ from placejax.models._vgg import (
     VGG16Trunk,
     adaptive_avg_pool,
     fold_adaptive_pool,
-    trunk_map_size,
 )
 
 __all__ = [
@@ -41,6 +40,5 @@ __all__ = [
     "imagenet_normalise",
     "interpolation_matrix",
     "resize",
-    "trunk_map_size",
     "upsample2x_align_corners",
 ]

@@ -177,8 +177,9 @@ class VGG16(nn.Module):
         return self.classifier(pooled, train=train)
 
 
-def trunk_map_size(input_hw: tuple[int, int]) -> tuple[int, int]:
-    """``(h, w)`` of the trunk's last max-pool output for an ``(H, W)`` input: five floor-halvings, ``H // 32``."""
+def _last_map_size(input_hw: tuple[int, int]) -> tuple[int, int]:
+    """``(h, w)`` of the trunk's last max-pool output for an ``(H, W)`` input: five floor-halvings, ``H // 32``
+    (``placejax.pretrain.trunk_map_size`` finds the same by tracing the model)."""
     h, w = (int(v) for v in input_hw)
     if h < 32 or w < 32:
         raise ValueError(f"VGG16 needs H, W ≥ 32 (five 2×2 max-pools), got {(h, w)}")
@@ -209,7 +210,7 @@ def fold_adaptive_pool(variables: dict[str, Any], input_hw: tuple[int, int]) -> 
     >>> v["params"]["classifier"]["fc6"]["kernel"].shape, f["params"]["classifier"]["fc6"]["kernel"].shape
     ((1568, 256), (128, 256))
     """
-    h, w = trunk_map_size(input_hw)
+    h, w = _last_map_size(input_hw)
     params = variables["params"]
     kernel = jnp.asarray(params["classifier"]["fc6"]["kernel"])
     rows, hidden = kernel.shape
