@@ -3,8 +3,8 @@
     python -m benchmarks.inference_speed [--repeats 3] [--batch 8] [--no-torch] [--only builtin|paper]
 
 Two model sizes, both with random weights of the exact architectures (speed does not depend on the values):
-    builtin: the default SimCampus preset — 48×48 images, the placejax depth network (MidasSmall features 16,
-        encoder ×0.35, run at 64×64), VGG16 at 1/8 width from scratch, fusion MLP 2·512 → 1024 → 100.
+    builtin: the default SimCampus preset — 64×64 images, the placejax metric depth network (MidasSmall
+        features 16, encoder ×0.35, run at 64×64), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
     paper: the paper's setting — 256×256 images, MiDaS v2.1 small (official size, run at 256×256), ImageNet
         VGG16 at full width (conv features rounded to float16 as the experiment caches them), MLP 8192 → 1024 → 100.
 
@@ -35,8 +35,8 @@ from placejax.data import PlaceGrid
 
 # Everything ``PlaceClassifier`` reads from a run, per size (values as the experiment's presets set them).
 _SIZES = {
-    "builtin": dict(image=48, depth=("trained", 16, 0.35, 64), vgg=(0.125, False), far_m=50.0),
-    "paper": dict(image=256, depth=("midas", 64, 1.0, 256), vgg=(1.0, True), far_m=80.0),
+    "builtin": dict(image=64, depth=("trained", 16, 0.35, 64), vgg=(0.125, True), far_m=80.0, metric=True),
+    "paper": dict(image=256, depth=("midas", 64, 1.0, 256), vgg=(1.0, True), far_m=80.0, metric=False),
 }
 
 
@@ -58,6 +58,7 @@ def synthetic_classifier(size: str, seed: int = 0) -> PlaceClassifier:
             "size": net,
             "near_m": 1.0,
             "far_m": s["far_m"],
+            "metric": s["metric"],
         },
         "vgg": {"width": s["vgg"][0], "pretrained": s["vgg"][1]},
         "mlp_hidden": 1024,
@@ -93,7 +94,7 @@ def _stage_fns(clf: PlaceClassifier, rgb: np.ndarray) -> dict:
     """Each stage jitted alone on its real input (computed once), blocking until done."""
     spec, params = clf._spec, clf.params
     opts = C.cpu_compiler_options("vgg16")
-    depth_fn = jax.jit(functools.partial(C.stage_depth, spec))
+    depth_fn = jax.jit(functools.partial(C.stage_depth, spec), compiler_options=C.cpu_compiler_options("midas_small"))
     hha_fn = jax.jit(functools.partial(C.stage_hha, spec))
     nets_fn = jax.jit(functools.partial(C.stage_nets, spec), compiler_options=opts)
     mlp_fn = jax.jit(functools.partial(C.stage_mlp, spec))
