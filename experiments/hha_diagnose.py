@@ -64,14 +64,17 @@ def main() -> None:
         ]
         return 100.0 * float(np.mean(accs))
 
-    clamp = lambda m: {s: np.minimum(d, m) for s, d in rendered.items()}
+    def clamp(m: float) -> dict[str, np.ndarray]:
+        return {s: np.minimum(d, m) for s, d in rendered.items()}
+
+    within_80 = clamp(80.0)  # the range the depth network predicts (max_depth_m); used by several rows below
     variants = {
         f"rendered, as is (sky at {SKY_DEPTH:g} m)": rendered,
-        "rendered, clamped at 80 m": clamp(80.0),
+        "rendered, clamped at 80 m": within_80,
         "rendered, clamped at 40 m": clamp(40.0),
         **{
             f"rendered, clamped at 80 m, log-depth blur σ = {sigma:g} px": {
-                s: _log_blur(d, sigma) for s, d in clamp(80.0).items()
+                s: _log_blur(d, sigma) for s, d in within_80.items()
             }
             for sigma in (1.0, 2.0, 4.0)
         },
@@ -84,7 +87,7 @@ def main() -> None:
     for name, depth in variants.items():
         print(f"{name:<52} {nn_accuracy(depth):5.1f}", flush=True)
     for s in SESSIONS:
-        err = np.abs(np.log(predicted[s]) - np.log(clamp(80.0)[s]))
+        err = np.abs(np.log(predicted[s]) - np.log(within_80[s]))
         print(f"session {s}: median |log predicted − log rendered (≤ 80 m)| = {np.median(err):.3f}")
 
 
