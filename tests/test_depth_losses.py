@@ -147,3 +147,24 @@ def test_log_metric_targets_put_the_sky_at_the_far_limit():
     t, m = log_metric_targets(depth_m, sky, 80.0)
     np.testing.assert_allclose(np.asarray(L.depth_from_log(t))[0, 0, :3], [2.0, 80.0, 80.0], rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(m)[0, 0], [1.0, 1.0, 1.0, 0.0])
+
+
+def test_object_weights_make_the_data_term_a_weighted_mean():
+    """With weights w on some pixels, the data term is Σ w·|r| / Σ w over the valid pixels of each image, the
+    gradient term is the unweighted one, and weights of 1 give the unweighted loss."""
+    rng = np.random.default_rng(3)
+    target = jnp.asarray(rng.normal(size=(2, 6, 5)), jnp.float32)
+    pred = target + jnp.asarray(rng.normal(size=(2, 6, 5)), jnp.float32)
+    mask = jnp.asarray(rng.uniform(size=(2, 6, 5)) > 0.2, jnp.float32)
+    objects = rng.uniform(size=(2, 6, 5)) > 0.6
+    weights = jnp.asarray(np.where(objects, 4.0, 1.0), jnp.float32)
+    ones = jnp.ones_like(weights)
+    assert float(L.log_metric_loss(pred, target, mask, weights=ones)) == pytest.approx(
+        float(L.log_metric_loss(pred, target, mask)), rel=1e-6
+    )
+    r, m, w = np.abs(np.asarray(pred - target)), np.asarray(mask), np.asarray(weights)
+    expected_data = np.mean([(r[i] * m[i] * w[i]).sum() / (m[i] * w[i]).sum() for i in range(2)])
+    grad = float(L.gradient_matching(pred, target, mask, align=False))
+    got = float(L.log_metric_loss(pred, target, mask, alpha=0.5, weights=weights))
+    assert got == pytest.approx(expected_data + 0.5 * grad, rel=1e-5)
+    assert got != pytest.approx(float(L.log_metric_loss(pred, target, mask)), rel=1e-3)  # the weights matter

@@ -10,8 +10,11 @@ import pytest
 
 from experiments import train_depth
 from placejax import depth
+from placejax.depth import _train as depth_train
 
 CFG = dataclasses.replace(depth.PRESETS["smoke"], steps=4, checkpoint_every=2)
+# The cache folder hash of the metric default network as it was before camera_height_m and object_weight existed.
+OLD_DEFAULT_FINGERPRINT = "69a32e715f24"
 
 
 @pytest.fixture(scope="module")
@@ -177,3 +180,43 @@ def test_evaluation_with_and_without_sky_on_an_analytic_scene():
     assert good["abs_rel"] < 1e-4 and good["abs_rel_with_sky"] < 1e-4 and good["delta1_with_sky"] == 1.0
     assert bad["abs_rel"] < 1e-4  # the sky is not scored without it
     assert bad["abs_rel_with_sky"] > 0.1 and bad["delta1_with_sky"] < 1.0, bad
+
+
+def test_camera_height_range_reaches_the_rendered_poses_and_the_fingerprint():
+    """``camera_height_m`` sets how high above the ground under it each training camera sits; the old range
+    (1–2 m) keeps the fingerprint it had before the field existed, any other range changes it; bad ranges are
+    refused with the field's name."""
+    from placejax.data import simcampus
+
+    world = simcampus.make_world(7)
+    for lo, hi in ((1.2, 1.5), (1.0, 2.0), (0.5, 0.5)):
+        poses = simcampus.random_poses(world, np.random.default_rng(0), 200, (lo, hi))
+        above = poses[:, 2] - world.height(poses[:, 0], poses[:, 1])
+        assert lo - 1e-9 <= above.min() and above.max() <= hi + 1e-9
+        assert hi == lo or above.max() - above.min() > 0.8 * (hi - lo)  # the whole range is used
+    old = depth.DepthTrainConfig(target="log_metric")  # the default network before the field existed
+    assert old.fingerprint() == OLD_DEFAULT_FINGERPRINT  # its cache folder is still found
+    rig = train_depth.parse_overrides(old, ["camera_height_m=[1.2, 1.5]"])
+    assert rig.camera_height_m == (1.2, 1.5) and rig.fingerprint() != old.fingerprint()
+    for bad in ((1.5, 1.2), (0.0, 1.0), (1.0,), (1.0, float("inf")), (True, 2.0)):
+        with pytest.raises(ValueError, match="camera_height_m"):
+            dataclasses.replace(CFG, camera_height_m=bad)
+
+
+def test_object_weight_is_checked_and_reaches_the_objective_and_the_fingerprint():
+    """``object_weight`` must be positive and needs the metric target; 1 keeps the old fingerprint; the objective
+    built from the config carries it, and the rendered training frames carry the objects mask it reads."""
+    assert dataclasses.replace(CFG, object_weight=1.0).fingerprint() == CFG.fingerprint()
+    assert depth.DepthTrainConfig(target="log_metric", object_weight=1.0).fingerprint() == OLD_DEFAULT_FINGERPRINT
+    heavy = train_depth.parse_overrides(CFG, ["object_weight=4.0"])
+    assert heavy.fingerprint() != CFG.fingerprint()
+    assert depth_train.DepthObjective.of(heavy).object_weight == 4.0
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="object_weight"):
+            dataclasses.replace(CFG, object_weight=bad)
+    with pytest.raises(ValueError, match="object_weight"):
+        dataclasses.replace(CFG, target="inverse", object_weight=2.0)
+    frames = depth_train.training_frames(dataclasses.replace(CFG, frames=8), progress=False)
+    objects, sky = frames["objects"], frames["sky"]
+    assert objects.shape == sky.shape and objects.dtype == bool and not (objects & sky).any()
+    assert 0.0 < objects.mean() < 1.0

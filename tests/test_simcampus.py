@@ -162,7 +162,7 @@ def test_wall_and_flat_ground_have_analytic_depth():
     """A wall 9.5 m ahead across the whole view, flat ground below: depth = min(9.5, h / tan(angle below))."""
     hw, cam_h = (25, 25), 1.3
     geo, look = _analytic_scene(boxes=[W._box_row(10.0, 0.0, 5.0, 0.5, 30.0, 10.0, 0.0)])
-    (_, depth, sky), k = _render_scene(geo, look, [0.0, 0.0, cam_h, 0.0, 0.0, 0.0], hw)
+    (_, depth, sky, objects), k = _render_scene(geo, look, [0.0, 0.0, cam_h, 0.0, 0.0, 0.0], hw)
     depth = np.asarray(depth[0])
     yn = (np.arange(hw[0]) - k[1, 2]) / k[1, 1]
     ground = np.where(yn > 0, cam_h / np.maximum(yn, 1e-9), np.inf)
@@ -170,10 +170,12 @@ def test_wall_and_flat_ground_have_analytic_depth():
     np.testing.assert_allclose(depth, expected, rtol=1e-4)
     assert not np.asarray(sky).any()
     assert (ground < 9.5).sum() >= 3  # both cases are exercised
+    np.testing.assert_array_equal(np.asarray(objects[0]), expected == 9.5)  # the wall is an object, ground is not
 
     # Turned 180 degrees: the wall is behind; upper rows are sky, lower rows flat ground.
-    (_, depth, sky), _ = _render_scene(geo, look, [0.0, 0.0, cam_h, np.pi, 0.0, 0.0], hw)
+    (_, depth, sky, objects), _ = _render_scene(geo, look, [0.0, 0.0, cam_h, np.pi, 0.0, 0.0], hw)
     depth, sky = np.asarray(depth[0]), np.asarray(sky[0])
+    assert not np.asarray(objects).any()  # only ground and sky
     below = yn > 0
     np.testing.assert_allclose(depth[below], (ground[below, None] * np.ones((1, hw[1]))), rtol=1e-3)
     assert sky[yn < -0.05].all()
@@ -183,8 +185,9 @@ def test_sphere_and_pitch_analytic_depth():
     hw = (25, 25)  # odd: the centre pixel's ray is the optical axis
     geo, look = _analytic_scene(ells=[W._ell_row(6.0, 0.0, 3.0, 1.0, 1.0, 1.0)])
     pitch = np.arctan2(3.0 - 1.3, 6.0)
-    (_, depth, _), _ = _render_scene(geo, look, [0.0, 0.0, 1.3, 0.0, pitch, 0.0], hw)
+    (_, depth, sky, objects), _ = _render_scene(geo, look, [0.0, 0.0, 1.3, 0.0, pitch, 0.0], hw)
     dist = np.hypot(6.0, 3.0 - 1.3)
+    assert bool(objects[0, 12, 12]) and not np.asarray(objects & sky).any()
     np.testing.assert_allclose(float(depth[0, 12, 12]), dist - 1.0, rtol=1e-4)
 
 

@@ -193,9 +193,17 @@ def depth_from_log(pred: jax.Array) -> jax.Array:
     return LOG_DEPTH_UNIT_M * jnp.exp(pred)
 
 
-def log_metric_loss(pred: jax.Array, target: jax.Array, mask: jax.Array, *, alpha: float = 0.5, scales: int = 4):
-    """Metric log-depth objective: per-image mean |pred − target| on the valid pixels plus α × the multi-scale
-    gradient-matching term of the (unaligned) residual.
+def log_metric_loss(
+    pred: jax.Array,
+    target: jax.Array,
+    mask: jax.Array,
+    *,
+    alpha: float = 0.5,
+    scales: int = 4,
+    weights: jax.Array | None = None,
+):
+    """Metric log-depth objective: per-image mean |pred − target| on the valid pixels (weighted by ``weights``
+    if given) plus α × the multi-scale gradient-matching term of the (unaligned) residual (unweighted).
 
     Where the camera is always the same (one robot, one mounting height) metric depth is learnable from one image,
     and log depth gives a tree 30 m away and the sky (at the far limit) a difference the size of the ground's:
@@ -205,7 +213,9 @@ def log_metric_loss(pred: jax.Array, target: jax.Array, mask: jax.Array, *, alph
     Args:
         pred, target: ``(B, H, W)`` predicted and true log depth (:func:`log_depth`).
         mask: ``(B, H, W)`` validity.
+        weights: ``(B, H, W)`` positive per-pixel weights of the data term, e.g. objects above ground and sky.
     """
     m = mask.astype(pred.dtype)
-    data = _per_image_mean(_masked_sums(jnp.abs(pred - target), m), _masked_sums(jnp.ones_like(pred), m))
+    w = m if weights is None else m * weights.astype(pred.dtype)
+    data = _per_image_mean(_masked_sums(jnp.abs(pred - target), w), _masked_sums(jnp.ones_like(pred), w))
     return data + alpha * gradient_matching(pred, target, m, scales, align=False)

@@ -60,6 +60,12 @@ class DepthTrainConfig:
         sky_in_loss: sky pixels enter the loss with inverse depth 0 (infinitely far), so the net must tell sky
             from objects; otherwise sky and pixels beyond ``max_depth_m`` are masked out.
         max_depth_m: with ``sky_in_loss=False``, pixels farther than this (and sky) are masked out of the loss.
+        object_weight: ``target="log_metric"`` only: weight of object pixels (buildings, trees, signs, …; the
+            renderer's ``objects`` mask) against ground and sky (1) in the loss's mean. Objects are a fifth of
+            the pixels but nearly all of what tells places apart; at 1 a small net predicts them too far.
+        camera_height_m: range (m) of the training cameras' height above the ground (uniform). The MiDaS-like
+            default (1–2 m) varies it; a metric network for one robot is trained at its rig's height, since
+            the ground's depth in each image row is set by that height and nothing in the image reveals it.
         seed: data order, augmentation and initialisation.
         checkpoint_every: steps between checkpoints.
         eval_frames: evaluation-campus frames per season for the report.
@@ -82,6 +88,8 @@ class DepthTrainConfig:
     sky_in_loss: bool = True
     alpha: float = 0.5
     max_depth_m: float = 80.0
+    object_weight: float = 1.0
+    camera_height_m: tuple[float, float] = (1.0, 2.0)
     seed: int = 0
     checkpoint_every: int = 100
     eval_frames: int = 48
@@ -108,6 +116,16 @@ class DepthTrainConfig:
                 raise ValueError(f"{name} must be a finite positive number, got {value!r}")
         if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0 and math.isfinite(self.alpha)):
             raise ValueError("weight_decay must be finite and >= 0, alpha finite")
+        if not (isinstance(self.object_weight, int | float) and math.isfinite(self.object_weight)):
+            raise ValueError(f"object_weight must be a finite number, got {self.object_weight!r}")
+        if self.object_weight <= 0 or (self.object_weight != 1 and self.target != "log_metric"):
+            raise ValueError(f"object_weight must be > 0, and 1 unless target='log_metric'; got {self.object_weight!r}")
+        h = self.camera_height_m
+        numbers = isinstance(h, tuple | list) and len(h) == 2
+        numbers = numbers and all(isinstance(v, int | float) and not isinstance(v, bool) for v in h)
+        numbers = numbers and all(math.isfinite(v) for v in h)
+        if not (numbers and 0 < h[0] <= h[1]):
+            raise ValueError(f"camera_height_m must be (low, high) in metres with 0 < low <= high, got {h!r}")
 
     def model(self) -> MidasSmall:
         return MidasSmall(features=self.features, encoder_width=self.encoder_width)
@@ -122,6 +140,10 @@ class DepthTrainConfig:
         fields = dataclasses.asdict(self)
         if self.target == "inverse":
             fields.pop("target")  # the field came later: inverse-depth networks keep their cache folders
+        if self.object_weight == 1:
+            fields.pop("object_weight")  # as for target and camera_height_m below
+        if tuple(self.camera_height_m) == (1.0, 2.0):
+            fields.pop("camera_height_m")  # the field came later: networks of the old heights keep their folders
         fields.pop("eval_frames")
         fields.pop("checkpoint_every")
         fields["recipe_version"] = _RECIPE_VERSION
@@ -204,7 +226,8 @@ class DepthObjective:
     BatchNorm statistics updated over the global batch: L = L_ssi + α·L_grad (MiDaS) on inverse depth, or the
     metric log-depth loss (``target="log_metric"``).
 
-    Reads ``batch["image"]`` uint8 ``(B, H, W, 3)``, ``batch["depth"]`` metres ``(B, H, W)``, ``batch["sky"]``.
+    Reads ``batch["image"]`` uint8 ``(B, H, W, 3)``, ``batch["depth"]`` metres ``(B, H, W)``, ``batch["sky"]``
+    and, with ``object_weight != 1``, ``batch["objects"]``.
     A frozen dataclass: hashable, so each configuration compiles one step.
     """
 
@@ -214,15 +237,19 @@ class DepthObjective:
     max_depth_m: float = 80.0
     sky_in_loss: bool = True
     target: str = "inverse"
+    object_weight: float = 1.0
 
     @classmethod
     def of(cls, cfg: DepthTrainConfig) -> DepthObjective:
-        return cls(cfg.loss, cfg.alpha, cfg.trim, cfg.max_depth_m, cfg.sky_in_loss, cfg.target)
+        return cls(cfg.loss, cfg.alpha, cfg.trim, cfg.max_depth_m, cfg.sky_in_loss, cfg.target, cfg.object_weight)
 
     def __call__(self, state, params, batch, key):
         x = normalise(batch["image"])
+        weights = None
         if self.target == "log_metric":
             tgt, mask = log_metric_targets(batch["depth"], batch["sky"], self.max_depth_m)
+            if self.object_weight != 1:
+                weights = jnp.where(batch["objects"], self.object_weight, 1.0)
         else:
             tgt, mask = targets(batch["depth"], batch["sky"], self.max_depth_m, self.sky_in_loss)
         # Horizontal flips: a scene and its mirror image have mirrored depth.
@@ -230,11 +257,13 @@ class DepthObjective:
         x = jnp.where(flip[:, None, None, None], x[:, :, ::-1], x)
         tgt = jnp.where(flip[:, None, None], tgt[:, :, ::-1], tgt)
         mask = jnp.where(flip[:, None, None], mask[:, :, ::-1], mask)
+        if weights is not None:
+            weights = jnp.where(flip[:, None, None], weights[:, :, ::-1], weights)
         pred, updates = state.apply_fn(
             {"params": params, "batch_stats": state.batch_stats}, x, train=True, mutable=["batch_stats"]
         )
         if self.target == "log_metric":
-            loss = log_metric_loss(pred, tgt, mask, alpha=self.alpha)
+            loss = log_metric_loss(pred, tgt, mask, alpha=self.alpha, weights=weights)
         else:
             loss = midas_loss(pred, tgt, mask, variant=self.loss, alpha=self.alpha, trim=self.trim)
         return loss, ({"loss": loss}, updates["batch_stats"])
@@ -263,6 +292,7 @@ def training_frames(cfg: DepthTrainConfig, progress: bool = True) -> dict[str, n
         (s, s),
         n_worlds=cfg.n_worlds,
         exclude_world_seeds=(cfg.world_seed,),
+        camera_height_m=tuple(cfg.camera_height_m),
         progress=progress,
     )
 
@@ -272,7 +302,7 @@ def _checkpoint_dir(workdir: Path) -> Path:
 
 
 def _prepare(batch: dict) -> dict[str, np.ndarray]:
-    return {"image": batch["image"], "depth": batch["depth"], "sky": batch["sky"]}
+    return {k: batch[k] for k in ("image", "depth", "sky", "objects")}
 
 
 def train(
@@ -310,7 +340,7 @@ def train(
 
     def batches():  # rendered only when steps remain
         frames = training_frames(cfg, progress=progress)
-        source = FrameSource(frames["rgb"], extras={"depth": frames["depth"], "sky": frames["sky"]})
+        source = FrameSource(frames["rgb"], extras={k: frames[k] for k in ("depth", "sky", "objects")})
         epochs = math.ceil(cfg.steps * cfg.batch_size / cfg.frames)
         return train_dataset(
             source, batch_size=cfg.batch_size // jax.process_count(), seed=cfg.seed, num_epochs=epochs

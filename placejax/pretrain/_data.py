@@ -73,7 +73,7 @@ def render_random_looks(world_seed: int, poses6: np.ndarray, hw: tuple[int, int]
         p = np.concatenate([p, np.repeat(p[-1:], pad, 0)])
         keys = jax.random.split(jax.random.fold_in(key, lo), batch)
         ids = jnp.asarray(lo + np.arange(batch), jnp.int32)
-        rgb, depth, sky = simcampus.render_batch(
+        r = simcampus.render_batch(
             geo,
             _random_looks(keys),
             jnp.asarray(p),
@@ -82,8 +82,8 @@ def render_random_looks(world_seed: int, poses6: np.ndarray, hw: tuple[int, int]
             hw=hw,
             look_per_frame=True,
         )
-        for k, v in zip(("rgb", "depth", "sky"), (rgb, depth, sky), strict=True):
-            out[k].append(np.asarray(v)[:n])
+        for k in out:
+            out[k].append(np.asarray(getattr(r, k))[:n])
     return {k: np.concatenate(v) for k, v in out.items()}
 
 

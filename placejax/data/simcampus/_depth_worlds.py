@@ -57,8 +57,14 @@ def random_look(key: jax.Array) -> _render.Look:
     )
 
 
-def random_poses(world: W.World, rng: np.random.Generator, n: int) -> np.ndarray:
-    """Camera poses ``(n, 6)`` near the paths, mostly along them, some looking anywhere."""
+def random_poses(
+    world: W.World, rng: np.random.Generator, n: int, height_m: tuple[float, float] = (1.0, 2.0)
+) -> np.ndarray:
+    """Camera poses ``(n, 6)`` near the paths, mostly along them, some looking anywhere.
+
+    The camera is ``height_m`` (uniform between the two bounds, metres) above the ground under it, pitched by
+    up to ±6° and rolled by up to ±3°.
+    """
     pts, tans = _seasons.path_frames(world, 1.0)
     i = rng.integers(len(pts), size=n)
     normal = np.stack([-tans[i, 1], tans[i, 0]], -1)
@@ -68,7 +74,7 @@ def random_poses(world: W.World, rng: np.random.Generator, n: int) -> np.ndarray
         rng.uniform(-np.pi / 3, np.pi / 3, n) + np.pi * rng.integers(2, size=n),
         rng.uniform(-np.pi, np.pi, n),
     )
-    z = world.height(xy[:, 0], xy[:, 1]) + rng.uniform(1.0, 2.0, n)
+    z = world.height(xy[:, 0], xy[:, 1]) + rng.uniform(height_m[0], height_m[1], n)
     pitch = np.deg2rad(rng.uniform(-6, 6, n))
     roll = np.deg2rad(rng.uniform(-3, 3, n))
     return np.stack([xy[:, 0], xy[:, 1], z, np.angle(np.exp(1j * yaw)), pitch, roll], -1)
@@ -91,12 +97,13 @@ def depth_training_batches(
     n_worlds: int = 4,
     hfov_deg: float = _session.DEFAULT_HFOV_DEG,
     exclude_world_seeds=(0,),
+    camera_height_m: tuple[float, float] = (1.0, 2.0),
 ) -> Iterator[dict[str, np.ndarray]]:
     """Endless deterministic batches of domain-randomised RGB + depth (batch b comes from world b % n_worlds).
 
     Yields:
         dict with ``rgb`` uint8 ``(B, H, W, 3)``, ``depth`` float32 ``(B, H, W)`` z-depth (m, sky =
-        `SKY_DEPTH`), ``sky`` bool ``(B, H, W)``, ``K`` float64 ``(3, 3)``.
+        `SKY_DEPTH`), ``sky`` and ``objects`` bool ``(B, H, W)`` (see ``render_batch``), ``K`` float64 ``(3, 3)``.
     """
     hw = _session._check_hw(hw)
     seeds = depth_world_seeds(seed, n_worlds, exclude_world_seeds)
@@ -110,14 +117,12 @@ def depth_training_batches(
         # Geometry variety from the seasons too (foliage volume, snow banks, dynamic objects, the site).
         geo, _ = _session.season_scene(world, _seasons.SEASONS[(b // n_worlds) % len(_seasons.SEASONS)])
         rng = np.random.default_rng([seed, 0xDE97, b])
-        poses = random_poses(world, rng, batch_size)
+        poses = random_poses(world, rng, batch_size, camera_height_m)
         keys = jax.random.split(jax.random.fold_in(jax.random.key(seed), b), batch_size)
         looks = random_looks(keys)
         ids = jnp.asarray(b * batch_size + np.arange(batch_size), jnp.int32)
-        rgb, depth, sky = _render.render_batch(
-            geo, looks, jnp.asarray(poses, jnp.float32), kb, ids, hw=hw, look_per_frame=True
-        )
-        yield {"rgb": np.asarray(rgb), "depth": np.asarray(depth), "sky": np.asarray(sky), "K": kmat}
+        r = _render.render_batch(geo, looks, jnp.asarray(poses, jnp.float32), kb, ids, hw=hw, look_per_frame=True)
+        yield {**{k: np.asarray(v) for k, v in r._asdict().items()}, "K": kmat}
         b += 1
 
 
@@ -130,6 +135,7 @@ def depth_training_frames(
     n_worlds: int = 4,
     hfov_deg: float = _session.DEFAULT_HFOV_DEG,
     exclude_world_seeds=(0,),
+    camera_height_m: tuple[float, float] = (1.0, 2.0),
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
     """`n` domain-randomised RGB + depth frames from the depth-training worlds (first `n` of the batches).
@@ -142,13 +148,19 @@ def depth_training_frames(
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     it = depth_training_batches(
-        seed, batch_size, hw, n_worlds=n_worlds, hfov_deg=hfov_deg, exclude_world_seeds=exclude_world_seeds
+        seed,
+        batch_size,
+        hw,
+        n_worlds=n_worlds,
+        hfov_deg=hfov_deg,
+        exclude_world_seeds=exclude_world_seeds,
+        camera_height_m=camera_height_m,
     )
     parts = []
     with tqdm.tqdm(total=n, desc="depth-training frames", unit="frame", disable=not progress) as bar:
         while sum(len(p["rgb"]) for p in parts) < n:
             parts.append(next(it))
             bar.update(len(parts[-1]["rgb"]))
-    out = {k: np.concatenate([p[k] for p in parts])[:n] for k in ("rgb", "depth", "sky")}
+    out = {k: np.concatenate([p[k] for p in parts])[:n] for k in ("rgb", "depth", "sky", "objects")}
     out["K"] = parts[0]["K"]
     return out

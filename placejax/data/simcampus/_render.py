@@ -522,6 +522,17 @@ def _compose_batch(look, poses6, kmats, frame_ids, t, kind, sky, albedo, lam, *,
     return jnp.moveaxis(rgb, 1, -1), depth
 
 
+class Rendered(NamedTuple):
+    """A rendered batch: ``rgb`` uint8 ``(B, H, W, 3)``, ``depth`` float32 ``(B, H, W)`` z-depth (m, sky at
+    ``SKY_DEPTH``), ``sky`` bool ``(B, H, W)``, ``objects`` bool ``(B, H, W)``: the pixel shows a box,
+    cylinder or ellipsoid (building, trunk, crown, sign, snow bank, …), neither ground nor sky."""
+
+    rgb: jax.Array
+    depth: jax.Array
+    sky: jax.Array
+    objects: jax.Array
+
+
 def render_batch(
     geo: Geometry,
     look: Look,
@@ -532,7 +543,7 @@ def render_batch(
     hw: tuple[int, int],
     look_per_frame: bool = False,
     budget: tuple[int, int, int] = (K_BOX, K_CYL, K_ELL),
-) -> tuple[jax.Array, jax.Array, jax.Array]:
+) -> Rendered:
     """Renders a batch of frames: three jitted, vmapped stages (first hits, surfaces, light and sensor).
 
     Args:
@@ -547,7 +558,7 @@ def render_batch(
             at or above the table sizes disables culling (every ray tests every primitive: slow reference).
 
     Returns:
-        ``(rgb uint8 (B, H, W, 3), depth float32 (B, H, W) z-depth m, sky bool (B, H, W))``.
+        :class:`Rendered` ``(rgb, depth, sky, objects)``.
     """
     t, kind, sky, row_idx = _geometry_batch(geo, poses6, kmats, hw=hw, budget=budget)
     albedo, lam = _surface_batch(
@@ -556,4 +567,4 @@ def render_batch(
     rgb, depth = _compose_batch(
         look, poses6, kmats, frame_ids, t, kind, sky, albedo, lam, hw=hw, look_per_frame=look_per_frame
     )
-    return rgb, depth, sky
+    return Rendered(rgb, depth, sky, (kind < 3) & ~sky)

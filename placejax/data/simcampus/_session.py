@@ -95,10 +95,8 @@ def render(
     if ids.shape != (b,):
         raise ValueError(f"frame_ids must have shape ({b},), got {ids.shape}")
     geo, look = season_scene(world, season)
-    rgb, depth, sky = _render.render_batch(
-        geo, look, jnp.asarray(poses6), jnp.asarray(K), jnp.asarray(ids), hw=hw
-    )
-    return {"rgb": np.asarray(rgb), "depth": np.asarray(depth), "sky": np.asarray(sky)}
+    r = _render.render_batch(geo, look, jnp.asarray(poses6), jnp.asarray(K), jnp.asarray(ids), hw=hw)
+    return {"rgb": np.asarray(r.rgb), "depth": np.asarray(r.depth), "sky": np.asarray(r.sky)}
 
 
 def _auto_batch(image_size: tuple[int, int]) -> int:
