@@ -1,15 +1,21 @@
 """What keeps HHA of predicted depth from telling places apart: the far-depth convention, blur, or the geometry.
 
-    python -m experiments.hha_diagnose WORKDIR
+    python -m experiments.hha_diagnose WORKDIR [--network DIR [key=value ...]]
 
 ``WORKDIR`` is a finished ``experiments.cross_season`` run on SimCampus (its ``grid.json`` and the ``cache/``
 with rendered and trained depth of the four sessions, e.g. ``data.world_seed=1`` for a world other than the
 evaluation campus). Prints the cross-season 1-NN accuracy on 16 × 16 HHA thumbnails (the run's ``nn_hha``
 baseline, mean over the 12 pairs) for rendered depth as it is, clamped at 80 m and 40 m (the depth network
 predicts at most ``max_depth_m`` = 80 m), blurred in log depth (σ = 1, 2, 4 px at the run's resolution), for the
-predicted depth, and for the predicted depth with everything from 70 m on set to the rendered sky's 1000 m; plus
-the median |log predicted − log rendered| depth error per session. Only depth and HHA: no network is trained
-and no fusion number is read.
+predicted depth, and for the predicted depth with everything from 70 m on set to the rendered sky's 1000 m; the
+same 1-NN within each session (even frames against odd ones) for rendered and predicted depth; and the depth
+error by region: median |log predicted − log rendered| on sky, ground (rendered surface within 10° of level)
+and objects (the rest), and AbsRel without the sky.
+
+``--network DIR`` takes the predicted depth from another depth network, a finished ``experiments.train_depth
+--workdir DIR [key=value ...]`` run (give the same overrides), instead of the run's cached one: how depth-network
+variants are compared on a world none of them trained on. Only depth and HHA: no place classifier is trained and
+no fusion number is read.
 """
 
 from __future__ import annotations
@@ -40,27 +46,78 @@ def _log_blur(depth: np.ndarray, sigma: float) -> np.ndarray:
     return np.stack([np.exp(cv2.GaussianBlur(np.log(d), (0, 0), sigma)) for d in depth]).astype(np.float32)
 
 
+def _network_depth(run: Path, overrides: list[str], images: dict) -> dict[str, np.ndarray]:
+    """Metric depth of every session frame from the finished depth-training run in ``run``."""
+    from experiments.train_depth import parse_overrides
+    from placejax import depth
+
+    trained = depth.load_trained(run, parse_overrides(depth.PRESETS["default"], overrides))
+    if not trained.metric:
+        raise ValueError(f"{run}: --network needs a metric depth network (target=log_metric)")
+    out = {}
+    for s in SESSIONS:
+        x = np.asarray(images[s].data)
+        out[s] = np.concatenate([trained.predict_metric(x[i : i + 64]) for i in range(0, len(x), 64)])
+    return out
+
+
+def region_errors(predicted: np.ndarray, rendered: np.ndarray, angle_deg: np.ndarray) -> dict[str, float]:
+    """Median |log predicted − log rendered (≤ 80 m)| on sky, ground and objects, and AbsRel without the sky.
+
+    Ground is where the rendered surface lies within 10° of level (its HHA angle), objects are all other
+    non-sky pixels.
+    """
+    sky = rendered >= SKY_DEPTH
+    within = np.minimum(rendered, 80.0)
+    ground = (angle_deg < 10.0) & ~sky
+    regions = {"sky": sky, "ground": ground, "objects": ~(sky | ground)}
+    err = np.abs(np.log(predicted) - np.log(within))
+    out = {name: float(np.median(err[m])) if m.any() else float("nan") for name, m in regions.items()}
+    out["abs_rel_no_sky"] = float(np.mean(np.abs(predicted[~sky] - within[~sky]) / within[~sky]))
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("workdir", type=Path)
-    root = parser.parse_args().workdir
+    parser.add_argument("--network", type=Path, default=None, help="finished experiments.train_depth run folder")
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="the --network run's config overrides")
+    args = parser.parse_intermixed_args()
+    if args.overrides and args.network is None:
+        parser.error("key=value overrides describe the --network run: give --network DIR")
+    root = args.workdir
     grid = PlaceGrid.load(root / "grid.json")
     images = {s: _cache(root, s, "rgb[0-9]*") for s in SESSIONS}  # the session frames, e.g. WI-rgb64x64-…
     labels = {s: grid.label(images[s].extras["poses"]) for s in SESSIONS}
     intrinsics = {s: np.asarray(images[s].extras["intrinsics"]) for s in SESSIONS}
     rendered = {s: np.asarray(_cache(root, s, "depth-true").data, np.float32) for s in SESSIONS}
-    predicted = {s: np.asarray(_cache(root, s, "depth-trained").data, np.float32) for s in SESSIONS}
+    if args.network is None:
+        predicted = {s: np.asarray(_cache(root, s, "depth-trained").data, np.float32) for s in SESSIONS}
+    else:
+        predicted = _network_depth(args.network, args.overrides, images)
 
-    def nn_accuracy(depth: dict[str, np.ndarray]) -> float:
+    def thumbnails(depth: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         size = baselines.THUMB_SIZES["nn_hha"]
         thumbs = {}
         for s in SESSIONS:
             d, k = depth[s], intrinsics[s]
             hha_images = np.concatenate([np.asarray(hha.encode(d[i : i + 256], k)) for i in range(0, len(d), 256)])
             thumbs[s] = baselines.thumbnails(hha_images, size)
+        return thumbs
+
+    def nn_accuracy(depth: dict[str, np.ndarray]) -> float:
+        thumbs = thumbnails(depth)
         accs = [
             np.mean(baselines.nearest_neighbour_labels(thumbs[a], labels[a], thumbs[b]) == labels[b])
             for a, b in itertools.permutations(SESSIONS, 2)
+        ]
+        return 100.0 * float(np.mean(accs))
+
+    def nn_within(depth: dict[str, np.ndarray]) -> float:
+        thumbs = thumbnails(depth)
+        accs = [
+            np.mean(baselines.nearest_neighbour_labels(t[::2], labels[s][::2], t[1::2]) == labels[s][1::2])
+            for s, t in thumbs.items()
         ]
         return 100.0 * float(np.mean(accs))
 
@@ -86,9 +143,20 @@ def main() -> None:
     print(f"{'depth':<52} cross-season 1-NN on HHA 16² (%)")
     for name, depth in variants.items():
         print(f"{name:<52} {nn_accuracy(depth):5.1f}", flush=True)
+    print(
+        f"{'within each session (even frames vs odd)':<52} rendered ≤ 80 m {nn_within(within_80):5.1f}, "
+        f"predicted {nn_within(predicted):5.1f}"
+    )
+    print("median |log predicted − log rendered (≤ 80 m)| by region; AbsRel without the sky")
+    print(f"{'session':<8} {'all':>6} {'sky':>6} {'ground':>7} {'objects':>8} {'AbsRel':>7}")
     for s in SESSIONS:
-        err = np.abs(np.log(predicted[s]) - np.log(within_80[s]))
-        print(f"session {s}: median |log predicted − log rendered (≤ 80 m)| = {np.median(err):.3f}")
+        d, k = within_80[s], intrinsics[s]
+        angle = np.concatenate(
+            [np.asarray(hha.encode_full(d[i : i + 256], k).angle_deg) for i in range(0, len(d), 256)]
+        )
+        e = region_errors(predicted[s], rendered[s], angle)
+        whole = float(np.median(np.abs(np.log(predicted[s]) - np.log(d))))
+        print(f"{s:<8} {whole:6.3f} {e['sky']:6.3f} {e['ground']:7.3f} {e['objects']:8.3f} {e['abs_rel_no_sky']:7.3f}")
 
 
 if __name__ == "__main__":

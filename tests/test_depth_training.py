@@ -220,3 +220,12 @@ def test_object_weight_is_checked_and_reaches_the_objective_and_the_fingerprint(
     objects, sky = frames["objects"], frames["sky"]
     assert objects.shape == sky.shape and objects.dtype == bool and not (objects & sky).any()
     assert 0.0 < objects.mean() < 1.0
+
+
+def test_default_network_is_trained_at_the_robot_cameras_height():
+    """The default (metric) network is trained at the height range of SimCampus's session cameras: the ground's
+    depth per image row, and so metric depth, depends on it."""
+    from placejax.data.simcampus._trajectory import RouteConfig
+
+    assert depth.PRESETS["default"].target == "log_metric"
+    assert tuple(depth.PRESETS["default"].camera_height_m) == tuple(RouteConfig().height_range)
