@@ -126,6 +126,7 @@ class DepthTrainConfig:
         numbers = numbers and all(math.isfinite(v) for v in h)
         if not (numbers and 0 < h[0] <= h[1]):
             raise ValueError(f"camera_height_m must be (low, high) in metres with 0 < low <= high, got {h!r}")
+        object.__setattr__(self, "camera_height_m", (float(h[0]), float(h[1])))  # hashable: configs key jit caches
 
     def model(self) -> MidasSmall:
         return MidasSmall(features=self.features, encoder_width=self.encoder_width)
