@@ -391,3 +391,40 @@ def test_top_level_name_is_lazy():
     # ``import placejax`` alone does not pull in JAX (the classifier is imported on first use).
     code = "import sys, placejax; assert 'jax' not in sys.modules, 'jax imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def _far_as_sky(ctx, value):
+    """``ctx`` with ``depth.far_as_sky_m = value``."""
+    cfg = ctx.config.copy_and_resolve_references()
+    cfg.depth.far_as_sky_m = value
+    return dataclasses.replace(ctx, config=cfg)
+
+
+def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_run, clf):
+    """``depth.far_as_sky_m``: the experiment's trained-depth stage and the classifier's depth stage both hand
+    HHA the metric network's depth with everything at or beyond the threshold at 1000 m. The threshold here is
+    the median prediction, so about half of the pixels move."""
+    from placejax.classify._classifier import stage_depth
+    from placejax.depth import far_to_sky
+
+    cfg, workdir, _ = smoke_run
+    assert clf._spec.far_as_sky_m == cfg.depth.far_as_sky_m > 0  # the run's setting reached the classifier
+    ctx = P.Context(config=cfg, workdir=Path(workdir).absolute(), mesh=P.data_mesh(None))
+    session = P.load_sessions(ctx)[0]
+    images = np.asarray(session.cached.images[:8])
+
+    def classifier_depth(threshold):
+        spec = dataclasses.replace(clf._spec, far_as_sky_m=threshold)
+        return np.asarray(stage_depth(spec, clf.params["depth"], images))
+
+    plain = classifier_depth(0.0)
+    threshold = float(np.median(plain))
+    np.testing.assert_array_equal(classifier_depth(threshold), far_to_sky(plain, threshold))
+    assert 0.3 < (classifier_depth(threshold) == 1000.0).mean() < 0.7
+
+    key, experiment_depth = P._depth_source(_far_as_sky(ctx, threshold), "trained")
+    assert key["far_as_sky_m"] == threshold  # the depth and HHA caches are keyed by it
+    _, experiment_plain = P._depth_source(_far_as_sky(ctx, 0.0), "trained")
+    got = experiment_depth(session, 0, 8)
+    np.testing.assert_array_equal(got, far_to_sky(experiment_plain(session, 0, 8), threshold))
+    assert 0.2 < (got == 1000.0).mean() < 0.8

@@ -168,3 +168,19 @@ def test_object_weights_make_the_data_term_a_weighted_mean():
     got = float(L.log_metric_loss(pred, target, mask, alpha=0.5, weights=weights))
     assert got == pytest.approx(expected_data + 0.5 * grad, rel=1e-5)
     assert got != pytest.approx(float(L.log_metric_loss(pred, target, mask)), rel=1e-3)  # the weights matter
+
+
+def test_far_to_sky_moves_only_the_far_predictions():
+    """Depth at or beyond the threshold becomes the sky depth (HHA's farthest valid depth by default), nearer
+    depth is untouched, a threshold ≤ 0 changes nothing; NumPy stays NumPy, JAX (also under jit) stays JAX."""
+    from placejax.hha._constants import MAX_DEPTH_M
+
+    d = np.array([[0.5, 49.9, 50.0, 80.0, 120.0]], np.float32)
+    out = L.far_to_sky(d, 50.0)
+    assert isinstance(out, np.ndarray) and out.dtype == np.float32
+    np.testing.assert_array_equal(out, np.float32([[0.5, 49.9, MAX_DEPTH_M, MAX_DEPTH_M, MAX_DEPTH_M]]))
+    np.testing.assert_array_equal(
+        np.asarray(jax.jit(lambda x: L.far_to_sky(x, 50.0, 900.0))(jnp.asarray(d))),
+        np.float32([[0.5, 49.9, 900.0, 900.0, 900.0]]),
+    )
+    assert L.far_to_sky(d, 0.0) is d

@@ -48,6 +48,7 @@ HELP: dict[str, str] = {
     "depth.trained_cache": "cache folder of the trained depth network ('' = its default)",
     "depth.near_m": "metric depth assigned to the 98th percentile of inverse depth (m)",
     "depth.far_m": "metric depth assigned to the 2nd percentile of inverse depth (m)",
+    "depth.far_as_sky_m": "metric depth nets: predictions at or beyond this (m) become sky (1000 m) for HHA; 0 = off",
     "depth.batch_size": "images per depth-network / HHA call",
     "vgg.width": "channel multiplier of VGG16 (1.0 = VGG16)",
     "vgg.pretrained": "ImageNet weights: freeze the convs, cache their features, train fc6–fc8 only",
@@ -105,6 +106,9 @@ def _base() -> ml_collections.ConfigDict:
         trained_cache="",
         near_m=1.0,
         far_m=50.0,
+        # Chosen on world 1 with experiments.hha_diagnose (README, depth-network section); used only with a
+        # metric trained network (placejax.depth.far_to_sky).
+        far_as_sky_m=50.0,
         batch_size=64,
     )
     c.vgg = dict(width=0.125, pretrained=True, weights="shipped:simcampus_places_w0125_s64", dropout=0.0)
@@ -224,7 +228,7 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
         v = get(c, key)
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
             errors.append(f"{key}={v!r}: expected a finite positive number")
-    for key in ("train.weight_decay", "mlp.weight_decay", "vgg.dropout", "mlp.dropout"):
+    for key in ("train.weight_decay", "mlp.weight_decay", "vgg.dropout", "mlp.dropout", "depth.far_as_sky_m"):
         v = get(c, key)
         if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
             errors.append(f"{key}={v!r}: expected a finite number >= 0")

@@ -217,12 +217,14 @@ def _depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionDat
 
         def trained_depth(s: SessionData, a: int, b: int) -> np.ndarray:
             x = np.asarray(s.cached.images[a:b])
-            return trained.predict_metric(x) if trained.metric else to_metric(trained.predict(x))
+            if trained.metric:
+                return _depth.far_to_sky(trained.predict_metric(x), c.far_as_sky_m)
+            return to_metric(trained.predict(x))
 
-        # A metric network's output is used as it is; a relative one goes through the percentile mapping.
-        return {"source": "trained", "fingerprint": trained.fingerprint, **({} if trained.metric else metric)}, (
-            trained_depth
-        )
+        # A metric network's output is used in metres (its far predictions as sky); a relative one goes through
+        # the percentile mapping.
+        how = {"far_as_sky_m": c.far_as_sky_m} if trained.metric else metric
+        return {"source": "trained", "fingerprint": trained.fingerprint, **how}, trained_depth
     raise ValueError(f"depth.source must be 'trained', 'midas' or 'true', got {source!r}")
 
 

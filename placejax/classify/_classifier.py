@@ -18,7 +18,7 @@ from placejax.classify import _artefact, _run_layout
 from placejax.classify import _unknown as unknown
 from placejax.data import PlaceGrid
 from placejax.data.camera import resize_image
-from placejax.depth import depth_from_log, network_size
+from placejax.depth import depth_from_log, far_to_sky, network_size
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, VGG16, FusionMLP, MidasSmall, cpu_compiler_options, resize
 
 BRANCHES = ("fusion", "rgb", "hha")
@@ -95,6 +95,7 @@ class _Spec:
     std: tuple[float, float, float]
     features_float16: bool  # pretrained VGG16: the experiment caches conv features as float16
     depth_metric: bool = False  # the depth network predicts metric log depth
+    far_as_sky_m: float = 0.0  # metric networks: predictions at or beyond this become sky (0 = off)
 
 
 # ---------------------------------------------------------------------------------------------------- stages
@@ -105,7 +106,7 @@ def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
 
     The MiDaS transform (bicubic resize to the network size, ImageNet normalisation), the network, the bicubic
     resize back and the percentile mapping to metres (``hha.inverse_depth_to_metric``) — or, for a metric
-    log-depth network, ``placejax.depth.depth_from_log``.
+    log-depth network, ``placejax.depth.depth_from_log`` and ``placejax.depth.far_to_sky``.
     """
     x = rgb.astype(jnp.float32) / 255.0
     if tuple(x.shape[1:3]) != spec.depth_net_size:
@@ -114,7 +115,7 @@ def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
     out = spec.depth_model.apply(depth_vars, x, train=False)
     out = resize(out[..., None], tuple(rgb.shape[1:3]), "bicubic", align_corners=False)[..., 0]
     if spec.depth_metric:  # a metric log-depth network (placejax.depth, target="log_metric")
-        return depth_from_log(out)
+        return far_to_sky(depth_from_log(out), spec.far_as_sky_m)
     return _hha.inverse_depth_to_metric(out, near_m=spec.near_m, far_m=spec.far_m)
 
 
@@ -234,6 +235,7 @@ class PlaceClassifier:
             std=tuple(float(v) for v in meta["normalise"]["std"]),
             features_float16=bool(vgg["pretrained"]),
             depth_metric=bool(d.get("metric", False)),
+            far_as_sky_m=float(d.get("far_as_sky_m", 0.0)),  # runs from before the setting: off, as they were
         )
 
     def _check_params(self) -> None:
@@ -282,6 +284,7 @@ class PlaceClassifier:
                 "encoder_width": dcfg.encoder_width,
                 "size": dcfg.image_size,
                 "metric": dcfg.metric,
+                "far_as_sky_m": float(cfg["depth"].get("far_as_sky_m", 0.0)) if dcfg.metric else 0.0,
                 "source": {"dir": d["dir"], "fingerprint": dcfg.fingerprint()},
             }
         elif d["source"] == "midas":

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from placejax.hha._constants import MAX_DEPTH_M
 
 _EPS = 1e-6
 
@@ -191,6 +194,24 @@ def log_depth(depth_m: jax.Array) -> jax.Array:
 def depth_from_log(pred: jax.Array) -> jax.Array:
     """The inverse of :func:`log_depth`: a metric depth network's output → metres."""
     return LOG_DEPTH_UNIT_M * jnp.exp(pred)
+
+
+def far_to_sky(depth_m, from_m: float, sky_m: float = MAX_DEPTH_M):
+    """A metric network's far predictions as sky: depth at or beyond ``from_m`` → ``sky_m``.
+
+    A metric log-depth network is trained to put the sky, and everything beyond its ``max_depth_m``, at exactly
+    ``max_depth_m``; what it outputs there is a soft, lumpy surface tens of metres away rather than a flat one,
+    and HHA turns the lumps into heights and normals that differ from frame to frame. Taking its far
+    predictions as sky hands HHA what rendered depth has there (SimCampus renders the sky at 1000 m, the HHA
+    encoder's farthest valid depth). ``from_m`` ≤ 0 leaves the depth unchanged.
+
+    Works on NumPy and JAX arrays (traced too); returns the input's array type for NumPy input.
+    """
+    if from_m <= 0:
+        return depth_m
+    if isinstance(depth_m, np.ndarray):
+        return np.where(depth_m >= from_m, np.asarray(sky_m, depth_m.dtype), depth_m)
+    return jnp.where(depth_m >= from_m, jnp.asarray(sky_m, depth_m.dtype), depth_m)
 
 
 def log_metric_loss(
