@@ -7,7 +7,9 @@ with rendered and trained depth of the four sessions, e.g. ``data.world_seed=1``
 evaluation campus). Prints the cross-season 1-NN accuracy on 16 × 16 HHA thumbnails (the run's ``nn_hha``
 baseline, mean over the 12 pairs) for rendered depth as it is, clamped at 80 m and 40 m (the depth network
 predicts at most ``max_depth_m`` = 80 m), blurred in log depth (σ = 1, 2, 4 px at the run's resolution), for the
-predicted depth, and for the predicted depth with everything from 70 m on set to the rendered sky's 1000 m; the
+predicted depth, and for the predicted depth with everything from 40, 50 (the experiment's ``depth.far_as_sky_m``),
+60 or 70 m on set to the rendered sky's 1000 m (``placejax.depth.far_to_sky``; a run's cached depth has its own
+``depth.far_as_sky_m`` applied already, ``--network`` gives the network's raw output); the
 same 1-NN within each session (even frames against odd ones) for rendered and predicted depth; and the depth
 error by region: median |log predicted − log rendered| on sky, ground (rendered surface within 10° of level)
 and objects (the rest), and AbsRel without the sky.
@@ -31,6 +33,7 @@ from experiments.cross_season import baselines
 from placejax import hha
 from placejax.data import PlaceGrid, open_array_cache
 from placejax.data.simcampus import SKY_DEPTH
+from placejax.depth import far_to_sky
 
 SESSIONS = ("WI", "SP", "SU", "AU")
 
@@ -62,13 +65,15 @@ def _network_depth(run: Path, overrides: list[str], images: dict) -> dict[str, n
 
 
 def region_errors(predicted: np.ndarray, rendered: np.ndarray, angle_deg: np.ndarray) -> dict[str, float]:
-    """Median |log predicted − log rendered (≤ 80 m)| on sky, ground and objects, and AbsRel without the sky.
+    """Median |log predicted − log rendered| on sky, ground and objects, and AbsRel without the sky, both depths
+    clamped at the network's 80 m (so sky set to 1000 m by ``far_to_sky`` counts as 80 m).
 
     Ground is where the rendered surface lies within 10° of level (its HHA angle), objects are all other
     non-sky pixels.
     """
     sky = rendered >= SKY_DEPTH
     within = np.minimum(rendered, 80.0)
+    predicted = np.minimum(predicted, 80.0)
     ground = (angle_deg < 10.0) & ~sky
     regions = {"sky": sky, "ground": ground, "objects": ~(sky | ground)}
     err = np.abs(np.log(predicted) - np.log(within))
@@ -136,8 +141,11 @@ def main() -> None:
             for sigma in (1.0, 2.0, 4.0)
         },
         "predicted": predicted,
-        f"predicted, ≥ 70 m set to {SKY_DEPTH:g} m": {
-            s: np.where(d >= 70.0, SKY_DEPTH, d).astype(np.float32) for s, d in predicted.items()
+        **{
+            f"predicted, ≥ {t:g} m set to {SKY_DEPTH:g} m": {
+                s: far_to_sky(d, t, SKY_DEPTH) for s, d in predicted.items()
+            }
+            for t in (40.0, 50.0, 60.0, 70.0)
         },
     }
     print(f"{'depth':<52} cross-season 1-NN on HHA 16² (%)")
@@ -147,7 +155,7 @@ def main() -> None:
         f"{'within each session (even frames vs odd)':<52} rendered ≤ 80 m {nn_within(within_80):5.1f}, "
         f"predicted {nn_within(predicted):5.1f}"
     )
-    print("median |log predicted − log rendered (≤ 80 m)| by region; AbsRel without the sky")
+    print("median |log predicted − log rendered| (both ≤ 80 m) by region; AbsRel without the sky")
     print(f"{'session':<8} {'all':>6} {'sky':>6} {'ground':>7} {'objects':>8} {'AbsRel':>7}")
     for s in SESSIONS:
         d, k = within_80[s], intrinsics[s]
@@ -155,7 +163,7 @@ def main() -> None:
             [np.asarray(hha.encode_full(d[i : i + 256], k).angle_deg) for i in range(0, len(d), 256)]
         )
         e = region_errors(predicted[s], rendered[s], angle)
-        whole = float(np.median(np.abs(np.log(predicted[s]) - np.log(d))))
+        whole = float(np.median(np.abs(np.log(np.minimum(predicted[s], 80.0)) - np.log(d))))
         print(f"{s:<8} {whole:6.3f} {e['sky']:6.3f} {e['ground']:7.3f} {e['objects']:8.3f} {e['abs_rel_no_sky']:7.3f}")
 
 
