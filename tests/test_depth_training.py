@@ -53,13 +53,14 @@ def test_resumed_training_equals_uninterrupted(uninterrupted, tmp_path):
 
 
 def test_depth_network_trains_on_the_engine_and_its_loss_falls(tmp_path):
-    """The one engine with the depth objective: BatchNorm statistics move, the loss falls on a fixed batch."""
+    """The one engine with the depth objective (object pixels weighted, as in the default network): BatchNorm
+    statistics move, the loss falls on a fixed batch."""
     from placejax import training
     from placejax.data import FrameSource, train_dataset
 
-    cfg = dataclasses.replace(CFG, steps=12, learning_rate=5e-3, warmup_steps=1, frames=16)
+    cfg = dataclasses.replace(CFG, steps=12, learning_rate=5e-3, warmup_steps=1, frames=16, object_weight=4.0)
     frames = depth._train.training_frames(cfg, progress=False)
-    source = FrameSource(frames["rgb"], extras={"depth": frames["depth"], "sky": frames["sky"]})
+    source = FrameSource(frames["rgb"], extras={k: frames[k] for k in ("depth", "sky", "objects")})
     ds = train_dataset(source, batch_size=8, seed=0, num_epochs=6)
     variables = jax.device_get(depth._train.init_variables(cfg))  # host copies: the state's buffers are donated
     mesh = training.data_mesh(None)
