@@ -408,7 +408,8 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_r
     from placejax.depth import far_to_sky
 
     cfg, workdir, _ = smoke_run
-    assert clf._spec.far_as_sky_m == cfg.depth.far_as_sky_m > 0  # the run's setting reached the classifier
+    assert clf._spec.far_as_sky_m == cfg.depth.far_as_sky_m > 0  # the run's settings reached the classifier
+    assert clf._spec.flip_average is cfg.depth.flip_average is True  # (the equality tests above cover it)
     ctx = P.Context(config=cfg, workdir=Path(workdir).absolute(), mesh=P.data_mesh(None))
     session = P.load_sessions(ctx)[0]
     images = np.asarray(session.cached.images[:8])

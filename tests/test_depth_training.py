@@ -230,3 +230,18 @@ def test_default_network_is_trained_at_the_robot_cameras_height():
 
     assert depth.PRESETS["default"].target == "log_metric"
     assert tuple(depth.PRESETS["default"].camera_height_m) == tuple(RouteConfig().height_range)
+
+
+def test_flip_average_is_the_mean_log_depth_of_the_image_and_its_mirror(uninterrupted_dir):
+    """``predict_metric(flip_average=True)`` is exp of the mean of the two log depths, and is mirror-equivariant:
+    the flip-averaged depth of a mirrored image is the mirrored flip-averaged depth."""
+    trained = depth.load_trained(uninterrupted_dir, CFG)
+    x = np.random.default_rng(0).integers(0, 256, (3, 40, 48, 3), dtype=np.uint8)
+    plain = trained.predict_metric(x)
+    mirrored = trained.predict_metric(x[:, :, ::-1])[:, :, ::-1]
+    averaged = trained.predict_metric(x, flip_average=True)
+    np.testing.assert_allclose(np.log(averaged), 0.5 * (np.log(plain) + np.log(mirrored)), atol=1e-5)
+    assert np.abs(np.log(plain) - np.log(mirrored)).max() > 1e-3  # the two halves differ: the test can fail
+    np.testing.assert_allclose(
+        trained.predict_metric(x[:, :, ::-1], flip_average=True), averaged[:, :, ::-1], rtol=1e-5
+    )

@@ -49,6 +49,7 @@ HELP: dict[str, str] = {
     "depth.near_m": "metric depth assigned to the 98th percentile of inverse depth (m)",
     "depth.far_m": "metric depth assigned to the 2nd percentile of inverse depth (m)",
     "depth.far_as_sky_m": "metric depth nets: predictions at or beyond this (m) become sky (1000 m) for HHA; 0 = off",
+    "depth.flip_average": "metric depth nets: average the log depth of each image and of its mirror image",
     "depth.batch_size": "images per depth-network / HHA call",
     "vgg.width": "channel multiplier of VGG16 (1.0 = VGG16)",
     "vgg.pretrained": "ImageNet weights: freeze the convs, cache their features, train fc6–fc8 only",
@@ -106,9 +107,10 @@ def _base() -> ml_collections.ConfigDict:
         trained_cache="",
         near_m=1.0,
         far_m=50.0,
-        # Chosen on world 1 with experiments.hha_diagnose (README, depth-network section); used only with a
-        # metric trained network (placejax.depth.far_to_sky).
+        # Both chosen on world 1 with experiments.hha_diagnose (README, depth-network section); used only with a
+        # metric trained network (placejax.depth.far_to_sky, TrainedDepth.predict_metric(flip_average=)).
         far_as_sky_m=50.0,
+        flip_average=True,
         batch_size=64,
     )
     c.vgg = dict(width=0.125, pretrained=True, weights="shipped:simcampus_places_w0125_s64", dropout=0.0)
@@ -183,6 +185,7 @@ def get_config(preset: str = "default") -> ml_collections.ConfigDict:
 _CHOICES = {
     "data.source": ("simcampus", "nclt"),
     "depth.source": ("trained", "midas", "true"),
+    "depth.flip_average": (True, False),
     "train.optimizer": ("sgd", "adamw"),
     "mlp.optimizer": ("sgd", "adamw"),
 }

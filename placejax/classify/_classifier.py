@@ -96,6 +96,7 @@ class _Spec:
     features_float16: bool  # pretrained VGG16: the experiment caches conv features as float16
     depth_metric: bool = False  # the depth network predicts metric log depth
     far_as_sky_m: float = 0.0  # metric networks: predictions at or beyond this become sky (0 = off)
+    flip_average: bool = False  # metric networks: mean log depth of the image and of its mirror image
 
 
 # ---------------------------------------------------------------------------------------------------- stages
@@ -106,15 +107,22 @@ def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
 
     The MiDaS transform (bicubic resize to the network size, ImageNet normalisation), the network, the bicubic
     resize back and the percentile mapping to metres (``hha.inverse_depth_to_metric``) — or, for a metric
-    log-depth network, ``placejax.depth.depth_from_log`` and ``placejax.depth.far_to_sky``.
+    log-depth network, ``placejax.depth.depth_from_log`` (of the flip-averaged log depth, as
+    ``TrainedDepth.predict_metric(flip_average=True)``) and ``placejax.depth.far_to_sky``.
     """
     x = rgb.astype(jnp.float32) / 255.0
     if tuple(x.shape[1:3]) != spec.depth_net_size:
         x = resize(x, spec.depth_net_size, "bicubic", align_corners=False)
     x = (x - jnp.asarray(IMAGENET_MEAN).reshape(1, 1, 1, 3)) / jnp.asarray(IMAGENET_STD).reshape(1, 1, 1, 3)
-    out = spec.depth_model.apply(depth_vars, x, train=False)
-    out = resize(out[..., None], tuple(rgb.shape[1:3]), "bicubic", align_corners=False)[..., 0]
+
+    def network(x):
+        out = spec.depth_model.apply(depth_vars, x, train=False)
+        return resize(out[..., None], tuple(rgb.shape[1:3]), "bicubic", align_corners=False)[..., 0]
+
+    out = network(x)
     if spec.depth_metric:  # a metric log-depth network (placejax.depth, target="log_metric")
+        if spec.flip_average:
+            out = 0.5 * (out + network(x[:, :, ::-1])[:, :, ::-1])
         return far_to_sky(depth_from_log(out), spec.far_as_sky_m)
     return _hha.inverse_depth_to_metric(out, near_m=spec.near_m, far_m=spec.far_m)
 
@@ -235,7 +243,8 @@ class PlaceClassifier:
             std=tuple(float(v) for v in meta["normalise"]["std"]),
             features_float16=bool(vgg["pretrained"]),
             depth_metric=bool(d.get("metric", False)),
-            far_as_sky_m=float(d.get("far_as_sky_m", 0.0)),  # runs from before the setting: off, as they were
+            far_as_sky_m=float(d.get("far_as_sky_m", 0.0)),  # runs from before these settings: off, as they were
+            flip_average=bool(d.get("flip_average", False)),
         )
 
     def _check_params(self) -> None:
@@ -285,6 +294,7 @@ class PlaceClassifier:
                 "size": dcfg.image_size,
                 "metric": dcfg.metric,
                 "far_as_sky_m": float(cfg["depth"].get("far_as_sky_m", 0.0)) if dcfg.metric else 0.0,
+                "flip_average": bool(cfg["depth"].get("flip_average", False)) and dcfg.metric,
                 "source": {"dir": d["dir"], "fingerprint": dcfg.fingerprint()},
             }
         elif d["source"] == "midas":

@@ -399,14 +399,23 @@ class TrainedDepth:
         out = self._raw(images)
         return np.asarray(1.0 / depth_from_log(out), np.float32) if self.metric else out
 
-    def predict_metric(self, images: np.ndarray) -> np.ndarray:
-        """``(N, H, W, 3)`` uint8 RGB → float32 ``(N, H, W)`` depth in metres (metric networks only)."""
+    def predict_metric(self, images: np.ndarray, *, flip_average: bool = False) -> np.ndarray:
+        """``(N, H, W, 3)`` uint8 RGB → float32 ``(N, H, W)`` depth in metres (metric networks only).
+
+        ``flip_average``: the mean of the log depth predicted for the image and, mirrored back, for its mirror
+        image (a geometric mean in metres): the network was trained on random flips, so both are predictions of
+        the same scene, and their mean is steadier from frame to frame.
+        """
         if not self.metric:
             raise ValueError(
                 "this depth network predicts relative inverse depth (target='inverse'): map it to metres with "
                 "placejax.hha.inverse_depth_to_metric"
             )
-        return np.asarray(depth_from_log(self._raw(images)), np.float32)
+        out = self._raw(images)
+        if flip_average:
+            images = np.asarray(images)
+            out = 0.5 * (out + self._raw(images[..., ::-1, :])[..., ::-1])
+        return np.asarray(depth_from_log(out), np.float32)
 
     def _raw(self, images: np.ndarray) -> np.ndarray:
         from placejax.depth._inference import predict
