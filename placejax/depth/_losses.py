@@ -209,9 +209,8 @@ def far_to_sky(depth_m, from_m: float, sky_m: float = MAX_DEPTH_M):
     """
     if from_m <= 0:
         return depth_m
-    if isinstance(depth_m, np.ndarray):
-        return np.where(depth_m >= from_m, np.asarray(sky_m, depth_m.dtype), depth_m)
-    return jnp.where(depth_m >= from_m, jnp.asarray(sky_m, depth_m.dtype), depth_m)
+    xp = np if isinstance(depth_m, np.ndarray) else jnp
+    return xp.where(depth_m >= from_m, xp.asarray(sky_m, depth_m.dtype), depth_m)
 
 
 def log_metric_loss(
