@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lrs", default="3e-4,1e-3")
     args = parser.parse_args(argv)
     f = place_frames(0, 256, (64, 64), n_worlds=4, grid=10, headings=4)
-    rgb, labels = f["rgb"], f["label"]
+    rgb, labels = f["image"], f["label"]
     print(f"{len(rgb)} frames, {np.unique(labels).size} classes ({len(rgb) / np.unique(labels).size:.1f} per class)")
     print("1. scales at initialisation (64², 1/8 width):")
     _scales(rgb, labels)

@@ -5,10 +5,13 @@ held-out worlds, and optionally export it as the small weights file shipped with
 
 The pretext (``placejax.pretrain``): place classification (grid cell × heading bin) across other worlds plus a
 cross-look contrastive term, every view rendered twice with independent random looks per object and frame —
-never the evaluation campus, never its season palettes. Without ``--workdir`` the run lives in the cache
-(``$PLACEJAX_CACHE/pretrain/<preset>-<config hash>``). A killed run resumes from its last checkpoint when the same
-command is run again. ``pretrain_eval.json`` in the run folder holds the held-out cross-look recall@1 of the trunk
-and of raw pixels, 12 × 12 gradient thumbnails and an untrained trunk.
+never the evaluation campus, never its season palettes. ``modality=hha`` pretrains the trunk of the depth-derived
+nets instead: the two versions of a view are HHA images of its depth in summer's and in another season's geometry,
+each perturbed as a monocular depth network errs (``placejax.pretrain.perturb_depth``). Without ``--workdir`` the
+run lives in the cache (``$PLACEJAX_CACHE/pretrain/<preset>-<config hash>``). A killed run resumes from its last
+checkpoint when the same command is run again. ``pretrain_eval.json`` in the run folder holds the held-out
+cross-look recall@1 of the trunk and of raw pixels, 12 × 12 gradient and 16 × 16 colour thumbnails and an
+untrained trunk.
 """
 
 from __future__ import annotations

@@ -144,8 +144,8 @@ def test_frozen_trunk_features_are_cached_once_and_reused(smoke, monkeypatch):
         raise AssertionError("the frozen trunk ran again instead of reading its cached features")
 
     monkeypatch.setattr(P, "map_batches", no_trunk)
-    trunk = P._pretrained_vgg(ctx)["trunk"]
     for modality in ("rgb", "hha"):
+        trunk = P._pretrained_vgg(ctx, P.modality_weights(cfg.vgg, modality))["trunk"]
         cached = P._conv_features(ctx, sessions, modality, trunk)
         assert {s.name for s in sessions} == set(cached)
         assert np.asarray(cached["WI"].data).shape == (len(sessions[0]), 7, 7, 64)

@@ -145,7 +145,7 @@ def test_experiment_reads_the_shipped_trunk_as_pretrained_weights(tmp_path):
     cfg = get_config("default")
     cfg.vgg.update(pretrained=True, weights="shipped:simcampus_places_w0125_s64", width=0.125)
     ctx = pipeline.Context(config=cfg, workdir=tmp_path, mesh=data_mesh(1))
-    params = pipeline._pretrained_vgg(ctx)
+    params = pipeline._pretrained_vgg(ctx, cfg.vgg.weights)
     want = jax.eval_shape(VGG16(num_classes=100, width=0.125).init, jax.random.key(0), jnp.zeros((1, 64, 64, 3)))
     assert set(params) == {"trunk"}
     assert jax.tree.map(lambda a: a.shape, params["trunk"]) == jax.tree.map(lambda a: a.shape, want["params"]["trunk"])
@@ -153,4 +153,42 @@ def test_experiment_reads_the_shipped_trunk_as_pretrained_weights(tmp_path):
     assert ident["shipped"] == cfg.vgg.weights and len(ident["sha256"]) == 64
     cfg.vgg.width = 0.25
     with pytest.raises(ValueError, match=r"width-0\.125 trunk"):
-        pipeline._pretrained_vgg(ctx)
+        pipeline._pretrained_vgg(ctx, cfg.vgg.weights)
+
+
+def test_rgb_fingerprint_is_unchanged_by_the_modality_field():
+    """Adding ``modality`` must not rename the RGB runs' cache folders (the shipped trunk's recipe hash)."""
+    default = pretrain.PRESETS["default"]
+    assert default.modality == "rgb"
+    assert default.fingerprint() == "f42161313aa6"  # before the field existed
+    assert dataclasses.replace(default, modality="hha").fingerprint() != default.fingerprint()
+    with pytest.raises(ValueError, match="modality"):
+        dataclasses.replace(default, modality="depth")
+
+
+def test_perturbed_depth_has_only_near_surfaces_and_sky():
+    """``perturb_depth``: everything from a threshold in 40–70 m on is the sky's 1000 m, everything else nearer
+    than 70 m; near surfaces stay within the error field's reach of the truth; the same rng gives the same
+    result."""
+    from placejax.data.simcampus import SKY_DEPTH
+    from placejax.pretrain import _data
+
+    rows = np.exp(np.linspace(np.log(120.0), np.log(2.0), 32))  # a ground plane: far at the top, near below
+    depth = np.broadcast_to(rows[None, :, None], (3, 32, 32)).astype(np.float32).copy()
+    depth[:, :4] = SKY_DEPTH
+    out = _data.perturb_depth(depth, np.random.default_rng(1))
+    np.testing.assert_array_equal(out, _data.perturb_depth(depth, np.random.default_rng(1)))
+    assert out.shape == depth.shape and out.dtype == np.float32
+    assert np.all((out < _data.PERTURB_SKY_FROM_M[1]) | (out == SKY_DEPTH))
+    near = depth < 10.0
+    ratio = np.abs(np.log(out[near] / depth[near]))
+    assert np.median(ratio) < 2 * _data.PERTURB_LOG_SCALE and ratio.max() < 6 * _data.PERTURB_LOG_SCALE
+    assert np.mean(out[:, :4] == SKY_DEPTH) > 0.5  # most of the sky stays sky
+
+
+def test_modality_weights_picks_the_hha_trunk_for_depth_derived_nets_only():
+    vgg = {"weights": "shipped:rgb", "hha_weights": "shipped:hha"}
+    assert pretrain.modality_weights(vgg, "rgb") == "shipped:rgb"
+    assert pretrain.modality_weights(vgg, "hha") == pretrain.modality_weights(vgg, "depth1") == "shipped:hha"
+    for older in ({"weights": "shipped:rgb", "hha_weights": ""}, {"weights": "shipped:rgb"}):
+        assert pretrain.modality_weights(older, "hha") == "shipped:rgb"

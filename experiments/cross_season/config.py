@@ -54,6 +54,7 @@ HELP: dict[str, str] = {
     "vgg.width": "channel multiplier of VGG16 (1.0 = VGG16)",
     "vgg.pretrained": "ImageNet weights: freeze the convs, cache their features, train fc6–fc8 only",
     "vgg.weights": "vgg16-397923af.pth path ('' = registry / download), or shipped:NAME (placejax.pretrain's trunk)",
+    "vgg.hha_weights": "the trunk of the depth-derived nets (HHA, 1-ch depth), as vgg.weights; '' = vgg.weights",
     "vgg.dropout": "dropout after fc6 and fc7",
     "train.epochs": "epochs of each VGG16 place classifier",
     "train.batch_size": "global batch (divisible by the device count)",
@@ -113,7 +114,9 @@ def _base() -> ml_collections.ConfigDict:
         flip_average=True,
         batch_size=64,
     )
-    c.vgg = dict(width=0.125, pretrained=True, weights="shipped:simcampus_places_w0125_s64", dropout=0.0)
+    c.vgg = dict(
+        width=0.125, pretrained=True, weights="shipped:simcampus_places_w0125_s64", hha_weights="", dropout=0.0
+    )
     c.train = dict(
         epochs=30,
         batch_size=32,
@@ -170,7 +173,7 @@ def get_config(preset: str = "default") -> ml_collections.ConfigDict:
             nclt_root="/data/nclt",
         )
         c.depth.update(source="midas", near_m=1.0, far_m=80.0, batch_size=32)
-        c.vgg.update(width=1.0, pretrained=True, weights="", dropout=0.5)
+        c.vgg.update(width=1.0, pretrained=True, weights="", hha_weights="", dropout=0.5)
         c.train.update(epochs=10, batch_size=64, learning_rate=1e-3, optimizer="sgd", warmup_steps=0, save_every=200)
         c.mlp.update(hidden=1024, epochs=30, batch_size=128, learning_rate=1e-3)
         c.eval.batch_size = 64
@@ -178,8 +181,6 @@ def get_config(preset: str = "default") -> ml_collections.ConfigDict:
         # NCLT-scale rehearsal). The frozen convs' features are computed once whatever n_seeds is.
         c.n_seeds = 1
     return c
-
-
 
 
 _CHOICES = {
@@ -263,6 +264,8 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
             errors.append(f"depth.trained_preset={c.depth.trained_preset!r}: expected one of {sorted(DEPTH_PRESETS)}")
     if c.vgg.pretrained and not c.vgg.weights and c.vgg.width != 1.0:
         errors.append("vgg.pretrained with the registry's ImageNet weights needs vgg.width=1.0 (or vgg.weights=PATH)")
+    if c.vgg.hha_weights and not c.vgg.pretrained:
+        errors.append("vgg.hha_weights needs vgg.pretrained=True (it is the frozen trunk of the depth-derived nets)")
     if n_devices:
         for key in ("train.batch_size", "eval.batch_size", "mlp.batch_size"):
             v = get(c, key)

@@ -53,6 +53,7 @@ from placejax.models import (
     he_init,
     imagenet_normalise,
 )
+from placejax.pretrain import modality_weights
 from placejax.training import (
     apply_fn,
     data_mesh,
@@ -334,16 +335,17 @@ def weights_identity(path: str, registry_name: str) -> dict:
     return {"sha256": _file_sha256(str(p.resolve()), st.st_size, st.st_mtime_ns)}
 
 
-def _pretrained_vgg(ctx: Context) -> dict:
-    """Pretrained VGG16 parameters of ``vgg.weights`` at ``vgg.width`` (``placejax.pretrain.pretrained_vgg16``):
-    a torchvision-layout file, ``shipped:<name>`` (a trunk pretrained on other SimCampus worlds; fc6/fc7 then
-    start from He init and are trained), or empty for the registry's ImageNet weights."""
+def _pretrained_vgg(ctx: Context, weights: str) -> dict:
+    """Pretrained VGG16 parameters of ``weights`` (``vgg.weights`` or ``vgg.hha_weights``) at ``vgg.width``
+    (``placejax.pretrain.pretrained_vgg16``): a torchvision-layout file, ``shipped:<name>`` (a trunk pretrained on
+    other SimCampus worlds; fc6/fc7 then start from He init and are trained), or empty for the registry's
+    ImageNet weights."""
     from placejax.pretrain import pretrained_vgg16
 
     try:
-        return pretrained_vgg16(ctx.config.vgg.weights, ctx.config.vgg.width)
+        return pretrained_vgg16(weights, ctx.config.vgg.width)
     except ValueError as e:
-        raise ValueError(f"vgg.weights={ctx.config.vgg.weights!r}, vgg.width={ctx.config.vgg.width}: {e}") from None
+        raise ValueError(f"vgg weights {weights!r}, vgg.width={ctx.config.vgg.width}: {e}") from None
 
 
 def training_labels(config: ml_collections.ConfigDict, s: SessionData, si: int) -> np.ndarray:
@@ -363,11 +365,12 @@ def _results_only(section: ml_collections.ConfigDict) -> dict:
     return {k: v for k, v in section.to_dict().items() if k != "save_every"}
 
 
-def _vgg_key(ctx: Context) -> dict:
+def _vgg_key(ctx: Context, modality: str) -> dict:
+    """The ``vgg`` section as a cache key: the weights of the modality's trunk by their identity (file hash)."""
     c = ctx.config.vgg
-    out = {k: v for k, v in c.to_dict().items() if k != "weights"}
+    out = {k: v for k, v in c.to_dict().items() if k not in ("weights", "hha_weights")}
     if c.pretrained:
-        out["weights"] = weights_identity(c.weights, "vgg16_imagenet")
+        out["weights"] = weights_identity(modality_weights(c, modality), "vgg16_imagenet")
     return out
 
 
@@ -378,7 +381,7 @@ def _net_key(ctx: Context, s: SessionData, labels: np.ndarray, modality: str, nu
         "images": s.cached.key if modality == "rgb" else s.hha.key,
         "labels": cache_digest({"labels": labels.tolist()}),
         "num_classes": num_classes,
-        "vgg": _vgg_key(ctx),
+        "vgg": _vgg_key(ctx, modality),
         "train": _results_only(cfg.train),
         "seed": cfg.seed,
     }
@@ -423,7 +426,10 @@ def _conv_features(ctx: Context, sessions: list[SessionData], modality: str, tru
                 "kind": "vgg_conv_features",
                 "modality": modality,
                 "images": s.cached.key if modality == "rgb" else s.hha.key,
-                "vgg": {"width": c.vgg.width, "weights": weights_identity(c.vgg.weights, "vgg16_imagenet")},
+                "vgg": {
+                    "width": c.vgg.width,
+                    "weights": weights_identity(modality_weights(c.vgg, modality), "vgg16_imagenet"),
+                },
             },
             chunk=c.eval.batch_size,
             progress=ctx.progress,
@@ -498,10 +504,16 @@ def train_nets(
     key = jax.random.key(cfg.seed)
     h, w = sessions[0].cached.image_shape
     nets = {}
-    pretrained = _pretrained_vgg(ctx) if cfg.vgg.pretrained else None
+    trunks: dict[str, dict] = {}  # pretrained parameters by weights (RGB and depth-derived nets may differ)
     init = jax.jit(model.init)
     for modality in modalities:
         mi = MODALITIES.index(modality)
+        pretrained = None
+        if cfg.vgg.pretrained:
+            weights = modality_weights(cfg.vgg, modality)
+            if weights not in trunks:
+                trunks[weights] = _pretrained_vgg(ctx, weights)
+            pretrained = trunks[weights]
         if pretrained is not None:
             with ctx.timed("features"):
                 feats = _conv_features(ctx, sessions, modality, pretrained["trunk"])

@@ -325,9 +325,8 @@ class PlaceClassifier:
             "mlp": _restore_params(files.mlp_checkpoint),
         }
         if cfg["vgg"]["pretrained"]:
-            trunk = _pretrained_trunk(cfg["vgg"])
-            for m in ("rgb", "hha"):
-                params[m] = {"trunk": trunk, "classifier": params[m]["classifier"]}
+            for m in ("rgb", "hha"):  # the depth-derived net may read its own trunk (vgg.hha_weights)
+                params[m] = {"trunk": _pretrained_trunk(cfg["vgg"], m), "classifier": params[m]["classifier"]}
         thr = files.unknown.get(unknown.DEFAULT_SCORE, {})
         meta = {
             "train_session": train_session,
@@ -489,8 +488,8 @@ def _plain(tree: Any) -> Any:
     return tree
 
 
-def _pretrained_trunk(vgg_cfg: dict) -> dict:
-    from placejax.pretrain import pretrained_vgg16
+def _pretrained_trunk(vgg_cfg: dict, modality: str) -> dict:
+    from placejax.pretrain import modality_weights, pretrained_vgg16
 
-    params = pretrained_vgg16(vgg_cfg["weights"], vgg_cfg["width"])
+    params = pretrained_vgg16(modality_weights(vgg_cfg, modality), vgg_cfg["width"])
     return jax.tree_util.tree_map(np.asarray, _plain(params["trunk"]))

@@ -5,10 +5,17 @@ SimCampus worlds other than the evaluation campus (random looks per object and f
 palettes), on :class:`PretextObjective`, through ``placejax.training``'s one engine; its held-out quality is
 cross-look place retrieval on worlds it never saw (:func:`heldout_report`). The result of the ``default`` preset
 is shipped as ``placejax/pretrain/weights/<SHIPPED>.npz`` (:func:`load_shipped`), because a fresh machine cannot
-afford to pretrain; :func:`ensure_trained` reproduces it into the cache.
+afford to pretrain; :func:`ensure_trained` reproduces it into the cache. ``PretrainConfig.modality="hha"``
+pretrains the trunk of the depth-derived nets on HHA images of perturbed rendered depth (:func:`perturb_depth`).
 """
 
-from placejax.pretrain._data import place_frames, place_labels, place_world_seeds, render_random_looks
+from placejax.pretrain._data import (
+    perturb_depth,
+    place_frames,
+    place_labels,
+    place_world_seeds,
+    render_random_looks,
+)
 from placejax.pretrain._evaluate import (
     baselines,
     evaluate_trunk,
@@ -25,6 +32,7 @@ from placejax.pretrain._lifecycle import (
     export_params,
     heldout_report,
     load_shipped,
+    modality_weights,
     pretrained_vgg16,
     quick_check,
     read_npz,
@@ -61,7 +69,9 @@ __all__ = [
     "init_params",
     "load_shipped",
     "load_trained",
+    "modality_weights",
     "num_classes",
+    "perturb_depth",
     "place_frames",
     "place_labels",
     "place_world_seeds",

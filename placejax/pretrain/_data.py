@@ -5,20 +5,38 @@ worlds), each frame rendered with its own random look (colours, textures, sky, s
 and frame — never the four season palettes of the evaluation campus, which are the test domain). A frame's place
 is its grid cell over its world's paths (an ``n × n`` grid as the paper's §IV workspace grid) and a coarse heading
 bin, so its label is determined by geometry alone; appearance carries no information about it.
+
+For a trunk that reads HHA images (``modality="hha"``) a view's two versions are HHA images of its depth in two
+seasons' geometry (summer and one of the others: foliage, snow banks, parked cars), each through
+:func:`perturb_depth`, which imitates what a monocular depth network gets wrong (objects at the wrong distance,
+blur, the far range handed over as sky), so the pretext asks for what cross-season HHA recognition needs.
 """
 
 from __future__ import annotations
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
 import tqdm
 
+from placejax import hha
 from placejax.data import simcampus
 
 # Place-pretraining world seeds: far from the evaluation campuses (small seeds) and from the depth network's
 # training worlds (7_000_000 + ...), so neither network has seen the other's worlds.
 PLACE_WORLD_SEED_BASE = 8_000_000
+
+MODALITIES = ("rgb", "hha")
+
+# perturb_depth: the depth network's range (it predicts at most 80 m), the spread of its errors (objects off by a
+# median factor of 1.3-1.45 on a world it never saw, see the README's depth section), log-depth blur and the sky
+# step's threshold (the experiment's depth.far_as_sky_m is 50 m).
+PERTURB_MAX_DEPTH_M = 80.0
+PERTURB_LOG_SCALE = 0.3  # amplitude of the smooth log-depth error field
+PERTURB_FIELD_PX = 0.125  # its correlation length, as a share of the image width
+PERTURB_BLUR_PX = (0.0, 1.5)  # log-depth blur sigma, pixels at 64 x 64 (scaled with the width)
+PERTURB_SKY_FROM_M = (40.0, 70.0)
 
 # One random look per frame (created once: a fresh jit wrapper per call would recompile every time).
 _random_looks = jax.jit(jax.vmap(simcampus.random_look))
@@ -56,14 +74,16 @@ def place_labels(poses6: np.ndarray, box, grid: int, headings: int) -> np.ndarra
     return ((row * grid + col) * headings + hbin).astype(np.int32)
 
 
-def render_random_looks(world_seed: int, poses6: np.ndarray, hw: tuple[int, int], key: jax.Array, batch: int = 32):
-    """Renders ``poses6`` of a world, each frame with its own random look (season geometry of summer).
+def render_random_looks(
+    world_seed: int, poses6: np.ndarray, hw: tuple[int, int], key: jax.Array, batch: int = 32, season: str = "SU"
+):
+    """Renders ``poses6`` of a world, each frame with its own random look (in ``season``'s geometry).
 
     Returns:
         dict with ``rgb`` uint8 ``(N, H, W, 3)``, ``depth`` float32 ``(N, H, W)`` (m), ``sky`` bool ``(N, H, W)``.
     """
     world = simcampus.make_world(world_seed)
-    geo, _ = simcampus.season_scene(world, "SU")
+    geo, _ = simcampus.season_scene(world, season)
     kmat = jnp.asarray(simcampus.intrinsics(hw), jnp.float32)
     out = {"rgb": [], "depth": [], "sky": []}
     for lo in range(0, len(poses6), batch):
@@ -87,6 +107,52 @@ def render_random_looks(world_seed: int, poses6: np.ndarray, hw: tuple[int, int]
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
+def perturb_depth(depth_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Rendered depth ``(N, H, W)`` (m, sky at 1000 m) as a monocular depth network might have predicted it.
+
+    Per frame: clamped to the network's range (80 m); multiplied by a smooth random field ``exp(a · g)`` (``g`` a
+    unit-variance Gaussian field of correlation length 1/8 of the width, ``a`` = 0.3: objects at the wrong
+    distance); blurred in log depth (σ uniform in 0-1.5 px at 64 px width); then everything from a threshold
+    uniform in 40-70 m on set to the sky's 1000 m (``placejax.depth.far_to_sky``, as the experiment does).
+    """
+    from placejax.depth import far_to_sky
+
+    depth_m = np.asarray(depth_m, np.float32)
+    n, h, w = depth_m.shape
+    out = np.empty_like(depth_m)
+    corr = PERTURB_FIELD_PX * w
+    px = w / 64.0
+    for i in range(n):
+        field = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), corr)
+        field /= field.std() + 1e-6
+        log_d = np.log(np.minimum(depth_m[i], PERTURB_MAX_DEPTH_M)) + PERTURB_LOG_SCALE * field
+        sigma = rng.uniform(*PERTURB_BLUR_PX) * px
+        if sigma > 0.05:
+            log_d = cv2.GaussianBlur(log_d, (0, 0), sigma)
+        out[i] = far_to_sky(np.exp(log_d), rng.uniform(*PERTURB_SKY_FROM_M), simcampus.SKY_DEPTH)
+    return out
+
+
+def hha_views(
+    world_seed: int, poses6: np.ndarray, hw: tuple[int, int], rng: np.random.Generator, season: str
+) -> np.ndarray:
+    """HHA images ``uint8 (N, H, W, 3)`` of ``poses6`` in ``season``'s geometry, through :func:`perturb_depth`."""
+    depth = render_random_looks(world_seed, poses6, hw, jax.random.key(0), season=season)["depth"]
+    depth = perturb_depth(depth, rng)
+    k = simcampus.intrinsics(hw)
+    return np.concatenate([np.asarray(hha.encode(depth[i : i + 128], k)) for i in range(0, len(depth), 128)])
+
+
+def _other_season_views(world_seed: int, poses6: np.ndarray, hw, rng: np.random.Generator) -> np.ndarray:
+    """HHA of each view in one of the non-summer seasons' geometry (view i: season i mod 3)."""
+    out = np.empty((len(poses6), *hw, 3), np.uint8)
+    for j, season in enumerate(("WI", "SP", "AU")):
+        idx = np.arange(j, len(poses6), 3)
+        if len(idx):
+            out[idx] = hha_views(world_seed, poses6[idx], hw, rng, season)
+    return out
+
+
 def place_frames(
     seed: int,
     frames_per_world: int,
@@ -96,22 +162,27 @@ def place_frames(
     grid: int = 10,
     headings: int = 4,
     exclude_world_seeds=(0,),
+    modality: str = "rgb",
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
-    """Place-labelled views of ``n_worlds`` pretraining worlds, each rendered twice with independent random looks.
+    """Place-labelled views of ``n_worlds`` pretraining worlds, each in two versions.
 
+    ``modality="rgb"``: the two versions are renderings with independent random looks. ``"hha"``: HHA images of
+    the view's depth in summer's geometry and in another season's, each through :func:`perturb_depth`.
     Classes are numbered world by world (``world · grid² · headings + place_labels``); only some are occupied.
 
     Returns:
-        dict with ``rgb`` and ``rgb2`` uint8 ``(N, H, W, 3)`` (the same view in two random looks),
-        ``label`` int32 ``(N,)``, ``world`` int32 ``(N,)`` (index into the seeds), ``poses6`` ``(N, 6)``,
+        dict with ``image`` and ``image2`` uint8 ``(N, H, W, 3)`` (the view's two versions), ``label`` int32
+        ``(N,)``, ``world`` int32 ``(N,)`` (index into the seeds), ``poses6`` ``(N, 6)``,
         N = ``n_worlds · frames_per_world``.
 
     Example:
         >>> f = place_frames(0, 2, (16, 16), n_worlds=1, progress=False)
-        >>> f["rgb"].shape, f["rgb2"].shape, f["label"].shape
+        >>> f["image"].shape, f["image2"].shape, f["label"].shape
         ((2, 16, 16, 3), (2, 16, 16, 3), (2,))
     """
+    if modality not in MODALITIES:
+        raise ValueError(f"modality must be one of {MODALITIES}, got {modality!r}")
     seeds = place_world_seeds(seed, n_worlds, exclude_world_seeds)
     parts = []
     per_world = grid * grid * headings
@@ -119,11 +190,15 @@ def place_frames(
         world = simcampus.make_world(ws)
         rng = np.random.default_rng([seed, 0x91ACE, w])
         poses = simcampus.random_poses(world, rng, frames_per_world)
-        key = jax.random.fold_in(jax.random.key(seed), w)
-        r = {
-            "rgb": render_random_looks(ws, poses, hw, jax.random.fold_in(key, 0))["rgb"],
-            "rgb2": render_random_looks(ws, poses, hw, jax.random.fold_in(key, 1))["rgb"],
-        }
+        if modality == "hha":
+            noise = np.random.default_rng([seed, 0x44A, w])
+            r = {"image": hha_views(ws, poses, hw, noise, "SU"), "image2": _other_season_views(ws, poses, hw, noise)}
+        else:
+            key = jax.random.fold_in(jax.random.key(seed), w)
+            r = {
+                "image": render_random_looks(ws, poses, hw, jax.random.fold_in(key, 0))["rgb"],
+                "image2": render_random_looks(ws, poses, hw, jax.random.fold_in(key, 1))["rgb"],
+            }
         r["label"] = w * per_world + place_labels(poses, path_box(ws), grid, headings)
         r["world"] = np.full(frames_per_world, w, np.int32)
         r["poses6"] = poses

@@ -7,7 +7,11 @@ looked up; it is a hit when it is the same view (``view recall@1``) or a view of
 grid cell of the world and the same 90° heading bin, ``place recall@1``). This is cross-season place recognition
 in miniature — same geometry, unrelated appearance — measured where nothing is tuned.
 
-Baselines on the same frames: raw pixels, 12 × 12 gradient thumbnails, and a randomly initialised trunk.
+Baselines on the same frames: raw pixels, 12 × 12 gradient thumbnails, 16 × 16 colour thumbnails (the
+experiment's HHA nearest-neighbour baseline) and a randomly initialised trunk.
+
+For an HHA trunk (``modality="hha"``) the two renderings are HHA images of perturbed depth in summer's geometry
+and in another season's (``placejax.pretrain._data.place_frames``), drawn with a validation seed.
 """
 
 from __future__ import annotations
@@ -24,8 +28,11 @@ from placejax.pretrain import _data
 from placejax.training import map_batches
 
 
-def heldout_frames(seed: int, n: int, hw: tuple[int, int], *, world: int = 0) -> dict[str, np.ndarray]:
-    """``n`` views of held-out world ``world`` of validation seed ``seed``, rendered with two independent look sets.
+def heldout_frames(
+    seed: int, n: int, hw: tuple[int, int], *, world: int = 0, modality: str = "rgb"
+) -> dict[str, np.ndarray]:
+    """``n`` views of held-out world ``world`` of validation seed ``seed``, rendered with two independent look sets
+    (``modality="hha"``: as HHA of perturbed depth in summer's and in other seasons' geometry).
 
     Validation worlds use seeds ``place_world_seeds(seed, ...)``; pick a ``seed`` no pretraining run uses.
 
@@ -36,10 +43,15 @@ def heldout_frames(seed: int, n: int, hw: tuple[int, int], *, world: int = 0) ->
     ws = _data.place_world_seeds(seed, world + 1)[world]
     rng = np.random.default_rng([seed, 0xE7A1, world])
     poses = simcampus.random_poses(simcampus.make_world(ws), rng, n)
+    label = _data.place_labels(poses, _data.path_box(ws), 10, 4)
+    if modality == "hha":
+        noise = np.random.default_rng([seed, 0x44A, world])
+        gallery = _data.hha_views(ws, poses, hw, noise, "SU")
+        query = _data._other_season_views(ws, poses, hw, noise)
+        return {"gallery": gallery, "query": query, "label": label, "poses6": poses}
     key = jax.random.key(seed)
     a = _data.render_random_looks(ws, poses, hw, jax.random.fold_in(key, 1))
     b = _data.render_random_looks(ws, poses, hw, jax.random.fold_in(key, 2))
-    label = _data.place_labels(poses, _data.path_box(ws), 10, 4)
     return {"gallery": a["rgb"], "query": b["rgb"], "label": label, "poses6": poses}
 
 
@@ -76,6 +88,15 @@ def gradient_thumbnail(rgb: np.ndarray, size: int = 12) -> np.ndarray:
     return d - d.mean(1, keepdims=True)
 
 
+def colour_thumbnail(images: np.ndarray, size: int = 16) -> np.ndarray:
+    """Area-averaged ``size × size`` thumbnail of every channel, per image centred: ``(n, size·size·C)``."""
+    x = np.asarray(images, np.float32)
+    n, h, w, c = x.shape
+    x = x[:, : h // size * size, : w // size * size].reshape(n, size, h // size, size, w // size, c).mean((2, 4))
+    x = x.reshape(n, -1)
+    return x - x.mean(1, keepdims=True)
+
+
 @functools.partial(jax.jit, static_argnames=("width",))
 def _trunk_map(trunk_params, x, width: float):
     """The last conv block's max-pooled map (before adaptive pooling), flattened: what fc6 really sees."""
@@ -96,7 +117,8 @@ def evaluate_trunk(trunk_params, frames: dict[str, np.ndarray], width: float) ->
 
 
 def baselines(frames: dict[str, np.ndarray], width: float, seed: int = 0) -> dict[str, dict[str, float]]:
-    """Recall@1 of raw pixels, gradient thumbnails and a He-initialised (untrained) trunk on the same frames."""
+    """Recall@1 of raw pixels, gradient and colour thumbnails and a He-initialised (untrained) trunk on the same
+    frames."""
     from placejax.models import he_init
 
     h, w = frames["gallery"].shape[1:3]
@@ -108,5 +130,6 @@ def baselines(frames: dict[str, np.ndarray], width: float, seed: int = 0) -> dic
         "gradient_thumbnail": recall_at_1(
             gradient_thumbnail(frames["gallery"]), gradient_thumbnail(frames["query"]), lab
         ),
+        "colour_thumbnail": recall_at_1(colour_thumbnail(frames["gallery"]), colour_thumbnail(frames["query"]), lab),
         "random_trunk": evaluate_trunk(random_trunk, frames, width),
     }

@@ -122,12 +122,23 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
     return load("vgg16_imagenet")["params"]
 
 
+def modality_weights(vgg: Any, modality: str) -> str:
+    """The pretrained weights (``pretrained_vgg16``'s ``weights``) of the trunk that reads ``modality``'s images:
+    ``vgg["hha_weights"]`` for the depth-derived ones (``"hha"``, ``"depth1"``) when it is set, else
+    ``vgg["weights"]``. ``vgg`` is the experiment's ``vgg`` config section (a mapping; older runs' configs have no
+    ``hha_weights`` and read ``weights`` for every modality)."""
+    hha_weights = vgg.get("hha_weights", "") if hasattr(vgg, "get") else ""
+    if modality != "rgb" and hha_weights:
+        return hha_weights
+    return vgg["weights"]
+
+
 def heldout_report(trunk_params, cfg: PretrainConfig, *, n_worlds: int = 2) -> dict:
     """Cross-look recall@1 of the trunk and of the baselines on ``n_worlds`` held-out validation worlds."""
     s = cfg.image_size
     per_world = []
     for w in range(n_worlds):
-        frames = _evaluate.heldout_frames(cfg.eval_seed, cfg.eval_frames, (s, s), world=w)
+        frames = _evaluate.heldout_frames(cfg.eval_seed, cfg.eval_frames, (s, s), world=w, modality=cfg.modality)
         per_world.append(
             {
                 "trunk": _evaluate.evaluate_trunk(trunk_params, frames, cfg.width),
@@ -146,7 +157,7 @@ def quick_check(trunk_params, cfg: PretrainConfig) -> dict[str, float]:
     """Cross-look recall@1 on ``CHECK_FRAMES`` views of held-out world 0 (a few seconds): the number a shipped
     file records under ``meta["quick_check"]`` and ``tests/test_pretrain.py`` reproduces."""
     s = cfg.image_size
-    frames = _evaluate.heldout_frames(cfg.eval_seed, CHECK_FRAMES, (s, s), world=0)
+    frames = _evaluate.heldout_frames(cfg.eval_seed, CHECK_FRAMES, (s, s), world=0, modality=cfg.modality)
     return _evaluate.evaluate_trunk(trunk_params, frames, cfg.width)
 
 

@@ -59,6 +59,8 @@ class PretrainConfig:
         eval_seed: seed of the held-out validation worlds (``heldout_frames``); must differ from ``seed``.
         eval_frames: held-out views per validation world.
         world_seed: the evaluation campus (never rendered here).
+        modality: what the trunk reads: ``"rgb"`` (two random looks of each view) or ``"hha"`` (HHA of perturbed
+            depth of each view in two seasons' geometry; ``placejax.pretrain.place_frames``).
     """
 
     image_size: int = 64
@@ -81,6 +83,7 @@ class PretrainConfig:
     eval_seed: int = 99
     eval_frames: int = 256
     world_seed: int = 0
+    modality: str = "rgb"
 
     def __post_init__(self):
         for name in (
@@ -107,6 +110,8 @@ class PretrainConfig:
                 raise ValueError(f"{name} must be a finite positive number, got {value!r}")
         if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0 and 0 <= self.dropout < 1):
             raise ValueError("weight_decay must be finite and >= 0, dropout in [0, 1)")
+        if self.modality not in ("rgb", "hha"):
+            raise ValueError(f"modality must be 'rgb' or 'hha', got {self.modality!r}")
         if self.eval_seed == self.seed:
             raise ValueError("eval_seed must differ from seed: validation worlds must be held out")
 
@@ -115,6 +120,8 @@ class PretrainConfig:
         fields = dataclasses.asdict(self)
         for k in ("checkpoint_every", "eval_seed", "eval_frames"):
             fields.pop(k)
+        if fields["modality"] == "rgb":  # RGB runs keep the hash they had before the field existed
+            fields.pop("modality")
         fields["recipe_version"] = _RECIPE_VERSION
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
@@ -153,6 +160,7 @@ def training_frames(cfg: PretrainConfig, progress: bool = True) -> dict[str, np.
         grid=cfg.grid,
         headings=cfg.headings,
         exclude_world_seeds=(cfg.world_seed,),
+        modality=cfg.modality,
         progress=progress,
     )
     _, f["label"] = np.unique(f["label"], return_inverse=True)
@@ -192,7 +200,8 @@ class PretextObjective:
     """The pretext's objective for ``placejax.training.train_step``: place classification of both looks of each
     view plus a cross-look contrastive term.
 
-    ``batch``: ``x``, ``x2`` normalised ``(B, H, W, 3)`` — the same views in two independent random looks —,
+    ``batch``: ``x``, ``x2`` normalised ``(B, H, W, 3)`` — the same views in two versions (independent random
+    looks, or HHA in two seasons' geometry) —,
     ``label`` int32 ``(B,)`` place classes, ``valid`` bool ``(B,)``. Loss::
 
         place_weight · CE(fc8(x), label) + place_weight · CE(fc8(x2), label)  (averaged)
@@ -253,7 +262,7 @@ def _optimizer(cfg: PretrainConfig):
 def _prepare(batch: dict) -> dict[str, np.ndarray]:
     return {
         "x": imagenet_normalise(batch["image"]),
-        "x2": imagenet_normalise(batch["rgb2"]),
+        "x2": imagenet_normalise(batch["image2"]),
         "label": batch["label"],
         "valid": batch["valid"],
     }
@@ -292,7 +301,7 @@ def train(
     def batches(frames=frames):  # rendered only when steps remain
         frames = training_frames(cfg, progress=progress) if frames is None else frames
         epochs = math.ceil(cfg.steps * cfg.batch_size / len(frames["label"]))
-        source = FrameSource(frames["rgb"], frames["label"], extras={"rgb2": frames["rgb2"]})
+        source = FrameSource(frames["image"], frames["label"], extras={"image2": frames["image2"]})
         return train_dataset(source, batch_size=cfg.batch_size, seed=cfg.seed, num_epochs=epochs)
 
     return training.train(
