@@ -5,8 +5,8 @@ held-out worlds, and optionally export it as the small weights file shipped with
 
 The pretext (``placejax.pretrain``): place classification (grid cell × heading bin) across other worlds plus a
 cross-look contrastive term, every view rendered twice with independent random looks per object and frame —
-never the evaluation campus, never its season palettes. ``modality=hha`` pretrains the trunk of the depth-derived
-nets instead: the two versions of a view are HHA images of its depth in summer's and in another season's geometry,
+never the evaluation campus, never its season palettes. ``modality=hha`` pretrains the trunk of the HHA
+net instead: the two versions of a view are HHA images of its depth in summer's and in another season's geometry,
 each perturbed as a monocular depth network errs (``placejax.pretrain.perturb_depth``). Without ``--workdir`` the
 run lives in the cache (``$PLACEJAX_CACHE/pretrain/<preset>-<config hash>``). A killed run resumes from its last
 checkpoint when the same command is run again. ``pretrain_eval.json`` in the run folder holds the held-out

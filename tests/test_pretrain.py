@@ -85,9 +85,11 @@ def test_ensure_trained_reuses_the_cached_run(smoke_run, monkeypatch):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall():
-    params, meta = pretrain.load_shipped()
+@pytest.mark.parametrize("name", [pretrain.SHIPPED, pretrain.SHIPPED_HHA])
+def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall(name):
+    params, meta = pretrain.load_shipped(name)
     cfg = pretrain.PretrainConfig(**meta["config"])
+    assert cfg.modality == ("hha" if name == pretrain.SHIPPED_HHA else "rgb")
     s = cfg.image_size
     assert_spatial_map(s, cfg.width)
     template = VGG16(num_classes=100, width=cfg.width).init(jax.random.key(0), jnp.zeros((1, s, s, 3)))["params"]
@@ -99,7 +101,9 @@ def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall():
     # Same frames, same weights: equal up to a tie flipped by float noise.
     assert abs(got["view"] - want["view"]) <= 1 / pretrain.CHECK_FRAMES + 1e-9, (got, want)
     # And the record is a trunk that learned: far above an untrained one on the full held-out set.
-    assert meta["heldout"]["mean"]["trunk"]["view"] > meta["heldout"]["mean"]["random_trunk"]["view"] + 0.1
+    mean = meta["heldout"]["mean"]
+    assert mean["trunk"]["view"] > mean["random_trunk"]["view"] + 0.1
+    assert mean["trunk"]["view"] > mean["gradient_thumbnail"]["view"] + 0.1  # and than no learning at all
 
 
 def test_config_refuses_an_evaluation_seed_equal_to_the_training_seed():
@@ -186,9 +190,9 @@ def test_perturbed_depth_has_only_near_surfaces_and_sky():
     assert np.mean(out[:, :4] == SKY_DEPTH) > 0.5  # most of the sky stays sky
 
 
-def test_modality_weights_picks_the_hha_trunk_for_depth_derived_nets_only():
+def test_modality_weights_picks_the_hha_trunk_for_the_hha_net_only():
     vgg = {"weights": "shipped:rgb", "hha_weights": "shipped:hha"}
-    assert pretrain.modality_weights(vgg, "rgb") == "shipped:rgb"
-    assert pretrain.modality_weights(vgg, "hha") == pretrain.modality_weights(vgg, "depth1") == "shipped:hha"
+    assert pretrain.modality_weights(vgg, "rgb") == pretrain.modality_weights(vgg, "depth1") == "shipped:rgb"
+    assert pretrain.modality_weights(vgg, "hha") == "shipped:hha"
     for older in ({"weights": "shipped:rgb", "hha_weights": ""}, {"weights": "shipped:rgb"}):
         assert pretrain.modality_weights(older, "hha") == "shipped:rgb"

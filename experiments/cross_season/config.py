@@ -7,7 +7,8 @@ Presets:
     default: SimCampus, 4 seasons at 64×64 (a frame every 2 m of travel, ~900–1200 per season; the trunk's last
         map is 2×2, so fc6 sees spatial layout), the 10×10 grid, the paper's recipe with the ImageNet stand-in:
         the VGG16 trunk at 1/8 width pretrained on other SimCampus worlds (``placejax.pretrain``, shipped with
-        the package) frozen, its conv features cached once per session, fc6–fc8 trained (AdamW 3e-4, 30
+        the package; the HHA net's trunk pretrained on HHA images of those worlds) frozen, its conv features
+        cached once per session, fc6–fc8 trained (AdamW 3e-4, 30
         epochs; chosen on world 1, never on the evaluation campus: RGB-Net cross-season mean 17.0 % vs 16.4 %
         at 12 epochs, 16.9 % at 1e-3, 16.5 % with weight decay 0.05, 10.1 % with dropout 0.5), 3 seeds of every
         net and MLP, the placejax-trained depth network as depth source.
@@ -54,7 +55,7 @@ HELP: dict[str, str] = {
     "vgg.width": "channel multiplier of VGG16 (1.0 = VGG16)",
     "vgg.pretrained": "ImageNet weights: freeze the convs, cache their features, train fc6–fc8 only",
     "vgg.weights": "vgg16-397923af.pth path ('' = registry / download), or shipped:NAME (placejax.pretrain's trunk)",
-    "vgg.hha_weights": "the trunk of the depth-derived nets (HHA, 1-ch depth), as vgg.weights; '' = vgg.weights",
+    "vgg.hha_weights": "the HHA net's trunk, given as vgg.weights is ('' = vgg.weights; the 1-ch net reads that)",
     "vgg.dropout": "dropout after fc6 and fc7",
     "train.epochs": "epochs of each VGG16 place classifier",
     "train.batch_size": "global batch (divisible by the device count)",
@@ -114,8 +115,14 @@ def _base() -> ml_collections.ConfigDict:
         flip_average=True,
         batch_size=64,
     )
+    # The HHA net reads a trunk pretrained on HHA images (placejax.pretrain, modality=hha): chosen on world 1
+    # (HHA-Net across seasons 10.9 -> 16.2 %) and on held-out worlds (README, "A pretrained trunk without ImageNet").
     c.vgg = dict(
-        width=0.125, pretrained=True, weights="shipped:simcampus_places_w0125_s64", hha_weights="", dropout=0.0
+        width=0.125,
+        pretrained=True,
+        weights="shipped:simcampus_places_w0125_s64",
+        hha_weights="shipped:simcampus_places_hha_w0125_s64",
+        dropout=0.0,
     )
     c.train = dict(
         epochs=30,
@@ -265,7 +272,7 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
     if c.vgg.pretrained and not c.vgg.weights and c.vgg.width != 1.0:
         errors.append("vgg.pretrained with the registry's ImageNet weights needs vgg.width=1.0 (or vgg.weights=PATH)")
     if c.vgg.hha_weights and not c.vgg.pretrained:
-        errors.append("vgg.hha_weights needs vgg.pretrained=True (it is the frozen trunk of the depth-derived nets)")
+        errors.append("vgg.hha_weights needs vgg.pretrained=True (it is the HHA net's frozen trunk)")
     if n_devices:
         for key in ("train.batch_size", "eval.batch_size", "mlp.batch_size"):
             v = get(c, key)

@@ -504,7 +504,7 @@ def train_nets(
     key = jax.random.key(cfg.seed)
     h, w = sessions[0].cached.image_shape
     nets = {}
-    trunks: dict[str, dict] = {}  # pretrained parameters by weights (RGB and depth-derived nets may differ)
+    trunks: dict[str, dict] = {}  # pretrained parameters by weights (the HHA net may read its own)
     init = jax.jit(model.init)
     for modality in modalities:
         mi = MODALITIES.index(modality)

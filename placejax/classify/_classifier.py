@@ -325,7 +325,7 @@ class PlaceClassifier:
             "mlp": _restore_params(files.mlp_checkpoint),
         }
         if cfg["vgg"]["pretrained"]:
-            for m in ("rgb", "hha"):  # the depth-derived net may read its own trunk (vgg.hha_weights)
+            for m in ("rgb", "hha"):  # the HHA net may read its own trunk (vgg.hha_weights)
                 params[m] = {"trunk": _pretrained_trunk(cfg["vgg"], m), "classifier": params[m]["classifier"]}
         thr = files.unknown.get(unknown.DEFAULT_SCORE, {})
         meta = {

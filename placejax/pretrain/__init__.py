@@ -6,7 +6,7 @@ palettes), on :class:`PretextObjective`, through ``placejax.training``'s one eng
 cross-look place retrieval on worlds it never saw (:func:`heldout_report`). The result of the ``default`` preset
 is shipped as ``placejax/pretrain/weights/<SHIPPED>.npz`` (:func:`load_shipped`), because a fresh machine cannot
 afford to pretrain; :func:`ensure_trained` reproduces it into the cache. ``PretrainConfig.modality="hha"``
-pretrains the trunk of the depth-derived nets on HHA images of perturbed rendered depth (:func:`perturb_depth`).
+pretrains the trunk of the HHA net on HHA images of perturbed rendered depth (:func:`perturb_depth`).
 """
 
 from placejax.pretrain._data import (
@@ -27,6 +27,7 @@ from placejax.pretrain._evaluate import (
 from placejax.pretrain._lifecycle import (
     CHECK_FRAMES,
     SHIPPED,
+    SHIPPED_HHA,
     SHIPPED_PREFIX,
     ensure_trained,
     export_params,
@@ -56,6 +57,7 @@ __all__ = [
     "CHECK_FRAMES",
     "PRESETS",
     "SHIPPED",
+    "SHIPPED_HHA",
     "SHIPPED_PREFIX",
     "PretextObjective",
     "PretrainConfig",

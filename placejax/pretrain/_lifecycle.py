@@ -26,6 +26,8 @@ from placejax.pretrain._train import PRESETS, PretrainConfig, load_trained, trai
 
 # The trunk shipped with the package (its README records command, seed, config and held-out metrics).
 SHIPPED = "simcampus_places_w0125_s64"
+# The HHA net's trunk, pretrained on HHA images (``modality="hha"``).
+SHIPPED_HHA = "simcampus_places_hha_w0125_s64"
 _EXPECTED_MINUTES = {"smoke": 1, "default": 45}
 
 
@@ -124,11 +126,11 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
 
 def modality_weights(vgg: Any, modality: str) -> str:
     """The pretrained weights (``pretrained_vgg16``'s ``weights``) of the trunk that reads ``modality``'s images:
-    ``vgg["hha_weights"]`` for the depth-derived ones (``"hha"``, ``"depth1"``) when it is set, else
-    ``vgg["weights"]``. ``vgg`` is the experiment's ``vgg`` config section (a mapping; older runs' configs have no
+    ``vgg["hha_weights"]`` for the HHA net when it is set, else ``vgg["weights"]`` (RGB and the 1-channel depth
+    ablation). ``vgg`` is the experiment's ``vgg`` config section (a mapping; older runs' configs have no
     ``hha_weights`` and read ``weights`` for every modality)."""
     hha_weights = vgg.get("hha_weights", "") if hasattr(vgg, "get") else ""
-    if modality != "rgb" and hha_weights:
+    if modality == "hha" and hha_weights:
         return hha_weights
     return vgg["weights"]
 
