@@ -312,11 +312,13 @@ def _scene_with_holes():
     return depth, holed, k
 
 
-def assert_same_up_to_rounding(a, b, max_share=0.005):
+def assert_same_up_to_rounding(a, b, max_share=0.02):
     """Same HHA images up to float32 rounding: identical missing pixels, others within ±1 level, rarely off.
 
     A batch axis added by ``vmap`` changes how XLA accumulates the gravity estimate's sums (≈1e-6 in the unit
-    vector), which can move a height or angle that sits on a .5 boundary by one level.
+    vector), which can move a height or angle that sits on a .5 boundary by one level. How many pixels sit there
+    depends on the CPU's vector code: on one machine the property test's 16 × 20 scenes differed in at most 0.5 %
+    of pixels, on another in 1.25 % (4 pixels) — hence 2 %, far below what a batching bug would do.
     """
     a, b = np.asarray(a, int), np.asarray(b, int)
     assert a.shape == b.shape
