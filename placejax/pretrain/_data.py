@@ -143,7 +143,7 @@ def hha_views(
     return np.concatenate([np.asarray(hha.encode(depth[i : i + 128], k)) for i in range(0, len(depth), 128)])
 
 
-def _other_season_views(world_seed: int, poses6: np.ndarray, hw, rng: np.random.Generator) -> np.ndarray:
+def other_season_views(world_seed: int, poses6: np.ndarray, hw, rng: np.random.Generator) -> np.ndarray:
     """HHA of each view in one of the non-summer seasons' geometry (view i: season i mod 3)."""
     out = np.empty((len(poses6), *hw, 3), np.uint8)
     for j, season in enumerate(("WI", "SP", "AU")):
@@ -192,7 +192,7 @@ def place_frames(
         poses = simcampus.random_poses(world, rng, frames_per_world)
         if modality == "hha":
             noise = np.random.default_rng([seed, 0x44A, w])
-            r = {"image": hha_views(ws, poses, hw, noise, "SU"), "image2": _other_season_views(ws, poses, hw, noise)}
+            r = {"image": hha_views(ws, poses, hw, noise, "SU"), "image2": other_season_views(ws, poses, hw, noise)}
         else:
             key = jax.random.fold_in(jax.random.key(seed), w)
             r = {

@@ -47,7 +47,7 @@ def heldout_frames(
     if modality == "hha":
         noise = np.random.default_rng([seed, 0x44A, world])
         gallery = _data.hha_views(ws, poses, hw, noise, "SU")
-        query = _data._other_season_views(ws, poses, hw, noise)
+        query = _data.other_season_views(ws, poses, hw, noise)
         return {"gallery": gallery, "query": query, "label": label, "poses6": poses}
     key = jax.random.key(seed)
     a = _data.render_random_looks(ws, poses, hw, jax.random.fold_in(key, 1))

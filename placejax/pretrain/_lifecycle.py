@@ -129,7 +129,7 @@ def modality_weights(vgg: Any, modality: str) -> str:
     ``vgg["hha_weights"]`` for the HHA net when it is set, else ``vgg["weights"]`` (RGB and the 1-channel depth
     ablation). ``vgg`` is the experiment's ``vgg`` config section (a mapping; older runs' configs have no
     ``hha_weights`` and read ``weights`` for every modality)."""
-    hha_weights = vgg.get("hha_weights", "") if hasattr(vgg, "get") else ""
+    hha_weights = vgg.get("hha_weights", "")
     if modality == "hha" and hha_weights:
         return hha_weights
     return vgg["weights"]

@@ -28,6 +28,7 @@ import optax
 from placejax import training
 from placejax.data import simcampus
 from placejax.models import VGG16, he_init, imagenet_normalise
+from placejax.pretrain._data import MODALITIES
 
 # Bumped whenever the recipe changes in a way the config does not show.
 _RECIPE_VERSION = 1
@@ -110,8 +111,8 @@ class PretrainConfig:
                 raise ValueError(f"{name} must be a finite positive number, got {value!r}")
         if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0 and 0 <= self.dropout < 1):
             raise ValueError("weight_decay must be finite and >= 0, dropout in [0, 1)")
-        if self.modality not in ("rgb", "hha"):
-            raise ValueError(f"modality must be 'rgb' or 'hha', got {self.modality!r}")
+        if self.modality not in MODALITIES:
+            raise ValueError(f"modality must be one of {MODALITIES}, got {self.modality!r}")
         if self.eval_seed == self.seed:
             raise ValueError("eval_seed must differ from seed: validation worlds must be held out")
 
