@@ -68,3 +68,39 @@ def test_one_failing_process_stops_the_others_at_once(tmp_path):
     assert "launch: process 1 exited with code 3; stopping the other processes" in done.stderr
     assert took < 30  # the others (sleeping 60 s) were stopped, not waited for
     assert not any((tmp_path / f"done{k}").exists() for k in range(3))
+
+
+_LATE_CHILD = textwrap.dedent(
+    """
+    import sys, time
+    from pathlib import Path
+    from placejax.training import initialize_distributed
+    initialize_distributed()
+    import jax, jax.numpy as jnp, numpy as np
+    from jax.sharding import NamedSharding, PartitionSpec
+    from placejax.training import data_mesh, replicate
+    k = jax.process_index()
+    if k == 1:
+        time.sleep(float(sys.argv[2]))  # busy alone (compiling, building a cache the other process then reads)
+    mesh = data_mesh()
+    w = replicate({"w": np.arange(4, dtype=np.float32)}, mesh)
+    rows = NamedSharding(mesh, PartitionSpec("data"))
+    x = jax.make_array_from_process_local_data(rows, np.full((1, 4), k + 1.0, np.float32))
+    total = jax.jit(lambda w, x: jnp.sum(x * w["w"]), out_shardings=NamedSharding(mesh, PartitionSpec()))(w, x)
+    Path(sys.argv[1], f"total{k}").write_text(str(float(total.addressable_data(0))))
+    """
+)
+
+
+def test_a_process_that_reaches_the_first_collective_late_is_waited_for(tmp_path):
+    """Gloo gives a peer 30 s to join a new communicator; ``replicate`` onto a mesh spanning processes waits at a
+    barrier first, so a process 40 s late (here: asleep) still meets the others (two CI runs failed this way)."""
+    script = tmp_path / "late.py"
+    script.write_text(_LATE_CHILD)
+    cmd = [sys.executable, "-m", "placejax.training.launch", "-n", "2", "--devices-per-process", "1", "--"]
+    done = subprocess.run(
+        [*cmd, sys.executable, str(script), str(tmp_path), "40"], cwd=REPO, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-6000:]
+    # (1 + 2) * (0 + 1 + 2 + 3): each process's row times the replicated weights, summed over both processes.
+    assert [float((tmp_path / f"total{k}").read_text()) for k in range(2)] == [18.0, 18.0]

@@ -62,6 +62,7 @@ from placejax.training import (
     map_batches,
     predict,
     replicate,
+    sync_processes,
     train,
 )
 
@@ -811,8 +812,13 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
     workdir.mkdir(parents=True, exist_ok=True)
     if jax.process_index() == 0:
         with workdir_lock(workdir):
-            return _run(config, workdir, mesh, t_start)
-    return _run(config, workdir, mesh, t_start)
+            results = _run(config, workdir, mesh, t_start)
+    else:
+        results = _run(config, workdir, mesh, t_start)
+    # Several processes leave together: JAX's shutdown barrier at exit gives a late process only 5 minutes, and the
+    # first one writes the results and figures while the others are done.
+    sync_processes("cross_season finished")
+    return results
 
 
 def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Mesh, t_start: float) -> dict:

@@ -7,9 +7,10 @@ Public surface:
     train_step, predict_step: pure ``(state, batch, key)`` / ``(state, x)`` functions, jitted; the loss is a
         static *objective* (``classification_loss`` by default; the depth network brings its own); the step key
         is ``fold_in(key, state.step)`` so a resumed run draws the same randomness as an uninterrupted one.
-    data_mesh, shard_batch, replicate, initialize_distributed, local_copy, spans_processes: ``jax.sharding``
-        data parallelism (batch axis sharded over all devices, parameters replicated), several processes or hosts
-        via ``jax.distributed`` (``python -m placejax.training.launch`` starts N processes on one machine).
+    data_mesh, shard_batch, replicate, initialize_distributed, local_copy, spans_processes, sync_processes:
+        ``jax.sharding`` data parallelism (batch axis sharded over all devices, parameters replicated), several
+        processes or hosts via ``jax.distributed`` (``python -m placejax.training.launch`` starts N processes on
+        one machine); every collective phase (``fit``, ``predict``, ``replicate``) starts at a barrier.
     Checkpointer: orbax ``CheckpointManager`` around a TrainState (save every k steps, resume the latest).
     train / fit: the training loop over random-access batches (``placejax.data.train_dataset``), resumable.
     predict, map_batches: batched inference over a session / fixed-size batched mapping of any function.
@@ -24,6 +25,7 @@ from placejax.training._sharding import (
     replicate,
     shard_batch,
     spans_processes,
+    sync_processes,
 )
 from placejax.training._state import TrainState, apply_fn, create_state, make_optimizer
 from placejax.training._steps import Objective, classification_loss, predict_step, train_step
@@ -46,6 +48,7 @@ __all__ = [
     "replicate",
     "shard_batch",
     "spans_processes",
+    "sync_processes",
     "train",
     "train_step",
 ]

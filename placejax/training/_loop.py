@@ -17,7 +17,7 @@ from jax.sharding import Mesh
 from tqdm import tqdm
 
 from placejax.training._checkpoint import Checkpointer
-from placejax.training._sharding import replicate, shard_batch, spans_processes
+from placejax.training._sharding import replicate, shard_batch, spans_processes, sync_processes
 from placejax.training._state import TrainState, create_state
 from placejax.training._steps import Objective, classification_loss, predict_step, train_step
 
@@ -63,6 +63,8 @@ def fit(
     Returns:
         ``(final state, per-step metrics of the steps run in this call)``.
     """
+    if spans_processes(mesh):
+        sync_processes(desc)  # each step is a collective: start together (gloo gives a late process 30 s)
     if checkpointer is not None and checkpointer.latest_step() is not None:
         state = checkpointer.restore(state)
     start = int(state.step)
@@ -210,6 +212,8 @@ def predict(
     Returns:
         ``{"logits": float32 (n, C), <feature>: float32 (n, D), ...}``.
     """
+    if spans_processes(mesh):
+        sync_processes(desc)  # each batch is a collective: start together
     out: dict[str, np.ndarray] = {}
     seen = np.zeros(n, bool)
     for k in tqdm(range(len(batches)), desc=desc, unit="batch", disable=not progress):

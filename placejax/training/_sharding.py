@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 from collections.abc import Sequence
 from typing import Any
@@ -9,11 +10,15 @@ from typing import Any
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from orbax.checkpoint import multihost
 
 DATA_AXIS = "data"
 
-# Environment variables that mean "this process is one of several launched together".
-_MULTI_HOST_ENV = ("JAX_COORDINATOR_ADDRESS", "COORDINATOR_ADDRESS")
+# How long a process waits at sync_processes for the others: as long as one may spend alone on work the others
+# skip or read from its cache (rendering, depth, features on a busy machine). A process that dies is noticed by
+# the coordination service's heartbeats long before, and the launcher stops the job at once.
+SYNC_TIMEOUT_S = 3600
+_sync_count = itertools.count()
 
 
 def initialize_distributed() -> bool:
@@ -39,6 +44,25 @@ def initialize_distributed() -> bool:
     else:
         jax.distributed.initialize()  # cluster auto-detection
     return True
+
+
+def sync_processes(name: str, timeout_s: float = SYNC_TIMEOUT_S) -> None:
+    """Waits until every process of the job has reached this call (a barrier of JAX's coordination service, not
+    a device collective); returns at once in a single-process job.
+
+    Every process must make the same sequence of calls. Why: on CPU, cross-process collectives go through gloo,
+    which gives the other processes 30 s to join a new communicator; a process that arrives at a collective phase
+    later than that (it compiled, rendered or built a cache the others then read) fails the job with "Gloo context
+    initialization failed". ``replicate`` onto a mesh that spans processes calls this first, so every training
+    and inference phase starts with the processes together.
+
+    Raises:
+        jax.errors.JaxRuntimeError: a process did not arrive within ``timeout_s``.
+    """
+    if jax.process_count() == 1:
+        return
+    barrier = multihost.get_barrier_sync_fn()
+    barrier(key=f"placejax/{next(_sync_count)}/{name}", timeout_ms=int(timeout_s * 1000))
 
 
 def spans_processes(mesh: Mesh) -> bool:
@@ -75,7 +99,11 @@ def data_mesh(devices: Sequence[jax.Device] | int | None = None) -> Mesh:
 
 
 def replicate(tree: Any, mesh: Mesh) -> Any:
-    """Places every leaf on every device of the mesh (parameters, optimiser state)."""
+    """Places every leaf on every device of the mesh (parameters, optimiser state). On a mesh that spans
+    processes this is the first collective of a phase (each leaf is checked equal on every process): it waits for
+    the other processes first (``sync_processes``)."""
+    if spans_processes(mesh):
+        sync_processes("replicate")
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
 
 
