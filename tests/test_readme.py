@@ -144,3 +144,25 @@ def test_help_shows_every_presets_values():
             for part in key.split("."):
                 node = node[part]
             assert f"{name}={node!r}" in block, (key, name, block)
+
+
+def test_the_test_command_keeps_a_group_on_one_worker(tmp_path):
+    """The README's ``--dist loadgroup`` sends every test of an ``xdist_group`` to one worker, so a module fixture
+    (a smoke run of minutes) is built once. pytest 9.2 with pytest-xdist 3.8 broke this silently (xdist renames
+    ``item._nodeid``, which pytest 9.2 no longer reads): both workers built each smoke run."""
+    (tmp_path / "test_grouped.py").write_text(
+        "import os, time, pytest\n"
+        "pytestmark = pytest.mark.xdist_group('one')\n"
+        "@pytest.mark.parametrize('i', range(6))\n"
+        "def test_worker(i):\n"
+        "    time.sleep(0.2)\n"
+        "    print('WORKER', os.environ['PYTEST_XDIST_WORKER'])\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadgroup", "-rA", "-p", "no:cacheprovider",
+         "test_grouped.py"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    workers = re.findall(r"^WORKER (gw\d+)$", out.stdout, re.MULTILINE)
+    assert len(workers) == 6 and len(set(workers)) == 1, out.stdout
