@@ -61,6 +61,7 @@ from placejax.training import (
     make_optimizer,
     map_batches,
     predict,
+    release_free_memory,
     replicate,
     sync_processes,
     train,
@@ -832,8 +833,12 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         grid = fit_grid(ctx, sessions)
     num_classes = grid.num_classes
     compute_depth_and_hha(ctx, sessions)
+    release_free_memory()  # what the depth network's inference and the HHA encoder freed
     # Every net and MLP is trained once per seed (seed, seed + 1, ...); the table reports the mean over seeds.
-    runs = [_train_and_predict(ctx, sessions, num_classes, config.seed + k) for k in range(config.n_seeds)]
+    runs = []
+    for k in range(config.n_seeds):
+        runs.append(_train_and_predict(ctx, sessions, num_classes, config.seed + k))
+        release_free_memory()
     nets, outputs, fused, mlp_dirs = runs[0]  # the first seed's models: figures and PlaceClassifier
 
     with ctx.timed("baselines"):

@@ -14,10 +14,12 @@ Public surface:
     Checkpointer: orbax ``CheckpointManager`` around a TrainState (save every k steps, resume the latest).
     train / fit: the training loop over random-access batches (``placejax.data.train_dataset``), resumable.
     predict, map_batches: batched inference over a session / fixed-size batched mapping of any function.
+    release_free_memory: hands the C heap's freed memory back to the OS between the stages of a long pipeline.
 """
 
 from placejax.training._checkpoint import Checkpointer
 from placejax.training._loop import fit, map_batches, predict, train
+from placejax.training._memory import release_free_memory
 from placejax.training._sharding import (
     data_mesh,
     initialize_distributed,
@@ -45,6 +47,7 @@ __all__ = [
     "map_batches",
     "predict",
     "predict_step",
+    "release_free_memory",
     "replicate",
     "shard_batch",
     "spans_processes",
