@@ -833,12 +833,9 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         grid = fit_grid(ctx, sessions)
     num_classes = grid.num_classes
     compute_depth_and_hha(ctx, sessions)
-    release_free_memory()  # what the depth network's inference and the HHA encoder freed
+    release_free_memory()  # what the depth network's inference and the HHA encoder freed (train() releases its own)
     # Every net and MLP is trained once per seed (seed, seed + 1, ...); the table reports the mean over seeds.
-    runs = []
-    for k in range(config.n_seeds):
-        runs.append(_train_and_predict(ctx, sessions, num_classes, config.seed + k))
-        release_free_memory()
+    runs = [_train_and_predict(ctx, sessions, num_classes, config.seed + k) for k in range(config.n_seeds)]
     nets, outputs, fused, mlp_dirs = runs[0]  # the first seed's models: figures and PlaceClassifier
 
     with ctx.timed("baselines"):
