@@ -23,6 +23,7 @@ from placejax.training import (
     map_batches,
     predict,
     predict_step,
+    release_free_memory,
     replicate,
     shard_batch,
     train_step,
@@ -323,9 +324,12 @@ print(before, anon_kb())
 """
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RssAnon and malloc_trim are Linux / glibc's")
 def test_release_free_memory_returns_freed_heap_to_the_os():
-    """256 MB of freed 64 KB arrays below a live one stay resident until released (glibc keeps them)."""
+    """256 MB of freed 64 KB arrays below a live one stay resident until released (glibc keeps them). Off Linux
+    (no glibc, no RssAnon) the call must say that it did nothing."""
+    if not sys.platform.startswith("linux"):
+        assert release_free_memory() is False
+        return
     out = subprocess.run([sys.executable, "-c", _HEAP_SCRIPT], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     before, after = map(int, out.stdout.split())
