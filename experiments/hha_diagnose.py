@@ -1,6 +1,6 @@
 """What keeps HHA of predicted depth from telling places apart: the far-depth convention, blur, or the geometry.
 
-    python -m experiments.hha_diagnose WORKDIR [--network DIR [--flip-average] [key=value ...]]
+    python -m experiments.hha_diagnose WORKDIR [--network DIR [--flip-average] [--shift-px K ...] [key=value ...]]
 
 ``WORKDIR`` is a finished ``experiments.cross_season`` run on SimCampus (its ``grid.json`` and the ``cache/``
 with rendered and trained depth of the four sessions, e.g. ``data.world_seed=1`` for a world other than the
@@ -17,7 +17,8 @@ and objects (the rest), and AbsRel without the sky.
 ``--network DIR`` takes the predicted depth from another depth network, a finished ``experiments.train_depth
 --workdir DIR [key=value ...]`` run (give the same overrides), instead of the run's cached one: how depth-network
 variants are compared on a world none of them trained on; ``--flip-average`` predicts as the experiment does with
-``depth.flip_average`` (the mean log depth of each image and its mirror image). Only depth and HHA: no place
+``depth.flip_average`` (the mean log depth of each image and its mirror image), ``--shift-px 2 4`` as it does with
+``depth.shift_px`` (also the image shifted sideways by ±2 and ±4 px). Only depth and HHA: no place
 classifier is trained and no fusion number is read.
 """
 
@@ -50,7 +51,9 @@ def _log_blur(depth: np.ndarray, sigma: float) -> np.ndarray:
     return np.stack([np.exp(cv2.GaussianBlur(np.log(d), (0, 0), sigma)) for d in depth]).astype(np.float32)
 
 
-def _network_depth(run: Path, overrides: list[str], images: dict, flip_average: bool) -> dict[str, np.ndarray]:
+def _network_depth(
+    run: Path, overrides: list[str], images: dict, flip_average: bool, shifts: tuple[int, ...] = ()
+) -> dict[str, np.ndarray]:
     """Metric depth of every session frame from the finished depth-training run in ``run``."""
     from experiments.train_depth import parse_overrides
     from placejax import depth
@@ -62,7 +65,10 @@ def _network_depth(run: Path, overrides: list[str], images: dict, flip_average: 
     for s in SESSIONS:
         x = np.asarray(images[s].data)
         out[s] = np.concatenate(
-            [trained.predict_metric(x[i : i + 64], flip_average=flip_average) for i in range(0, len(x), 64)]
+            [
+                trained.predict_metric(x[i : i + 64], flip_average=flip_average, shifts=shifts)
+                for i in range(0, len(x), 64)
+            ]
         )
     return out
 
@@ -91,10 +97,15 @@ def main() -> None:
     parser.add_argument("workdir", type=Path)
     parser.add_argument("--network", type=Path, default=None, help="finished experiments.train_depth run folder")
     parser.add_argument("--flip-average", action="store_true", help="--network: average with the mirror image")
+    parser.add_argument(
+        "--shift-px", type=int, nargs="+", default=[], help="--network: also average over views shifted by ±K px"
+    )
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="the --network run's config overrides")
     args = parser.parse_intermixed_args()
-    if (args.overrides or args.flip_average) and args.network is None:
-        parser.error("key=value overrides and --flip-average describe the --network run: give --network DIR")
+    if (args.overrides or args.flip_average or args.shift_px) and args.network is None:
+        parser.error(
+            "key=value overrides, --flip-average and --shift-px describe the --network run: give --network DIR"
+        )
     root = args.workdir
     grid = PlaceGrid.load(root / "grid.json")
     images = {s: _cache(root, s, "rgb[0-9]*") for s in SESSIONS}  # the session frames, e.g. WI-rgb64x64-…
@@ -104,7 +115,7 @@ def main() -> None:
     if args.network is None:
         predicted = {s: np.asarray(_cache(root, s, "depth-trained").data, np.float32) for s in SESSIONS}
     else:
-        predicted = _network_depth(args.network, args.overrides, images, args.flip_average)
+        predicted = _network_depth(args.network, args.overrides, images, args.flip_average, tuple(args.shift_px))
 
     def encode(d: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """HHA images and angles with gravity of one session's depth."""

@@ -327,12 +327,20 @@ def test_whole_config_is_validated_before_any_stage(tmp_path):
             "train.learning_rate=1e999",
             "depth.source=bogus",
             "train.batch_size=15",
+            "depth.shift_px=(2, 0)",
         ],
     )
     with pytest.raises(ValueError) as err:
         run(cfg, tmp_path / "never")
     msg = str(err.value)
-    for key in ("data.sessions", "train.epochs", "train.learning_rate", "depth.source", "train.batch_size=15"):
+    for key in (
+        "data.sessions",
+        "train.epochs",
+        "train.learning_rate",
+        "depth.source",
+        "train.batch_size=15",
+        "depth.shift_px",
+    ):
         assert key in msg, key
     assert not (tmp_path / "never").exists()  # failed before the first stage wrote anything
     for preset in ("smoke", "default", "paper"):

@@ -51,6 +51,7 @@ HELP: dict[str, str] = {
     "depth.far_m": "metric depth assigned to the 2nd percentile of inverse depth (m)",
     "depth.far_as_sky_m": "metric depth nets: predictions at or beyond this (m) become sky (1000 m) for HHA; 0 = off",
     "depth.flip_average": "metric depth nets: average the log depth of each image and of its mirror image",
+    "depth.shift_px": "metric depth nets: also average over the image shifted sideways by ±k px, each k (() = off)",
     "depth.batch_size": "images per depth-network / HHA call",
     "vgg.width": "channel multiplier of VGG16 (1.0 = VGG16)",
     "vgg.pretrained": "ImageNet weights: freeze the convs, cache their features, train fc6–fc8 only",
@@ -109,10 +110,11 @@ def _base() -> ml_collections.ConfigDict:
         trained_cache="",
         near_m=1.0,
         far_m=50.0,
-        # Both chosen on world 1 with experiments.hha_diagnose (README, depth-network section); used only with a
-        # metric trained network (placejax.depth.far_to_sky, TrainedDepth.predict_metric(flip_average=)).
+        # Chosen on world 1 with experiments.hha_diagnose (README, depth-network section); used only with a
+        # metric trained network (placejax.depth.far_to_sky, TrainedDepth.predict_metric(flip_average=, shifts=)).
         far_as_sky_m=50.0,
         flip_average=True,
+        shift_px=(2, 4),
         batch_size=64,
     )
     # The HHA net reads a trunk pretrained on HHA images (placejax.pretrain, modality=hha): chosen on world 1
@@ -248,6 +250,12 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
     for key in ("vgg.dropout", "mlp.dropout"):
         if isinstance(get(c, key), int | float) and get(c, key) >= 1:
             errors.append(f"{key}={get(c, key)!r}: a dropout rate must be < 1")
+    from placejax.depth import validate_shifts
+
+    try:
+        validate_shifts(get(c, "depth.shift_px"), width=c.data.image_size[1] if len(c.data.image_size) == 2 else None)
+    except (TypeError, ValueError) as e:
+        errors.append(f"depth.shift_px: {e}")
     if not get(c, "depth.near_m") < get(c, "depth.far_m"):
         errors.append(f"depth.near_m={c.depth.near_m!r} must be below depth.far_m={c.depth.far_m!r}")
     sessions = tuple(c.data.sessions)

@@ -221,12 +221,16 @@ def _depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionDat
         def trained_depth(s: SessionData, a: int, b: int) -> np.ndarray:
             x = np.asarray(s.cached.images[a:b])
             if trained.metric:
-                return _depth.far_to_sky(trained.predict_metric(x, flip_average=c.flip_average), c.far_as_sky_m)
+                return _depth.far_to_sky(
+                    trained.predict_metric(x, flip_average=c.flip_average, shifts=tuple(c.shift_px)), c.far_as_sky_m
+                )
             return to_metric(trained.predict(x))
 
-        # A metric network's output is used in metres (flip-averaged, its far predictions as sky); a relative one
-        # goes through the percentile mapping.
+        # A metric network's output is used in metres (averaged over mirrored and shifted views, its far
+        # predictions as sky); a relative one goes through the percentile mapping.
         how = {"far_as_sky_m": c.far_as_sky_m, "flip_average": c.flip_average} if trained.metric else metric
+        if trained.metric and tuple(c.shift_px):  # (absent when off: caches of runs before the setting stay valid)
+            how["shift_px"] = [int(k) for k in c.shift_px]
         return {"source": "trained", "fingerprint": trained.fingerprint, **how}, trained_depth
     raise ValueError(f"depth.source must be 'trained', 'midas' or 'true', got {source!r}")
 

@@ -18,7 +18,7 @@ from placejax.classify import _artefact, _run_layout
 from placejax.classify import _unknown as unknown
 from placejax.data import PlaceGrid
 from placejax.data.camera import resize_image
-from placejax.depth import depth_from_log, far_to_sky, network_size
+from placejax.depth import average_views, depth_from_log, far_to_sky, network_size
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, VGG16, FusionMLP, MidasSmall, cpu_compiler_options, resize
 
 BRANCHES = ("fusion", "rgb", "hha")
@@ -97,6 +97,7 @@ class _Spec:
     depth_metric: bool = False  # the depth network predicts metric log depth
     far_as_sky_m: float = 0.0  # metric networks: predictions at or beyond this become sky (0 = off)
     flip_average: bool = False  # metric networks: mean log depth of the image and of its mirror image
+    shifts: tuple[int, ...] = ()  # metric networks: and of the image shifted sideways by ±k px for each k
 
 
 # ---------------------------------------------------------------------------------------------------- stages
@@ -107,24 +108,24 @@ def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
 
     The MiDaS transform (bicubic resize to the network size, ImageNet normalisation), the network, the bicubic
     resize back and the percentile mapping to metres (``hha.inverse_depth_to_metric``) — or, for a metric
-    log-depth network, ``placejax.depth.depth_from_log`` (of the flip-averaged log depth, as
-    ``TrainedDepth.predict_metric(flip_average=True)``) and ``placejax.depth.far_to_sky``.
+    log-depth network, ``placejax.depth.depth_from_log`` (of the log depth averaged over mirrored and shifted
+    views, ``placejax.depth.average_views``, as ``TrainedDepth.predict_metric(flip_average=, shifts=)``) and
+    ``placejax.depth.far_to_sky``.
     """
-    x = rgb.astype(jnp.float32) / 255.0
-    if tuple(x.shape[1:3]) != spec.depth_net_size:
-        x = resize(x, spec.depth_net_size, "bicubic", align_corners=False)
-    x = (x - jnp.asarray(IMAGENET_MEAN).reshape(1, 1, 1, 3)) / jnp.asarray(IMAGENET_STD).reshape(1, 1, 1, 3)
+    mean = jnp.asarray(IMAGENET_MEAN).reshape(1, 1, 1, 3)
+    std = jnp.asarray(IMAGENET_STD).reshape(1, 1, 1, 3)
 
-    def network(x):
-        out = spec.depth_model.apply(depth_vars, x, train=False)
+    def network(x):  # [0, 1] images at the input size → the network's output at the input size
+        if tuple(x.shape[1:3]) != spec.depth_net_size:
+            x = resize(x, spec.depth_net_size, "bicubic", align_corners=False)
+        out = spec.depth_model.apply(depth_vars, (x - mean) / std, train=False)
         return resize(out[..., None], tuple(rgb.shape[1:3]), "bicubic", align_corners=False)[..., 0]
 
-    out = network(x)
+    x = rgb.astype(jnp.float32) / 255.0
     if spec.depth_metric:  # a metric log-depth network (placejax.depth, target="log_metric")
-        if spec.flip_average:
-            out = 0.5 * (out + network(x[:, :, ::-1])[:, :, ::-1])
+        out = average_views(network, x, flip=spec.flip_average, shifts=spec.shifts)
         return far_to_sky(depth_from_log(out), spec.far_as_sky_m)
-    return _hha.inverse_depth_to_metric(out, near_m=spec.near_m, far_m=spec.far_m)
+    return _hha.inverse_depth_to_metric(network(x), near_m=spec.near_m, far_m=spec.far_m)
 
 
 def stage_hha(spec: _Spec, depth_m: jax.Array) -> jax.Array:
@@ -245,6 +246,7 @@ class PlaceClassifier:
             depth_metric=bool(d.get("metric", False)),
             far_as_sky_m=float(d.get("far_as_sky_m", 0.0)),  # runs from before these settings: off, as they were
             flip_average=bool(d.get("flip_average", False)),
+            shifts=tuple(int(k) for k in d.get("shifts", ())),
         )
 
     def _check_params(self) -> None:
@@ -295,6 +297,7 @@ class PlaceClassifier:
                 "metric": dcfg.metric,
                 "far_as_sky_m": float(cfg["depth"].get("far_as_sky_m", 0.0)) if dcfg.metric else 0.0,
                 "flip_average": bool(cfg["depth"].get("flip_average", False)) and dcfg.metric,
+                "shifts": [int(k) for k in cfg["depth"].get("shift_px", ())] if dcfg.metric else [],
                 "source": {"dir": d["dir"], "fingerprint": dcfg.fingerprint()},
             }
         elif d["source"] == "midas":

@@ -20,6 +20,7 @@ from placejax.depth._losses import (
 )
 from placejax.depth._metrics import aligned_depth, depth_metrics
 from placejax.depth._train import PRESETS, DepthObjective, DepthTrainConfig, TrainedDepth, load_trained, train
+from placejax.depth._views import average_views, shift_columns, validate_shifts
 
 __all__ = [
     "LOG_DEPTH_UNIT_M",
@@ -29,6 +30,7 @@ __all__ = [
     "TrainedDepth",
     "align_least_squares",
     "aligned_depth",
+    "average_views",
     "baseline_predictions",
     "depth_from_log",
     "depth_metrics",
@@ -47,8 +49,10 @@ __all__ = [
     "preprocess",
     "report_markdown",
     "run_dir",
+    "shift_columns",
     "ssi_mse",
     "ssi_trimmed_mae",
     "train",
+    "validate_shifts",
     "write_report",
 ]

@@ -25,6 +25,7 @@ import numpy as np
 
 from placejax import training
 from placejax.depth._losses import depth_from_log, log_depth, log_metric_loss, midas_loss
+from placejax.depth._views import average_views
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall
 
 # Bumped whenever the training recipe changes in a way the config does not show, so that a cached network of an
@@ -399,22 +400,23 @@ class TrainedDepth:
         out = self._raw(images)
         return np.asarray(1.0 / depth_from_log(out), np.float32) if self.metric else out
 
-    def predict_metric(self, images: np.ndarray, *, flip_average: bool = False) -> np.ndarray:
+    def predict_metric(
+        self, images: np.ndarray, *, flip_average: bool = False, shifts: tuple[int, ...] = ()
+    ) -> np.ndarray:
         """``(N, H, W, 3)`` uint8 RGB → float32 ``(N, H, W)`` depth in metres (metric networks only).
 
         ``flip_average``: the mean of the log depth predicted for the image and, mirrored back, for its mirror
         image (a geometric mean in metres): the network was trained on random flips, so both are predictions of
-        the same scene, and their mean is steadier from frame to frame.
+        the same scene, and their mean is steadier from frame to frame. ``shifts``: also the image shifted
+        sideways by ±k pixels for each k (and, with ``flip_average``, their mirror images), each prediction
+        shifted back; columns a view made up at the image's edge do not count (``placejax.depth.average_views``).
         """
         if not self.metric:
             raise ValueError(
                 "this depth network predicts relative inverse depth (target='inverse'): map it to metres with "
                 "placejax.hha.inverse_depth_to_metric"
             )
-        out = self._raw(images)
-        if flip_average:
-            images = np.asarray(images)
-            out = 0.5 * (out + self._raw(images[..., ::-1, :])[..., ::-1])
+        out = average_views(self._raw, np.asarray(images), flip=flip_average, shifts=shifts)
         return np.asarray(depth_from_log(out), np.float32)
 
     def _raw(self, images: np.ndarray) -> np.ndarray:
