@@ -279,7 +279,8 @@ def _shifted_views_by_hand(raw, x, shifts):
 def test_shifted_views_average_the_networks_log_depth_over_real_columns(uninterrupted_dir):
     """``predict_metric(flip_average=True, shifts=(2, 5))`` is exp of the mean log depth over the image, its
     mirror and their copies shifted by ±2 and ±5 px, each mapped back, made-up edge columns left out — checked
-    against a recomputation by hand; the same function inside ``jit`` gives the same."""
+    against a recomputation by hand; the same function inside ``jit`` (views called one by one or through
+    ``lax.map``) gives the same."""
     trained = depth.load_trained(uninterrupted_dir, CFG)
     x = np.random.default_rng(1).integers(0, 256, (2, 40, 48, 3), dtype=np.uint8)
     averaged = trained.predict_metric(x, flip_average=True, shifts=(2, 5))
@@ -293,6 +294,8 @@ def test_shifted_views_average_the_networks_log_depth_over_real_columns(uninterr
     eager = depth.average_views(net, f, flip=True, shifts=(2, 5))
     jitted = jax.jit(lambda v: depth.average_views(net, v, flip=True, shifts=(2, 5)))(f)
     np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=1e-6)
+    mapped = jax.jit(lambda v: depth.average_views(net, v, flip=True, shifts=(2, 5), map_views=jax.lax.map))(f)
+    np.testing.assert_allclose(np.asarray(mapped), np.asarray(eager), rtol=1e-6)
     # A per-pixel network sees every real column unchanged in every view: the mean is its own output, which
     # only holds if made-up columns are left out and every view is shifted back the right way.
     np.testing.assert_allclose(np.asarray(eager), np.asarray(net(f)), atol=1e-5)

@@ -123,7 +123,7 @@ def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
 
     x = rgb.astype(jnp.float32) / 255.0
     if spec.depth_metric:  # a metric log-depth network (placejax.depth, target="log_metric")
-        out = average_views(network, x, flip=spec.flip_average, shifts=spec.shifts)
+        out = average_views(network, x, flip=spec.flip_average, shifts=spec.shifts, map_views=jax.lax.map)
         return far_to_sky(depth_from_log(out), spec.far_as_sky_m)
     return _hha.inverse_depth_to_metric(network(x), near_m=spec.near_m, far_m=spec.far_m)
 
