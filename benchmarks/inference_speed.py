@@ -4,7 +4,8 @@
 
 Two model sizes, both with random weights of the exact architectures (speed does not depend on the values):
     builtin: the default SimCampus preset — 64×64 images, the placejax metric depth network (MidasSmall
-        features 16, encoder ×0.35, run at 64×64), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
+        features 16, encoder ×0.35, run at 64×64) over the preset's views (the image, its mirror and copies
+        shifted by ±2 and ±4 px: ten passes), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
     paper: the paper's setting — 256×256 images, MiDaS v2.1 small (official size, run at 256×256), ImageNet
         VGG16 at full width (conv features rounded to float16 as the experiment caches them), MLP 8192 → 1024 → 100.
 
@@ -40,6 +41,15 @@ _SIZES = {
 }
 
 
+def _default_depth_views() -> dict:
+    """The default preset's depth views and sky step (what its classifiers run: mirror, ±2 and ±4 px, sky from
+    50 m on), read from the experiment's config so that the benchmark follows it."""
+    from experiments.cross_season.config import get_config
+
+    d = get_config("default").depth
+    return {"far_as_sky_m": d.far_as_sky_m, "flip_average": d.flip_average, "shifts": list(d.shift_px)}
+
+
 def synthetic_classifier(size: str, seed: int = 0) -> PlaceClassifier:
     """A classifier of the given size with random weights (He-scaled, so activations stay finite)."""
     s = _SIZES[size]
@@ -59,6 +69,7 @@ def synthetic_classifier(size: str, seed: int = 0) -> PlaceClassifier:
             "near_m": 1.0,
             "far_m": s["far_m"],
             "metric": s["metric"],
+            **(_default_depth_views() if s["metric"] else {}),
         },
         "vgg": {"width": s["vgg"][0], "pretrained": s["vgg"][1]},
         "mlp_hidden": 1024,
