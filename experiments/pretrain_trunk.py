@@ -7,7 +7,10 @@ The pretext (``placejax.pretrain``): place classification (grid cell × heading 
 cross-look contrastive term, every view rendered twice with independent random looks per object and frame —
 never the evaluation campus, never its season palettes. ``modality=hha`` pretrains the trunk of the HHA
 net instead: the two versions of a view are HHA images of its depth in summer's and in another season's geometry,
-each perturbed as a monocular depth network errs (``placejax.pretrain.perturb_depth``). Without ``--workdir`` the
+each perturbed as a monocular depth network errs (``placejax.pretrain.perturb_depth``), or, with
+``hha_depth=trained:default``, as the experiment's default depth network predicts it from each version rendered
+in a random look (``placejax.pretrain.network_depth``; trained into the cache first if missing). Without
+``--workdir`` the
 run lives in the cache (``$PLACEJAX_CACHE/pretrain/<preset>-<config hash>``). A killed run resumes from its last
 checkpoint when the same command is run again. ``pretrain_eval.json`` in the run folder holds the held-out
 cross-look recall@1 of the trunk and of raw pixels, 12 × 12 gradient and 16 × 16 colour thumbnails and an

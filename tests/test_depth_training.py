@@ -114,6 +114,33 @@ def test_ensure_trained_trains_once_and_reports(uninterrupted_dir, tmp_path, mon
     assert out.shape == (2, 40, 48) and np.all(np.isfinite(out))
 
 
+def test_network_depth_is_the_experiments_default_depth_stage(uninterrupted_dir, tmp_path, monkeypatch):
+    """``placejax.pretrain.network_depth("trained:<preset>")`` (the HHA trunk's pretraining depth) finds the cached
+    network and predicts what the experiment's default depth stage hands to HHA: mirror and ±2, ±4 px views
+    averaged, everything from 50 m on as sky."""
+    from experiments.cross_season import config as experiment_config
+    from placejax.data.simcampus import SKY_DEPTH
+    from placejax.pretrain import _data
+
+    assert CFG == depth.PRESETS["smoke"]
+    shutil.copytree(uninterrupted_dir, depth.run_dir(CFG, "smoke", tmp_path))
+    monkeypatch.setenv("PLACEJAX_CACHE", str(tmp_path))
+    default = experiment_config.get_config("default").depth
+    assert (_data.NETWORK_FLIP, _data.NETWORK_SHIFTS, _data.NETWORK_SKY_FROM_M) == (
+        default.flip_average,
+        tuple(default.shift_px),
+        default.far_as_sky_m,
+    )
+    rgb = np.random.default_rng(0).integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)
+    got = _data.network_depth("trained:smoke", progress=False)(rgb)
+    trained = depth.load_trained(depth.run_dir(CFG, "smoke", tmp_path), CFG)
+    want = depth.far_to_sky(trained.predict_metric(rgb, flip_average=True, shifts=(2, 4)), 50.0, SKY_DEPTH)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    assert _data.network_depth("perturbed") is None
+    with pytest.raises(ValueError, match="hha_depth must be"):
+        _data.network_depth("trained:nonsense")
+
+
 def test_baselines_and_overrides():
     base = depth.baseline_predictions((2, 4, 3))
     assert base["farther_toward_top"][0, 0, 0] < base["farther_toward_top"][0, -1, 0]

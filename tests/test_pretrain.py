@@ -85,11 +85,11 @@ def test_ensure_trained_reuses_the_cached_run(smoke_run, monkeypatch):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-@pytest.mark.parametrize("name", [pretrain.SHIPPED, pretrain.SHIPPED_HHA])
+@pytest.mark.parametrize("name", [pretrain.SHIPPED, pretrain.SHIPPED_HHA, pretrain.SHIPPED_HHA_PREDICTED])
 def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall(name):
     params, meta = pretrain.load_shipped(name)
     cfg = pretrain.PretrainConfig(**meta["config"])
-    assert cfg.modality == ("hha" if name == pretrain.SHIPPED_HHA else "rgb")
+    assert cfg.modality == ("rgb" if name == pretrain.SHIPPED else "hha")
     s = cfg.image_size
     assert_spatial_map(s, cfg.width)
     template = VGG16(num_classes=100, width=cfg.width).init(jax.random.key(0), jnp.zeros((1, s, s, 3)))["params"]
@@ -168,6 +168,46 @@ def test_rgb_fingerprint_is_unchanged_by_the_modality_field():
     assert dataclasses.replace(default, modality="hha").fingerprint() != default.fingerprint()
     with pytest.raises(ValueError, match="modality"):
         dataclasses.replace(default, modality="depth")
+
+
+def test_hha_depth_field_keeps_the_shipped_hha_trunks_hash_and_is_validated():
+    """Runs on perturbed depth keep the cache hash recorded in the shipped HHA trunk; a trunk pretrained on a depth
+    network's predictions gets its own; bad values name the field."""
+    _, meta = pretrain.load_shipped(pretrain.SHIPPED_HHA)
+    recorded = {k: v for k, v in meta["config"].items() if k != "hha_depth"}
+    cfg = pretrain.PretrainConfig(**recorded)
+    assert cfg.hha_depth == "perturbed" and cfg.fingerprint() == meta["fingerprint"]
+    network = dataclasses.replace(cfg, hha_depth="trained:default")
+    assert network.fingerprint() != cfg.fingerprint()
+    with pytest.raises(ValueError, match="hha_depth must be"):
+        dataclasses.replace(cfg, hha_depth="trained:nonsense")
+    with pytest.raises(ValueError, match="needs modality='hha'"):
+        dataclasses.replace(pretrain.PRESETS["default"], hha_depth="trained:default")
+
+
+def test_hha_views_from_a_depth_function_encode_its_prediction_of_each_random_look():
+    """With a depth function, each version of a view is rendered in its own random look, the function sees that
+    RGB image, and the HHA image encodes exactly the depth it returns."""
+    from placejax import hha
+    from placejax.data import simcampus
+    from placejax.pretrain import _data
+
+    seen = []
+
+    def depth_fn(rgb):  # a stand-in network: a depth from the image's brightness
+        seen.append(rgb.copy())
+        return (2.0 + rgb.mean(-1) / 16.0).astype(np.float32)
+
+    hw = (32, 32)
+    poses = simcampus.random_poses(simcampus.make_world(8_000_000), np.random.default_rng(0), 3)
+    rng = np.random.default_rng(5)
+    a = _data.hha_views(8_000_000, poses, hw, rng, "SU", depth_fn)
+    b = _data.hha_views(8_000_000, poses, hw, rng, "SU", depth_fn)
+    assert [x.shape for x in seen] == [(3, 32, 32, 3)] * 2 and all(x.dtype == np.uint8 for x in seen)
+    assert np.abs(seen[0].astype(int) - seen[1]).mean() > 5  # two independent looks of the same views
+    k = simcampus.intrinsics(hw)
+    np.testing.assert_array_equal(a, np.asarray(hha.encode(depth_fn(seen[0]), k)))
+    assert not np.array_equal(a, b)
 
 
 def test_perturbed_depth_has_only_near_surfaces_and_sky():

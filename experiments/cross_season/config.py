@@ -118,12 +118,14 @@ def _base() -> ml_collections.ConfigDict:
         batch_size=64,
     )
     # The HHA net reads a trunk pretrained on HHA images (placejax.pretrain, modality=hha): chosen on world 1
-    # (HHA-Net across seasons 10.9 -> 16.2 %) and on held-out worlds (README, "A pretrained trunk without ImageNet").
+    # (HHA-Net across seasons 10.9 -> 16.2 %) and on held-out worlds (README, "A pretrained trunk without ImageNet");
+    # since 2026-12-03 on HHA of the default depth network's predictions (hha_depth=trained:default), chosen on
+    # world 1 by HHA-Net alone (18.1 / 18.3 -> 19.4 / 19.4 %, 2 seeds).
     c.vgg = dict(
         width=0.125,
         pretrained=True,
         weights="shipped:simcampus_places_w0125_s64",
-        hha_weights="shipped:simcampus_places_hha_w0125_s64",
+        hha_weights="shipped:simcampus_places_hha_predicted_w0125_s64",
         dropout=0.0,
     )
     c.train = dict(

@@ -6,10 +6,12 @@ palettes), on :class:`PretextObjective`, through ``placejax.training``'s one eng
 cross-look place retrieval on worlds it never saw (:func:`heldout_report`). The result of the ``default`` preset
 is shipped as ``placejax/pretrain/weights/<SHIPPED>.npz`` (:func:`load_shipped`), because a fresh machine cannot
 afford to pretrain; :func:`ensure_trained` reproduces it into the cache. ``PretrainConfig.modality="hha"``
-pretrains the trunk of the HHA net on HHA images of perturbed rendered depth (:func:`perturb_depth`).
+pretrains the trunk of the HHA net on HHA images of perturbed rendered depth (:func:`perturb_depth`), or, with
+``hha_depth="trained:<preset>"``, of what a trained placejax depth network predicts (:func:`network_depth`).
 """
 
 from placejax.pretrain._data import (
+    network_depth,
     perturb_depth,
     place_frames,
     place_labels,
@@ -28,6 +30,7 @@ from placejax.pretrain._lifecycle import (
     CHECK_FRAMES,
     SHIPPED,
     SHIPPED_HHA,
+    SHIPPED_HHA_PREDICTED,
     SHIPPED_PREFIX,
     ensure_trained,
     export_params,
@@ -58,6 +61,7 @@ __all__ = [
     "PRESETS",
     "SHIPPED",
     "SHIPPED_HHA",
+    "SHIPPED_HHA_PREDICTED",
     "SHIPPED_PREFIX",
     "PretextObjective",
     "PretrainConfig",
@@ -72,6 +76,7 @@ __all__ = [
     "load_shipped",
     "load_trained",
     "modality_weights",
+    "network_depth",
     "num_classes",
     "perturb_depth",
     "place_frames",

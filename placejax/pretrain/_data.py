@@ -9,7 +9,10 @@ bin, so its label is determined by geometry alone; appearance carries no informa
 For a trunk that reads HHA images (``modality="hha"``) a view's two versions are HHA images of its depth in two
 seasons' geometry (summer and one of the others: foliage, snow banks, parked cars), each through
 :func:`perturb_depth`, which imitates what a monocular depth network gets wrong (objects at the wrong distance,
-blur, the far range handed over as sky), so the pretext asks for what cross-season HHA recognition needs.
+blur, the far range handed over as sky), so the pretext asks for what cross-season HHA recognition needs. Or,
+with ``hha_depth="trained:<preset>"``, through the experiment's own depth network: each version is rendered in its
+own random look and its depth is what the trained network (``placejax.depth``) predicts from that RGB image, with
+the experiment's default views and sky step (:func:`network_depth`), so the trunk sees the errors it will meet.
 """
 
 from __future__ import annotations
@@ -37,6 +40,14 @@ PERTURB_LOG_SCALE = 0.3  # amplitude of the smooth log-depth error field
 PERTURB_FIELD_PX = 0.125  # its correlation length, as a share of the image width
 PERTURB_BLUR_PX = (0.0, 1.5)  # log-depth blur sigma, pixels at 64 x 64 (scaled with the width)
 PERTURB_SKY_FROM_M = (40.0, 70.0)
+
+# network_depth: the experiment's default depth views and sky step (its depth.flip_average, depth.shift_px and
+# depth.far_as_sky_m), so a trunk pretrained on the network's depth sees HHA made as the experiment makes it.
+NETWORK_FLIP = True
+NETWORK_SHIFTS = (2, 4)
+NETWORK_SKY_FROM_M = 50.0
+HHA_DEPTH_PERTURBED = "perturbed"
+HHA_DEPTH_TRAINED = "trained:"
 
 # One random look per frame (created once: a fresh jit wrapper per call would recompile every time).
 _random_looks = jax.jit(jax.vmap(simcampus.random_look))
@@ -133,23 +144,74 @@ def perturb_depth(depth_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
+def check_hha_depth(hha_depth: str) -> None:
+    """ValueError unless ``hha_depth`` is ``"perturbed"`` or ``"trained:<a placejax.depth preset>"``."""
+    from placejax.depth import PRESETS
+
+    if hha_depth == HHA_DEPTH_PERTURBED:
+        return
+    preset = hha_depth.removeprefix(HHA_DEPTH_TRAINED)
+    if not hha_depth.startswith(HHA_DEPTH_TRAINED) or preset not in PRESETS:
+        raise ValueError(
+            f"hha_depth must be {HHA_DEPTH_PERTURBED!r} or {HHA_DEPTH_TRAINED!r} + one of {sorted(PRESETS)}, "
+            f"got {hha_depth!r}"
+        )
+
+
+def network_depth(hha_depth: str, progress: bool = True):
+    """The depth function ``uint8 (N, H, W, 3) → float32 (N, H, W)`` m that ``hha_depth`` names, or None.
+
+    ``"perturbed"``: None (HHA views then come from :func:`perturb_depth` of rendered depth).
+    ``"trained:<preset>"``: that placejax depth network (``placejax.depth.ensure_trained``: loaded from the
+    cache, trained there first if missing), its prediction averaged over the mirror and ±2, ±4 px shifted views
+    and everything from 50 m on handed over as sky — the experiment's default depth stage.
+    """
+    check_hha_depth(hha_depth)
+    if hha_depth == HHA_DEPTH_PERTURBED:
+        return None
+    from placejax.depth import ensure_trained, far_to_sky
+
+    net = ensure_trained(hha_depth.removeprefix(HHA_DEPTH_TRAINED), progress=progress)
+
+    def depth_fn(rgb: np.ndarray) -> np.ndarray:
+        d = net.predict_metric(rgb, flip_average=NETWORK_FLIP, shifts=NETWORK_SHIFTS)
+        return far_to_sky(d, NETWORK_SKY_FROM_M, simcampus.SKY_DEPTH)
+
+    return depth_fn
+
+
 def hha_views(
-    world_seed: int, poses6: np.ndarray, hw: tuple[int, int], rng: np.random.Generator, season: str
+    world_seed: int,
+    poses6: np.ndarray,
+    hw: tuple[int, int],
+    rng: np.random.Generator,
+    season: str,
+    depth_fn=None,
 ) -> np.ndarray:
-    """HHA images ``uint8 (N, H, W, 3)`` of ``poses6`` in ``season``'s geometry, through :func:`perturb_depth`."""
-    depth = render_random_looks(world_seed, poses6, hw, jax.random.key(0), season=season)["depth"]
-    depth = perturb_depth(depth, rng)
+    """HHA images ``uint8 (N, H, W, 3)`` of ``poses6`` in ``season``'s geometry, through :func:`perturb_depth`, or,
+    given ``depth_fn`` (:func:`network_depth`), through what it predicts from each view rendered in a random look
+    drawn from ``rng``."""
+    if depth_fn is None:
+        depth = render_random_looks(world_seed, poses6, hw, jax.random.key(0), season=season)["depth"]
+        depth = perturb_depth(depth, rng)
+    else:
+        key = jax.random.key(int(rng.integers(2**31)))
+        rgb = render_random_looks(world_seed, poses6, hw, key, season=season)["rgb"]
+        depth = np.concatenate([depth_fn(rgb[i : i + 256]) for i in range(0, len(rgb), 256)])
     k = simcampus.intrinsics(hw)
     return np.concatenate([np.asarray(hha.encode(depth[i : i + 128], k)) for i in range(0, len(depth), 128)])
 
 
-def other_season_views(world_seed: int, poses6: np.ndarray, hw, rng: np.random.Generator) -> np.ndarray:
-    """HHA of each view in one of the non-summer seasons' geometry (view i: season i mod 3)."""
+def other_season_views(
+    world_seed: int, poses6: np.ndarray, hw, rng: np.random.Generator, depth_fn=None
+) -> np.ndarray:
+    """HHA of each view in one of the non-summer seasons' geometry (view i: season i mod 3); ``depth_fn`` as
+    :func:`hha_views`'."""
     out = np.empty((len(poses6), *hw, 3), np.uint8)
     for j, season in enumerate(("WI", "SP", "AU")):
         idx = np.arange(j, len(poses6), 3)
         if len(idx):
-            out[idx] = hha_views(world_seed, poses6[idx], hw, rng, season)
+            out[idx] = hha_views(world_seed, poses6[idx], hw, rng, season, depth_fn)
     return out
 
 
@@ -163,12 +225,15 @@ def place_frames(
     headings: int = 4,
     exclude_world_seeds=(0,),
     modality: str = "rgb",
+    hha_depth: str = HHA_DEPTH_PERTURBED,
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
     """Place-labelled views of ``n_worlds`` pretraining worlds, each in two versions.
 
     ``modality="rgb"``: the two versions are renderings with independent random looks. ``"hha"``: HHA images of
-    the view's depth in summer's geometry and in another season's, each through :func:`perturb_depth`.
+    the view's depth in summer's geometry and in another season's, each through :func:`perturb_depth`
+    (``hha_depth="perturbed"``) or predicted by a trained depth network (``"trained:<preset>"``,
+    :func:`network_depth`).
     Classes are numbered world by world (``world · grid² · headings + place_labels``); only some are occupied.
 
     Returns:
@@ -184,6 +249,7 @@ def place_frames(
     if modality not in MODALITIES:
         raise ValueError(f"modality must be one of {MODALITIES}, got {modality!r}")
     seeds = place_world_seeds(seed, n_worlds, exclude_world_seeds)
+    depth_fn = network_depth(hha_depth, progress) if modality == "hha" else None
     parts = []
     per_world = grid * grid * headings
     for w, ws in enumerate(tqdm.tqdm(seeds, desc="pretraining worlds", disable=not progress)):
@@ -192,7 +258,10 @@ def place_frames(
         poses = simcampus.random_poses(world, rng, frames_per_world)
         if modality == "hha":
             noise = np.random.default_rng([seed, 0x44A, w])
-            r = {"image": hha_views(ws, poses, hw, noise, "SU"), "image2": other_season_views(ws, poses, hw, noise)}
+            r = {
+                "image": hha_views(ws, poses, hw, noise, "SU", depth_fn),
+                "image2": other_season_views(ws, poses, hw, noise, depth_fn),
+            }
         else:
             key = jax.random.fold_in(jax.random.key(seed), w)
             r = {

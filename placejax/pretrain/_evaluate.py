@@ -29,10 +29,11 @@ from placejax.training import map_batches
 
 
 def heldout_frames(
-    seed: int, n: int, hw: tuple[int, int], *, world: int = 0, modality: str = "rgb"
+    seed: int, n: int, hw: tuple[int, int], *, world: int = 0, modality: str = "rgb", depth_fn=None
 ) -> dict[str, np.ndarray]:
     """``n`` views of held-out world ``world`` of validation seed ``seed``, rendered with two independent look sets
-    (``modality="hha"``: as HHA of perturbed depth in summer's and in other seasons' geometry).
+    (``modality="hha"``: as HHA of perturbed depth in summer's and in other seasons' geometry, or of ``depth_fn``'s
+    prediction, ``placejax.pretrain.network_depth``).
 
     Validation worlds use seeds ``place_world_seeds(seed, ...)``; pick a ``seed`` no pretraining run uses.
 
@@ -46,8 +47,8 @@ def heldout_frames(
     label = _data.place_labels(poses, _data.path_box(ws), 10, 4)
     if modality == "hha":
         noise = np.random.default_rng([seed, 0x44A, world])
-        gallery = _data.hha_views(ws, poses, hw, noise, "SU")
-        query = _data.other_season_views(ws, poses, hw, noise)
+        gallery = _data.hha_views(ws, poses, hw, noise, "SU", depth_fn)
+        query = _data.other_season_views(ws, poses, hw, noise, depth_fn)
         return {"gallery": gallery, "query": query, "label": label, "poses6": poses}
     key = jax.random.key(seed)
     a = _data.render_random_looks(ws, poses, hw, jax.random.fold_in(key, 1))

@@ -28,6 +28,9 @@ from placejax.pretrain._train import PRESETS, PretrainConfig, load_trained, trai
 SHIPPED = "simcampus_places_w0125_s64"
 # The HHA net's trunk, pretrained on HHA images (``modality="hha"``).
 SHIPPED_HHA = "simcampus_places_hha_w0125_s64"
+# The same, pretrained on HHA of the default depth network's predictions (``hha_depth="trained:default"``): the
+# experiment's HHA net reads this one.
+SHIPPED_HHA_PREDICTED = "simcampus_places_hha_predicted_w0125_s64"
 _EXPECTED_MINUTES = {"smoke": 1, "default": 45}
 
 
@@ -136,11 +139,17 @@ def modality_weights(vgg: Any, modality: str) -> str:
 
 
 def heldout_report(trunk_params, cfg: PretrainConfig, *, n_worlds: int = 2) -> dict:
-    """Cross-look recall@1 of the trunk and of the baselines on ``n_worlds`` held-out validation worlds."""
+    """Cross-look recall@1 of the trunk and of the baselines on ``n_worlds`` held-out validation worlds (HHA trunks:
+    their views made from the depth the trunk was pretrained on, ``cfg.hha_depth``)."""
+    from placejax.pretrain._data import network_depth
+
     s = cfg.image_size
+    depth_fn = network_depth(cfg.hha_depth) if cfg.modality == "hha" else None
     per_world = []
     for w in range(n_worlds):
-        frames = _evaluate.heldout_frames(cfg.eval_seed, cfg.eval_frames, (s, s), world=w, modality=cfg.modality)
+        frames = _evaluate.heldout_frames(
+            cfg.eval_seed, cfg.eval_frames, (s, s), world=w, modality=cfg.modality, depth_fn=depth_fn
+        )
         per_world.append(
             {
                 "trunk": _evaluate.evaluate_trunk(trunk_params, frames, cfg.width),
@@ -157,7 +166,8 @@ CHECK_FRAMES = 48
 
 def quick_check(trunk_params, cfg: PretrainConfig) -> dict[str, float]:
     """Cross-look recall@1 on ``CHECK_FRAMES`` views of held-out world 0 (a few seconds): the number a shipped
-    file records under ``meta["quick_check"]`` and ``tests/test_pretrain.py`` reproduces."""
+    file records under ``meta["quick_check"]`` and ``tests/test_pretrain.py`` reproduces. HHA trunks are checked
+    on HHA of perturbed depth whatever their ``hha_depth``, so the check needs no depth network."""
     s = cfg.image_size
     frames = _evaluate.heldout_frames(cfg.eval_seed, CHECK_FRAMES, (s, s), world=0, modality=cfg.modality)
     return _evaluate.evaluate_trunk(trunk_params, frames, cfg.width)

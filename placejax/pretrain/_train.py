@@ -28,7 +28,7 @@ import optax
 from placejax import training
 from placejax.data import simcampus
 from placejax.models import VGG16, he_init, imagenet_normalise
-from placejax.pretrain._data import MODALITIES
+from placejax.pretrain._data import HHA_DEPTH_PERTURBED, MODALITIES, check_hha_depth
 
 # Bumped whenever the recipe changes in a way the config does not show.
 _RECIPE_VERSION = 1
@@ -60,8 +60,12 @@ class PretrainConfig:
         eval_seed: seed of the held-out validation worlds (``heldout_frames``); must differ from ``seed``.
         eval_frames: held-out views per validation world.
         world_seed: the evaluation campus (never rendered here).
-        modality: what the trunk reads: ``"rgb"`` (two random looks of each view) or ``"hha"`` (HHA of perturbed
-            depth of each view in two seasons' geometry; ``placejax.pretrain.place_frames``).
+        modality: what the trunk reads: ``"rgb"`` (two random looks of each view) or ``"hha"`` (HHA of the depth
+            of each view in two seasons' geometry; ``placejax.pretrain.place_frames``).
+        hha_depth: ``modality="hha"`` only: where that depth comes from — ``"perturbed"`` (rendered depth through
+            ``placejax.pretrain.perturb_depth``) or ``"trained:<preset>"`` (that placejax depth network's
+            prediction from each version's RGB image, with the experiment's default views and sky step;
+            ``placejax.pretrain.network_depth``).
     """
 
     image_size: int = 64
@@ -85,6 +89,7 @@ class PretrainConfig:
     eval_frames: int = 256
     world_seed: int = 0
     modality: str = "rgb"
+    hha_depth: str = "perturbed"
 
     def __post_init__(self):
         for name in (
@@ -113,6 +118,9 @@ class PretrainConfig:
             raise ValueError("weight_decay must be finite and >= 0, dropout in [0, 1)")
         if self.modality not in MODALITIES:
             raise ValueError(f"modality must be one of {MODALITIES}, got {self.modality!r}")
+        check_hha_depth(self.hha_depth)
+        if self.hha_depth != HHA_DEPTH_PERTURBED and self.modality != "hha":
+            raise ValueError(f"hha_depth={self.hha_depth!r} needs modality='hha' (got {self.modality!r})")
         if self.eval_seed == self.seed:
             raise ValueError("eval_seed must differ from seed: validation worlds must be held out")
 
@@ -123,6 +131,8 @@ class PretrainConfig:
             fields.pop(k)
         if fields["modality"] == "rgb":  # RGB runs keep the hash they had before the field existed
             fields.pop("modality")
+        if fields["hha_depth"] == HHA_DEPTH_PERTURBED:  # so do runs on perturbed depth
+            fields.pop("hha_depth")
         fields["recipe_version"] = _RECIPE_VERSION
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
@@ -162,6 +172,7 @@ def training_frames(cfg: PretrainConfig, progress: bool = True) -> dict[str, np.
         headings=cfg.headings,
         exclude_world_seeds=(cfg.world_seed,),
         modality=cfg.modality,
+        hha_depth=cfg.hha_depth,
         progress=progress,
     )
     _, f["label"] = np.unique(f["label"], return_inverse=True)
