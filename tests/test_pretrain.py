@@ -177,8 +177,17 @@ def test_hha_depth_field_keeps_the_shipped_hha_trunks_hash_and_is_validated():
     recorded = {k: v for k, v in meta["config"].items() if k != "hha_depth"}
     cfg = pretrain.PretrainConfig(**recorded)
     assert cfg.hha_depth == "perturbed" and cfg.fingerprint() == meta["fingerprint"]
-    network = dataclasses.replace(cfg, hha_depth="trained:default")
-    assert network.fingerprint() != cfg.fingerprint()
+    network = dataclasses.replace(cfg, hha_depth="trained:default").fingerprint()
+    assert network != cfg.fingerprint()
+    # The named depth network's recipe is part of the hash: another default depth preset is another run.
+    from placejax import depth
+
+    other = dataclasses.replace(depth.PRESETS["default"], object_weight=8.0)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(depth.PRESETS, "default", other)
+        assert dataclasses.replace(cfg, hha_depth="trained:default").fingerprint() != network
+    _, meta = pretrain.load_shipped(pretrain.SHIPPED_HHA_PREDICTED)
+    assert pretrain.PretrainConfig(**meta["config"]).fingerprint() == meta["fingerprint"]
     with pytest.raises(ValueError, match="hha_depth must be"):
         dataclasses.replace(cfg, hha_depth="trained:nonsense")
     with pytest.raises(ValueError, match="needs modality='hha'"):

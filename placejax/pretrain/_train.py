@@ -28,7 +28,7 @@ import optax
 from placejax import training
 from placejax.data import simcampus
 from placejax.models import VGG16, he_init, imagenet_normalise
-from placejax.pretrain._data import HHA_DEPTH_PERTURBED, MODALITIES, check_hha_depth
+from placejax.pretrain._data import HHA_DEPTH_PERTURBED, HHA_DEPTH_TRAINED, MODALITIES, check_hha_depth
 
 # Bumped whenever the recipe changes in a way the config does not show.
 _RECIPE_VERSION = 1
@@ -133,6 +133,10 @@ class PretrainConfig:
             fields.pop("modality")
         if fields["hha_depth"] == HHA_DEPTH_PERTURBED:  # so do runs on perturbed depth
             fields.pop("hha_depth")
+        else:  # the named depth preset's recipe, so that a change of it makes a new run, not a stale cache hit
+            from placejax.depth import PRESETS as DEPTH_PRESETS
+
+            fields["hha_depth_network"] = DEPTH_PRESETS[self.hha_depth.removeprefix(HHA_DEPTH_TRAINED)].fingerprint()
         fields["recipe_version"] = _RECIPE_VERSION
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
