@@ -122,6 +122,13 @@ def test_export_round_trip_keeps_the_trunk_and_the_named_heads(tmp_path):
     assert set(pretrain.read_npz(tmp_path / "trunk.npz")[0]) == {"trunk"}
     for a, b in zip(jax.tree_util.tree_leaves(got["trunk"]), jax.tree_util.tree_leaves(params["trunk"]), strict=True):
         np.testing.assert_array_equal(a, np.asarray(b))
+    # An exported file is usable as it is wherever pretrained weights are named (vgg.weights, vgg.hha_weights).
+    loaded = pretrain.pretrained_vgg16(str(tmp_path / "t.npz"), width=cfg.width)
+    assert set(loaded) == {"trunk"}
+    for a, b in zip(jax.tree_util.tree_leaves(loaded["trunk"]), jax.tree_util.tree_leaves(got["trunk"]), strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match=r"t\.npz' is a width-0\.0625 trunk, not width 0\.125"):
+        pretrain.pretrained_vgg16(str(tmp_path / "t.npz"), width=0.125)
 
 
 def test_cli_overrides_are_typed_and_cache_folder_follows_the_config(tmp_path):

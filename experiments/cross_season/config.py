@@ -55,7 +55,8 @@ HELP: dict[str, str] = {
     "depth.batch_size": "images per depth-network / HHA call",
     "vgg.width": "channel multiplier of VGG16 (1.0 = VGG16)",
     "vgg.pretrained": "ImageNet weights: freeze the convs, cache their features, train fc6–fc8 only",
-    "vgg.weights": "vgg16-397923af.pth path ('' = registry / download), or shipped:NAME (placejax.pretrain's trunk)",
+    "vgg.weights": "vgg16-397923af.pth path ('' = registry / download), shipped:NAME (placejax.pretrain's trunk) or "
+    "an experiments.pretrain_trunk --export .npz",
     "vgg.hha_weights": "the HHA net's trunk, given as vgg.weights is ('' = vgg.weights; the 1-ch net reads that)",
     "vgg.dropout": "dropout after fc6 and fc7",
     "train.epochs": "epochs of each VGG16 place classifier",

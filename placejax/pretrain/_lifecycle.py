@@ -102,18 +102,23 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
 
     Args:
         weights: ``""`` for the registry's ImageNet weights (``placejax.weights.load("vgg16_imagenet")``, width
-            1.0), ``"shipped:<name>"`` for a trunk shipped with placejax (:func:`load_shipped`; trunk only), or
-            the path of a torchvision-layout ``torch.save`` file (read by the safe reader).
+            1.0), ``"shipped:<name>"`` for a trunk shipped with placejax (:func:`load_shipped`; trunk only), the
+            path of a ``.npz`` file written by :func:`save_npz` (``experiments.pretrain_trunk --export``; its
+            trunk only, as a shipped one), or the path of a torchvision-layout ``torch.save`` file (read by the
+            safe reader).
         width: the VGG16 channel multiplier the weights must have.
 
     Returns:
-        ``{"trunk": ..., "classifier": ...}`` (no ``"classifier"`` for a shipped trunk).
+        ``{"trunk": ..., "classifier": ...}`` (no ``"classifier"`` for a shipped or ``.npz`` trunk).
     """
     from placejax.models import VGG16
     from placejax.weights import convert_vgg16, load, read_torch_checkpoint
 
-    if weights.startswith(SHIPPED_PREFIX):
-        params, meta = load_shipped(weights[len(SHIPPED_PREFIX) :])
+    if weights.startswith(SHIPPED_PREFIX) or weights.endswith(".npz"):
+        if weights.startswith(SHIPPED_PREFIX):
+            params, meta = load_shipped(weights[len(SHIPPED_PREFIX) :])
+        else:
+            params, meta = read_npz(weights)
         if meta["config"]["width"] != width:
             raise ValueError(f"{weights!r} is a width-{meta['config']['width']} trunk, not width {width}")
         return {"trunk": params["trunk"]}
