@@ -10,11 +10,10 @@ net instead: the two versions of a view are HHA images of its depth in summer's 
 each perturbed as a monocular depth network errs (``placejax.pretrain.perturb_depth``), or, with
 ``hha_depth=trained:default``, as the experiment's default depth network predicts it from each version rendered
 in a random look (``placejax.pretrain.network_depth``; trained into the cache first if missing). Without
-``--workdir`` the
-run lives in the cache (``$PLACEJAX_CACHE/pretrain/<preset>-<config hash>``). A killed run resumes from its last
-checkpoint when the same command is run again. ``pretrain_eval.json`` in the run folder holds the held-out
-cross-look recall@1 of the trunk and of raw pixels, 12 × 12 gradient and 16 × 16 colour thumbnails and an
-untrained trunk.
+``--workdir`` the run lives in the cache (``$PLACEJAX_CACHE/pretrain/<preset>-<config hash>``). A killed run
+resumes from its last checkpoint when the same command is run again. ``pretrain_eval.json`` in the run folder
+holds the held-out cross-look recall@1 of the trunk and of raw pixels, 12 × 12 gradient and 16 × 16 colour
+thumbnails and an untrained trunk.
 """
 
 from __future__ import annotations

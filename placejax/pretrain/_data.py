@@ -205,8 +205,8 @@ def hha_views(
 def other_season_views(
     world_seed: int, poses6: np.ndarray, hw, rng: np.random.Generator, depth_fn=None
 ) -> np.ndarray:
-    """HHA of each view in one of the non-summer seasons' geometry (view i: season i mod 3); ``depth_fn`` as
-    :func:`hha_views`'."""
+    """HHA of each view in one of the non-summer seasons' geometry (view i: season i mod 3); ``depth_fn`` as in
+    :func:`hha_views`."""
     out = np.empty((len(poses6), *hw, 3), np.uint8)
     for j, season in enumerate(("WI", "SP", "AU")):
         idx = np.arange(j, len(poses6), 3)
