@@ -114,11 +114,9 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
     from placejax.models import VGG16
     from placejax.weights import convert_vgg16, load, read_torch_checkpoint
 
-    if weights.startswith(SHIPPED_PREFIX) or weights.endswith(".npz"):
-        if weights.startswith(SHIPPED_PREFIX):
-            params, meta = load_shipped(weights[len(SHIPPED_PREFIX) :])
-        else:
-            params, meta = read_npz(weights)
+    shipped = weights.startswith(SHIPPED_PREFIX)
+    if shipped or weights.endswith(".npz"):
+        params, meta = load_shipped(weights[len(SHIPPED_PREFIX) :]) if shipped else read_npz(weights)
         if meta["config"]["width"] != width:
             raise ValueError(f"{weights!r} is a width-{meta['config']['width']} trunk, not width {width}")
         return {"trunk": params["trunk"]}
