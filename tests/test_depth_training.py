@@ -231,6 +231,43 @@ def test_camera_height_range_reaches_the_rendered_poses_and_the_fingerprint():
             dataclasses.replace(CFG, camera_height_m=bad)
 
 
+def test_camera_tilt_follows_the_terrain_like_the_robot_and_reaches_the_frames_and_the_fingerprint():
+    """``camera_tilt="terrain"`` poses each training camera on the ground's slope as SimCampus's sessions pose the
+    robot's (pitch and roll from the slope along and across the heading, 0.5° wobble); ``"random"`` keeps the
+    ±6° / ±3° draws, the old poses and fingerprint; the config's value reaches the rendered frames; bad values
+    are refused with the field's name."""
+    from placejax.data import simcampus
+
+    world = simcampus.make_world(7)
+    random = simcampus.random_poses(world, np.random.default_rng(0), 400, (1.2, 1.5))
+    assert np.array_equal(random, simcampus.random_poses(world, np.random.default_rng(0), 400, (1.2, 1.5), "random"))
+    assert np.abs(np.degrees(random[:, 4])).max() <= 6 and np.abs(np.degrees(random[:, 5])).max() <= 3
+    terrain = simcampus.random_poses(world, np.random.default_rng(0), 400, (1.2, 1.5), "terrain")
+    assert np.array_equal(terrain[:, :4], random[:, :4])  # same places, heights and headings
+    gx, gy = world.height_grad(terrain[:, 0], terrain[:, 1])
+    yaw = terrain[:, 3]
+    wobble = {
+        "pitch": np.degrees(terrain[:, 4] - np.arctan(gx * np.cos(yaw) + gy * np.sin(yaw))),
+        "roll": np.degrees(terrain[:, 5] - np.arctan(-gx * np.sin(yaw) + gy * np.cos(yaw))),
+    }
+    for name, w in wobble.items():
+        assert abs(np.std(w) - 0.5) < 0.1 and np.abs(w).max() < 2.5, (name, np.std(w))
+    # The slope is what moves the camera: on this world it tilts the camera by more than the wobble alone.
+    assert np.std(np.degrees(terrain[:, 4])) > 1.0
+    with pytest.raises(ValueError, match="tilt"):
+        simcampus.random_poses(world, np.random.default_rng(0), 2, tilt="level")
+
+    assert dataclasses.replace(CFG, camera_tilt="random").fingerprint() == CFG.fingerprint()
+    tilted = train_depth.parse_overrides(CFG, ["camera_tilt=terrain"])
+    assert tilted.camera_tilt == "terrain" and tilted.fingerprint() != CFG.fingerprint()
+    with pytest.raises(ValueError, match="camera_tilt"):
+        dataclasses.replace(CFG, camera_tilt="level")
+    small = dataclasses.replace(CFG, image_size=32, frames=8, n_worlds=1)
+    a = depth._train.training_frames(small, progress=False)
+    b = depth._train.training_frames(dataclasses.replace(small, camera_tilt="terrain"), progress=False)
+    assert a["rgb"].shape == b["rgb"].shape and not np.array_equal(a["depth"], b["depth"])
+
+
 def test_object_weight_is_checked_and_reaches_the_objective_and_the_fingerprint():
     """``object_weight`` must be positive and needs the metric target; 1 keeps the old fingerprint; the objective
     built from the config carries it, and the rendered training frames carry the objects mask it reads."""

@@ -67,6 +67,10 @@ class DepthTrainConfig:
         camera_height_m: range (m) of the training cameras' height above the ground (uniform). The MiDaS-like
             default (1–2 m) varies it; a metric network for one robot is trained at its rig's height, since
             the ground's depth in each image row is set by that height and nothing in the image reveals it.
+        camera_tilt: the training cameras' pitch and roll (``simcampus.random_poses``): ``"random"``, up to ±6°
+            and ±3° whatever the ground does (MiDaS-like variety); ``"terrain"``, sitting on the ground's slope
+            as the robot's camera does (0.5° wobble), so that the horizon's row relative to the ground under the
+            camera is the rig's — which, like its height, places the ground and where objects stand on it.
         seed: data order, augmentation and initialisation.
         checkpoint_every: steps between checkpoints.
         eval_frames: evaluation-campus frames per season for the report.
@@ -91,6 +95,7 @@ class DepthTrainConfig:
     max_depth_m: float = 80.0
     object_weight: float = 1.0
     camera_height_m: tuple[float, float] = (1.0, 2.0)
+    camera_tilt: str = "random"
     seed: int = 0
     checkpoint_every: int = 100
     eval_frames: int = 48
@@ -101,6 +106,8 @@ class DepthTrainConfig:
             raise ValueError(f"image_size must be a multiple of 32, got {self.image_size}")
         if self.target not in ("inverse", "log_metric"):
             raise ValueError(f"target must be 'inverse' or 'log_metric', got {self.target!r}")
+        if self.camera_tilt not in ("random", "terrain"):
+            raise ValueError(f"camera_tilt must be 'random' or 'terrain', got {self.camera_tilt!r}")
         if self.loss not in ("trimmed", "mse"):
             raise ValueError(f"loss must be 'trimmed' or 'mse', got {self.loss!r}")
         if not 0.0 <= self.trim < 1.0:
@@ -146,6 +153,8 @@ class DepthTrainConfig:
             fields.pop("object_weight")  # as for target and camera_height_m below
         if tuple(self.camera_height_m) == (1.0, 2.0):
             fields.pop("camera_height_m")  # the field came later: networks of the old heights keep their folders
+        if self.camera_tilt == "random":
+            fields.pop("camera_tilt")  # likewise
         fields.pop("eval_frames")
         fields.pop("checkpoint_every")
         fields["recipe_version"] = _RECIPE_VERSION
@@ -297,6 +306,7 @@ def training_frames(cfg: DepthTrainConfig, progress: bool = True) -> dict[str, n
         n_worlds=cfg.n_worlds,
         exclude_world_seeds=(cfg.world_seed,),
         camera_height_m=tuple(cfg.camera_height_m),
+        camera_tilt=cfg.camera_tilt,
         progress=progress,
     )
 

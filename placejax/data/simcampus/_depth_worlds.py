@@ -57,14 +57,25 @@ def random_look(key: jax.Array) -> _render.Look:
     )
 
 
+CAMERA_TILTS = ("random", "terrain")
+
+
 def random_poses(
-    world: W.World, rng: np.random.Generator, n: int, height_m: tuple[float, float] = (1.0, 2.0)
+    world: W.World,
+    rng: np.random.Generator,
+    n: int,
+    height_m: tuple[float, float] = (1.0, 2.0),
+    tilt: str = "random",
 ) -> np.ndarray:
     """Camera poses ``(n, 6)`` near the paths, mostly along them, some looking anywhere.
 
-    The camera is ``height_m`` (uniform between the two bounds, metres) above the ground under it, pitched by
-    up to ±6° and rolled by up to ±3°.
+    The camera is ``height_m`` (uniform between the two bounds, metres) above the ground under it. ``tilt``
+    sets its pitch and roll: ``"random"``, up to ±6° and ±3° (uniform) whatever the ground does;
+    ``"terrain"``, as a wheeled robot's camera sits: nose up on climbs and rolled towards the downhill side by
+    the ground's slope under it, plus a 0.5° (sd) wobble — how SimCampus's session cameras are posed.
     """
+    if tilt not in CAMERA_TILTS:
+        raise ValueError(f"tilt must be one of {CAMERA_TILTS}, got {tilt!r}")
     pts, tans = _seasons.path_frames(world, 1.0)
     i = rng.integers(len(pts), size=n)
     normal = np.stack([-tans[i, 1], tans[i, 0]], -1)
@@ -75,8 +86,13 @@ def random_poses(
         rng.uniform(-np.pi, np.pi, n),
     )
     z = world.height(xy[:, 0], xy[:, 1]) + rng.uniform(height_m[0], height_m[1], n)
-    pitch = np.deg2rad(rng.uniform(-6, 6, n))
-    roll = np.deg2rad(rng.uniform(-3, 3, n))
+    if tilt == "random":
+        pitch = np.deg2rad(rng.uniform(-6, 6, n))
+        roll = np.deg2rad(rng.uniform(-3, 3, n))
+    else:
+        gx, gy = world.height_grad(xy[:, 0], xy[:, 1])
+        pitch = np.arctan(gx * np.cos(yaw) + gy * np.sin(yaw)) + np.deg2rad(rng.normal(0, 0.5, n))
+        roll = np.arctan(-gx * np.sin(yaw) + gy * np.cos(yaw)) + np.deg2rad(rng.normal(0, 0.5, n))
     return np.stack([xy[:, 0], xy[:, 1], z, np.angle(np.exp(1j * yaw)), pitch, roll], -1)
 
 
@@ -98,6 +114,7 @@ def depth_training_batches(
     hfov_deg: float = _session.DEFAULT_HFOV_DEG,
     exclude_world_seeds=(0,),
     camera_height_m: tuple[float, float] = (1.0, 2.0),
+    camera_tilt: str = "random",
 ) -> Iterator[dict[str, np.ndarray]]:
     """Endless deterministic batches of domain-randomised RGB + depth (batch b comes from world b % n_worlds).
 
@@ -117,7 +134,7 @@ def depth_training_batches(
         # Geometry variety from the seasons too (foliage volume, snow banks, dynamic objects, the site).
         geo, _ = _session.season_scene(world, _seasons.SEASONS[(b // n_worlds) % len(_seasons.SEASONS)])
         rng = np.random.default_rng([seed, 0xDE97, b])
-        poses = random_poses(world, rng, batch_size, camera_height_m)
+        poses = random_poses(world, rng, batch_size, camera_height_m, camera_tilt)
         keys = jax.random.split(jax.random.fold_in(jax.random.key(seed), b), batch_size)
         looks = random_looks(keys)
         ids = jnp.asarray(b * batch_size + np.arange(batch_size), jnp.int32)
@@ -136,6 +153,7 @@ def depth_training_frames(
     hfov_deg: float = _session.DEFAULT_HFOV_DEG,
     exclude_world_seeds=(0,),
     camera_height_m: tuple[float, float] = (1.0, 2.0),
+    camera_tilt: str = "random",
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
     """`n` domain-randomised RGB + depth frames from the depth-training worlds (first `n` of the batches).
@@ -155,6 +173,7 @@ def depth_training_frames(
         hfov_deg=hfov_deg,
         exclude_world_seeds=exclude_world_seeds,
         camera_height_m=camera_height_m,
+        camera_tilt=camera_tilt,
     )
     parts = []
     with tqdm.tqdm(total=n, desc="depth-training frames", unit="frame", disable=not progress) as bar:
