@@ -268,6 +268,46 @@ def test_camera_tilt_follows_the_terrain_like_the_robot_and_reaches_the_frames_a
     assert a["rgb"].shape == b["rgb"].shape and not np.array_equal(a["depth"], b["depth"])
 
 
+def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerprint():
+    """``muted_look`` keeps ``random_look``'s geometry-free fields but desaturates its colours and draws them to
+    one palette (over many keys: much lower saturation and spread between surfaces); ``muted_share`` picks it per
+    frame (0: the old frames, fingerprint and no change; 1: every frame); bad shares are refused by name."""
+    import jax
+
+    from placejax.data import simcampus
+
+    keys = jax.random.split(jax.random.key(3), 64)
+    wild, muted = jax.vmap(simcampus.random_look)(keys), jax.vmap(simcampus.muted_look)(keys)
+    for name in ("sun_dir", "fog_dist", "gain", "noise"):
+        np.testing.assert_array_equal(getattr(wild, name), getattr(muted, name))
+    np.testing.assert_array_equal(wild.box[..., 9:], muted.box[..., 9:])  # window grids are not colours
+
+    def colours(look):  # (keys, surfaces, 3): every wall, window, roof, cylinder, ellipsoid and ground colour
+        tables = [(look.box, 3), (look.cyl, 2), (look.ell, 2), (look.ground, 2)]
+        return np.concatenate([np.asarray(t[..., 3 * i : 3 * i + 3]) for t, n in tables for i in range(n)], 1)
+
+    def saturation(rgb):
+        return rgb.max(-1) - rgb.min(-1)
+
+    w, m = colours(wild), colours(muted)
+    assert m.min() >= 0.0 and m.max() <= 1.0
+    assert saturation(m).mean() < 0.6 * saturation(w).mean()
+    assert m.std(1).mean() < 0.8 * w.std(1).mean()  # surfaces of a frame share a palette
+
+    def frames(share):
+        batches = simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1, muted_share=share)
+        return next(batches)["rgb"]
+
+    plain = next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1))["rgb"]
+    np.testing.assert_array_equal(frames(0.0), plain)
+    assert not np.array_equal(frames(1.0), plain)
+    assert dataclasses.replace(CFG, muted_share=0.0).fingerprint() == CFG.fingerprint()
+    assert train_depth.parse_overrides(CFG, ["muted_share=0.5"]).fingerprint() != CFG.fingerprint()
+    for bad in (-0.1, 1.5, "half"):
+        with pytest.raises(ValueError, match="muted_share"):
+            dataclasses.replace(CFG, muted_share=bad)
+
+
 def test_object_weight_is_checked_and_reaches_the_objective_and_the_fingerprint():
     """``object_weight`` must be positive and needs the metric target; 1 keeps the old fingerprint; the objective
     built from the config carries it, and the rendered training frames carry the objects mask it reads."""

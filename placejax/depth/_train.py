@@ -71,6 +71,9 @@ class DepthTrainConfig:
             and ±3° whatever the ground does (MiDaS-like variety); ``"terrain"``, sitting on the ground's slope
             as the robot's camera does (0.5° wobble), so that the horizon's row relative to the ground under the
             camera is the rig's — which, like its height, places the ground and where objects stand on it.
+        muted_share: share of training frames in natural rather than wild colours
+            (``simcampus.muted_look``: desaturated, drawn towards one palette, overcast light allowed); the rest
+            in :func:`simcampus.random_look`'s independent uniform colours.
         seed: data order, augmentation and initialisation.
         checkpoint_every: steps between checkpoints.
         eval_frames: evaluation-campus frames per season for the report.
@@ -96,6 +99,7 @@ class DepthTrainConfig:
     object_weight: float = 1.0
     camera_height_m: tuple[float, float] = (1.0, 2.0)
     camera_tilt: str = "random"
+    muted_share: float = 0.0
     seed: int = 0
     checkpoint_every: int = 100
     eval_frames: int = 48
@@ -108,6 +112,8 @@ class DepthTrainConfig:
             raise ValueError(f"target must be 'inverse' or 'log_metric', got {self.target!r}")
         if self.camera_tilt not in ("random", "terrain"):
             raise ValueError(f"camera_tilt must be 'random' or 'terrain', got {self.camera_tilt!r}")
+        if not (isinstance(self.muted_share, int | float) and 0.0 <= self.muted_share <= 1.0):
+            raise ValueError(f"muted_share must be a number in [0, 1], got {self.muted_share!r}")
         if self.loss not in ("trimmed", "mse"):
             raise ValueError(f"loss must be 'trimmed' or 'mse', got {self.loss!r}")
         if not 0.0 <= self.trim < 1.0:
@@ -155,6 +161,8 @@ class DepthTrainConfig:
             fields.pop("camera_height_m")  # the field came later: networks of the old heights keep their folders
         if self.camera_tilt == "random":
             fields.pop("camera_tilt")  # likewise
+        if self.muted_share == 0:
+            fields.pop("muted_share")  # likewise
         fields.pop("eval_frames")
         fields.pop("checkpoint_every")
         fields["recipe_version"] = _RECIPE_VERSION
@@ -307,6 +315,7 @@ def training_frames(cfg: DepthTrainConfig, progress: bool = True) -> dict[str, n
         exclude_world_seeds=(cfg.world_seed,),
         camera_height_m=tuple(cfg.camera_height_m),
         camera_tilt=cfg.camera_tilt,
+        muted_share=cfg.muted_share,
         progress=progress,
     )
 

@@ -6,7 +6,8 @@ cross-season experiment runs end to end anywhere. Sessions satisfy `placejax.dat
 
 Building blocks for other uses of the worlds (the depth-training and pretraining data): ``make_world``,
 ``path_frames`` (poses along the path network), ``random_poses``, ``random_look`` (a domain-randomised
-appearance), ``season_scene`` (a world's geometry and look in a season) and ``render_batch``.
+appearance), ``muted_look`` (the same in natural colours), ``season_scene`` (a world's geometry and look in a
+season) and ``render_batch``.
 
 Example:
     >>> from placejax.data import simcampus
@@ -18,6 +19,7 @@ Example:
 from placejax.data.simcampus._depth_worlds import (
     depth_training_batches,
     depth_training_frames,
+    muted_look,
     random_look,
     random_poses,
 )
@@ -47,6 +49,7 @@ __all__ = [
     "intrinsics",
     "load_session",
     "make_world",
+    "muted_look",
     "path_frames",
     "random_look",
     "random_poses",

@@ -60,6 +60,49 @@ def random_look(key: jax.Array) -> _render.Look:
 CAMERA_TILTS = ("random", "terrain")
 
 
+@jax.jit
+def muted_look(key: jax.Array) -> _render.Look:
+    """A random look with natural rather than wild colours: desaturated and drawn towards one palette.
+
+    :func:`random_look` gives every surface its own uniform colour, so neighbouring objects nearly always differ;
+    outdoor scenes are mostly low in saturation and share a palette (snow on every roof and lawn, an overcast
+    grey sky above grey walls, haze). Here every colour keeps a random share ``s`` of its saturation and moves
+    a random share ``k`` of the way to one colour of the frame (both uniform in [0, 1]), and the ambient light
+    reaches 0.9 (overcast) with the direct sun as weak as 0.
+    """
+    k1, k2, k3, k4, k5, k6 = jax.random.split(jax.random.fold_in(key, 0x307E), 6)
+    look = random_look(key)
+    sat, pull = _uniform(k1, ()), _uniform(k2, ())
+    base = _uniform(k3, (3,))
+
+    def natural(rgb):  # (..., 3)
+        grey = rgb.mean(-1, keepdims=True)
+        return (1 - pull) * (grey + sat * (rgb - grey)) + pull * jnp.broadcast_to(base, rgb.shape)
+
+    def columns(table, n_rgb):
+        parts = [natural(table[:, 3 * i : 3 * i + 3]) for i in range(n_rgb)]
+        return jnp.concatenate([*parts, table[:, 3 * n_rgb :]], 1)
+
+    return look._replace(
+        box=columns(look.box, 3),
+        cyl=columns(look.cyl, 2),
+        ell=columns(look.ell, 2),
+        ground=columns(look.ground, 2),
+        sky_zenith=natural(look.sky_zenith),
+        sky_horizon=natural(look.sky_horizon),
+        fog_rgb=natural(look.fog_rgb),
+        backdrop_rgb=natural(look.backdrop_rgb),
+        ambient_rgb=_uniform(k4, (3,), 0.2, 0.9),
+        sun_rgb=_uniform(k5, (3,), 0.0, 1.0) * _uniform(k6, (), 0.0, 1.0),
+    )
+
+
+def _per_frame(pick: np.ndarray, a: _render.Look, b: _render.Look) -> _render.Look:
+    """Frame i's look from ``a`` where ``pick[i]``, else from ``b`` (looks with a leading batch axis)."""
+    pick = jnp.asarray(pick)
+    return jax.tree.map(lambda x, y: jnp.where(pick.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+
+
 def random_poses(
     world: W.World,
     rng: np.random.Generator,
@@ -115,8 +158,11 @@ def depth_training_batches(
     exclude_world_seeds=(0,),
     camera_height_m: tuple[float, float] = (1.0, 2.0),
     camera_tilt: str = "random",
+    muted_share: float = 0.0,
 ) -> Iterator[dict[str, np.ndarray]]:
     """Endless deterministic batches of domain-randomised RGB + depth (batch b comes from world b % n_worlds).
+
+    Each frame's look is :func:`random_look`'s, or with probability ``muted_share`` :func:`muted_look`'s.
 
     Yields:
         dict with ``rgb`` uint8 ``(B, H, W, 3)``, ``depth`` float32 ``(B, H, W)`` z-depth (m, sky =
@@ -137,6 +183,9 @@ def depth_training_batches(
         poses = random_poses(world, rng, batch_size, camera_height_m, camera_tilt)
         keys = jax.random.split(jax.random.fold_in(jax.random.key(seed), b), batch_size)
         looks = random_looks(keys)
+        if muted_share > 0:
+            muted = jax.vmap(muted_look)(keys)
+            looks = _per_frame(rng.uniform(size=batch_size) < muted_share, muted, looks)
         ids = jnp.asarray(b * batch_size + np.arange(batch_size), jnp.int32)
         r = _render.render_batch(geo, looks, jnp.asarray(poses, jnp.float32), kb, ids, hw=hw, look_per_frame=True)
         yield {**{k: np.asarray(v) for k, v in r._asdict().items()}, "K": kmat}
@@ -154,6 +203,7 @@ def depth_training_frames(
     exclude_world_seeds=(0,),
     camera_height_m: tuple[float, float] = (1.0, 2.0),
     camera_tilt: str = "random",
+    muted_share: float = 0.0,
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
     """`n` domain-randomised RGB + depth frames from the depth-training worlds (first `n` of the batches).
@@ -174,6 +224,7 @@ def depth_training_frames(
         exclude_world_seeds=exclude_world_seeds,
         camera_height_m=camera_height_m,
         camera_tilt=camera_tilt,
+        muted_share=muted_share,
     )
     parts = []
     with tqdm.tqdm(total=n, desc="depth-training frames", unit="frame", disable=not progress) as bar:
