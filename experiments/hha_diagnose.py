@@ -9,8 +9,10 @@ baseline, mean over the 12 pairs) for rendered depth as it is, clamped at 80 m a
 predicts at most ``max_depth_m`` = 80 m), blurred in log depth (σ = 1, 2, 4 px at the run's resolution), for the
 predicted depth, and for the predicted depth with everything from 40, 50 (the experiment's ``depth.far_as_sky_m``),
 60 or 70 m on set to the rendered sky's 1000 m (``placejax.depth.far_to_sky``; a run's cached depth has its own
-``depth.far_as_sky_m`` applied already, ``--network`` gives the network's raw output); the
-same 1-NN within each session (even frames against odd ones) for rendered and predicted depth; and the depth
+``depth.far_as_sky_m`` applied already, ``--network`` gives the network's raw output), and for the latter at 50 m
+with the rendered depth put back on one region (sky, ground or objects: which region's error costs most); the
+same 1-NN within each session (even frames against odd ones) for rendered and predicted depth, each as it is and
+with the far-depth step (rendered ≤ 80 m, predicted ≥ 50 m as sky); and the depth
 error by region: median |log predicted − log rendered| on sky, ground (rendered surface within 10° of level)
 and objects (the rest), and AbsRel without the sky.
 
@@ -73,6 +75,13 @@ def _network_depth(
     return out
 
 
+def _regions(rendered: np.ndarray, angle_deg: np.ndarray) -> dict[str, np.ndarray]:
+    """Sky, ground (rendered surface within 10° of level: its HHA angle) and objects (the rest) masks."""
+    sky = rendered >= SKY_DEPTH
+    ground = (angle_deg < 10.0) & ~sky
+    return {"sky": sky, "ground": ground, "objects": ~(sky | ground)}
+
+
 def region_errors(predicted: np.ndarray, rendered: np.ndarray, angle_deg: np.ndarray) -> dict[str, float]:
     """Median |log predicted − log rendered| on all pixels, sky, ground and objects, and AbsRel without the sky,
     both depths clamped at the network's 80 m (so sky set to 1000 m by ``far_to_sky`` counts as 80 m).
@@ -80,11 +89,10 @@ def region_errors(predicted: np.ndarray, rendered: np.ndarray, angle_deg: np.nda
     Ground is where the rendered surface lies within 10° of level (its HHA angle), objects are all other
     non-sky pixels.
     """
-    sky = rendered >= SKY_DEPTH
+    regions = _regions(rendered, angle_deg)
+    sky = regions["sky"]
     within = np.minimum(rendered, 80.0)
     predicted = np.minimum(predicted, 80.0)
-    ground = (angle_deg < 10.0) & ~sky
-    regions = {"sky": sky, "ground": ground, "objects": ~(sky | ground)}
     err = np.abs(np.log(predicted) - np.log(within))
     out = {name: float(np.median(err[m])) if m.any() else float("nan") for name, m in regions.items()}
     out["all"] = float(np.median(err))
@@ -172,10 +180,19 @@ def main() -> None:
             hha_images = {s: encode(depth[s], intrinsics[s])[0] for s in SESSIONS}
         thumbs[name] = thumbnails(hha_images)
         print(f"{name:<52} {nn_accuracy(thumbs[name]):5.1f}", flush=True)
+    # Which region's error costs most: the predicted depth (far predictions as sky) with one region rendered.
+    regions = {s: _regions(rendered[s], encoded_80[s][1]) for s in SESSIONS}
+    at_sky = {s: far_to_sky(d, 50.0, SKY_DEPTH) for s, d in predicted.items()}
+    for region in ("sky", "ground", "objects"):
+        swapped = {s: np.where(regions[s][region], rendered[s], at_sky[s]) for s in SESSIONS}
+        h = {s: encode(swapped[s], intrinsics[s])[0] for s in SESSIONS}
+        print(f"{'predicted, ≥ 50 m as sky, rendered on ' + region:<52} {nn_accuracy(thumbnails(h)):5.1f}", flush=True)
     print(
         f"{'within each session (even frames vs odd)':<52} "
         f"rendered ≤ 80 m {nn_within(thumbs['rendered, clamped at 80 m']):5.1f}, "
-        f"predicted {nn_within(thumbs['predicted']):5.1f}"
+        f"predicted {nn_within(thumbs['predicted']):5.1f}; "
+        f"rendered as is {nn_within(thumbs[next(iter(variants))]):5.1f}, "
+        f"predicted ≥ 50 m as sky {nn_within(thumbs['predicted, ≥ 50 m set to 1000 m']):5.1f}"
     )
     print("median |log predicted − log rendered| (both ≤ 80 m) by region; AbsRel without the sky")
     print(f"{'session':<8} {'all':>6} {'sky':>6} {'ground':>7} {'objects':>8} {'AbsRel':>7}")
