@@ -308,6 +308,55 @@ def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerpri
             dataclasses.replace(CFG, muted_share=bad)
 
 
+def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_and_the_fingerprint():
+    """``permute_channels`` gives each image one of the six channel orders (every pixel alike), uniformly, for a
+    ``share`` of the images; the objective trains on exactly those images (its loss equals the plain objective's
+    on the permuted batch); share 0 keeps the old fingerprint; bad shares are refused by name."""
+    from placejax import training
+
+    rng = np.random.default_rng(0)
+    # Channel c holds values in [85c, 85c + 80): every output value tells which channel it came from.
+    images = (rng.integers(0, 80, (3000, 2, 2, 3)) + 85 * np.arange(3)).astype(np.uint8)
+    key = jax.random.key(5)
+    out = np.asarray(depth_train.permute_channels(images, key, 1.0))
+    order = out // 85  # (B, H, W, 3): source channel of each output channel
+    np.testing.assert_array_equal(np.take_along_axis(images, order, -1), out)
+    assert (order == order[:, :1, :1]).all()  # one order per image
+    counts = {tuple(o): n for o, n in zip(*np.unique(order[:, 0, 0], axis=0, return_counts=True), strict=True)}
+    assert len(counts) == 6 and min(counts.values()) > 0.8 * 3000 / 6
+    np.testing.assert_array_equal(depth_train.permute_channels(images, key, 0.0), images)
+    half = np.asarray(depth_train.permute_channels(images, key, 0.5))
+    changed = (half != images).any((1, 2, 3)).mean()
+    assert abs(changed - 0.5 * 5 / 6) < 0.05, changed
+
+    cfg = dataclasses.replace(CFG, frames=8, colour_augment=1.0)
+    frames = depth_train.training_frames(cfg, progress=False)
+    batch = {"image": frames["rgb"], "depth": frames["depth"], "sky": frames["sky"], "objects": frames["objects"]}
+    variables = depth_train.init_variables(cfg)
+    state = training.create_state(
+        training.apply_fn(cfg.model()),
+        variables["params"],
+        training.make_optimizer("adamw"),
+        learning_rate=1e-3,
+        total_steps=1,
+        batch_stats=variables["batch_stats"],
+    )
+    augmented = depth.DepthObjective.of(cfg)
+    plain = depth.DepthObjective.of(dataclasses.replace(cfg, colour_augment=0.0))
+    assert augmented.colour_augment == 1.0 and plain.colour_augment == 0.0
+    k_rest, k_colour = jax.random.split(key)
+    permuted = {**batch, "image": depth_train.permute_channels(batch["image"], k_colour, 1.0)}
+    loss_aug = augmented(state, state.params, batch, key)[0]
+    np.testing.assert_allclose(loss_aug, plain(state, state.params, permuted, k_rest)[0], rtol=1e-5)
+    assert not np.isclose(loss_aug, plain(state, state.params, batch, k_rest)[0], rtol=1e-4)
+
+    assert dataclasses.replace(CFG, colour_augment=0.0).fingerprint() == CFG.fingerprint()
+    assert train_depth.parse_overrides(CFG, ["colour_augment=1.0"]).fingerprint() != CFG.fingerprint()
+    for bad in (-0.1, 1.5, "all", True):
+        with pytest.raises(ValueError, match="colour_augment"):
+            dataclasses.replace(CFG, colour_augment=bad)
+
+
 def test_object_weight_is_checked_and_reaches_the_objective_and_the_fingerprint():
     """``object_weight`` must be positive and needs the metric target; 1 keeps the old fingerprint; the objective
     built from the config carries it, and the rendered training frames carry the objects mask it reads."""

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import training
+from placejax.data.simcampus import CAMERA_TILTS
 from placejax.depth._losses import depth_from_log, log_depth, log_metric_loss, midas_loss
 from placejax.depth._views import average_views
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall
@@ -74,6 +75,10 @@ class DepthTrainConfig:
         muted_share: share of training frames in natural rather than wild colours
             (``simcampus.muted_look``: desaturated, drawn towards one palette, overcast light allowed); the rest
             in :func:`simcampus.random_look`'s independent uniform colours.
+        colour_augment: share of training images whose colour channels are put in a random one of their six
+            orders, drawn afresh at every step. Each rendered frame keeps one look for all epochs; this shows the
+            same geometry in other colours, so that what the net learns of an object's depth cannot hang on
+            the colours it happened to be rendered in.
         seed: data order, augmentation and initialisation.
         checkpoint_every: steps between checkpoints.
         eval_frames: evaluation-campus frames per season for the report.
@@ -100,6 +105,7 @@ class DepthTrainConfig:
     camera_height_m: tuple[float, float] = (1.0, 2.0)
     camera_tilt: str = "random"
     muted_share: float = 0.0
+    colour_augment: float = 0.0
     seed: int = 0
     checkpoint_every: int = 100
     eval_frames: int = 48
@@ -110,10 +116,12 @@ class DepthTrainConfig:
             raise ValueError(f"image_size must be a multiple of 32, got {self.image_size}")
         if self.target not in ("inverse", "log_metric"):
             raise ValueError(f"target must be 'inverse' or 'log_metric', got {self.target!r}")
-        if self.camera_tilt not in ("random", "terrain"):
-            raise ValueError(f"camera_tilt must be 'random' or 'terrain', got {self.camera_tilt!r}")
-        if not (isinstance(self.muted_share, int | float) and 0.0 <= self.muted_share <= 1.0):
-            raise ValueError(f"muted_share must be a number in [0, 1], got {self.muted_share!r}")
+        if self.camera_tilt not in CAMERA_TILTS:
+            raise ValueError(f"camera_tilt must be one of {CAMERA_TILTS}, got {self.camera_tilt!r}")
+        for name in ("muted_share", "colour_augment"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, int | float) and 0.0 <= value <= 1.0):
+                raise ValueError(f"{name} must be a number in [0, 1], got {value!r}")
         if self.loss not in ("trimmed", "mse"):
             raise ValueError(f"loss must be 'trimmed' or 'mse', got {self.loss!r}")
         if not 0.0 <= self.trim < 1.0:
@@ -163,6 +171,8 @@ class DepthTrainConfig:
             fields.pop("camera_tilt")  # likewise
         if self.muted_share == 0:
             fields.pop("muted_share")  # likewise
+        if self.colour_augment == 0:
+            fields.pop("colour_augment")  # likewise
         fields.pop("eval_frames")
         fields.pop("checkpoint_every")
         fields["recipe_version"] = _RECIPE_VERSION
@@ -214,6 +224,19 @@ def normalise(rgb_uint8: jax.Array) -> jax.Array:
     return (x - mean) / std
 
 
+_CHANNEL_ORDERS = np.array([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]], np.int32)
+
+
+def permute_channels(images: jax.Array, key: jax.Array, share: float) -> jax.Array:
+    """Each image of ``(B, H, W, 3)`` with its colour channels in a random one of their six orders (the
+    identity among them) with probability ``share``, else as it is."""
+    k_pick, k_order = jax.random.split(key)
+    b = images.shape[0]
+    order = jnp.asarray(_CHANNEL_ORDERS)[jax.random.randint(k_order, (b,), 0, len(_CHANNEL_ORDERS))]
+    order = jnp.where(jax.random.bernoulli(k_pick, share, (b, 1)), order, jnp.arange(3, dtype=jnp.int32)[None, :])
+    return jnp.take_along_axis(images, jnp.broadcast_to(order[:, None, None, :], images.shape), axis=-1)
+
+
 def targets(
     depth_m: jax.Array, sky: jax.Array, max_depth_m: float, sky_in_loss: bool = False
 ) -> tuple[jax.Array, jax.Array]:
@@ -259,13 +282,27 @@ class DepthObjective:
     sky_in_loss: bool = True
     target: str = "inverse"
     object_weight: float = 1.0
+    colour_augment: float = 0.0
 
     @classmethod
     def of(cls, cfg: DepthTrainConfig) -> DepthObjective:
-        return cls(cfg.loss, cfg.alpha, cfg.trim, cfg.max_depth_m, cfg.sky_in_loss, cfg.target, cfg.object_weight)
+        return cls(
+            cfg.loss,
+            cfg.alpha,
+            cfg.trim,
+            cfg.max_depth_m,
+            cfg.sky_in_loss,
+            cfg.target,
+            cfg.object_weight,
+            cfg.colour_augment,
+        )
 
     def __call__(self, state, params, batch, key):
-        x = normalise(batch["image"])
+        image = batch["image"]
+        if self.colour_augment > 0:
+            key, k_colour = jax.random.split(key)
+            image = permute_channels(image, k_colour, self.colour_augment)
+        x = normalise(image)
         weights = None
         if self.target == "log_metric":
             tgt, mask = log_metric_targets(batch["depth"], batch["sky"], self.max_depth_m)

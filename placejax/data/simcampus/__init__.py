@@ -17,6 +17,7 @@ Example:
 """
 
 from placejax.data.simcampus._depth_worlds import (
+    CAMERA_TILTS,
     depth_training_batches,
     depth_training_frames,
     muted_look,
@@ -37,6 +38,7 @@ from placejax.data.simcampus._trajectory import RouteConfig
 from placejax.data.simcampus._world import World
 
 __all__ = [
+    "CAMERA_TILTS",
     "SEASONS",
     "SKY_DEPTH",
     "STYLES",

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import tqdm
 
-from placejax.data.simcampus import _render, _seasons, _session
+from placejax.data.simcampus import _render, _seasons, _session, _trajectory
 from placejax.data.simcampus import _world as W
 
 # Depth-training world seeds live far from the small seeds used for evaluation campuses.
@@ -133,9 +133,7 @@ def random_poses(
         pitch = np.deg2rad(rng.uniform(-6, 6, n))
         roll = np.deg2rad(rng.uniform(-3, 3, n))
     else:
-        gx, gy = world.height_grad(xy[:, 0], xy[:, 1])
-        pitch = np.arctan(gx * np.cos(yaw) + gy * np.sin(yaw)) + np.deg2rad(rng.normal(0, 0.5, n))
-        roll = np.arctan(-gx * np.sin(yaw) + gy * np.cos(yaw)) + np.deg2rad(rng.normal(0, 0.5, n))
+        pitch, roll = _trajectory.terrain_tilt(world, xy, yaw, rng)
     return np.stack([xy[:, 0], xy[:, 1], z, np.angle(np.exp(1j * yaw)), pitch, roll], -1)
 
 

@@ -138,6 +138,20 @@ def _ar_walk(rng: np.random.Generator, n: int, step_std: float, bound: float, ke
     return out
 
 
+def terrain_tilt(
+    world: W.World, xy: np.ndarray, yaw: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pitch and roll (rad, ``(N,)`` each) of a camera on a wheeled robot at ``xy`` ``(N, 2)`` heading ``yaw``:
+    sitting on the terrain, nose up on climbs and rolled towards the downhill side, plus a 0.5° (sd) wobble
+    drawn from ``rng`` (pitch first, then roll)."""
+    gx, gy = world.height_grad(xy[:, 0], xy[:, 1])
+    slope_fwd = gx * np.cos(yaw) + gy * np.sin(yaw)
+    slope_left = -gx * np.sin(yaw) + gy * np.cos(yaw)
+    pitch = np.arctan(slope_fwd) + rng.normal(0, np.deg2rad(0.5), len(xy))
+    roll = np.arctan(slope_left) + rng.normal(0, np.deg2rad(0.5), len(xy))
+    return pitch, roll
+
+
 def session_poses(world: W.World, season: str, cfg: RouteConfig) -> tuple[np.ndarray, np.ndarray]:
     """Camera poses ``(N, 6)`` (x, y, z m; yaw, pitch, roll rad) and timestamps ``int64 (N,)`` (µs)."""
     season_id = season_index(season)
@@ -162,12 +176,7 @@ def session_poses(world: W.World, season: str, cfg: RouteConfig) -> tuple[np.nda
     height = (lo + hi) / 2 + _ar_walk(rng, n, 0.01, (hi - lo) / 2, 0.99)
     xy = centre + lateral[:, None] * normal
     yaw = np.arctan2(tangent[:, 1], tangent[:, 0]) + jitter
-    gx, gy = world.height_grad(xy[:, 0], xy[:, 1])
-    slope_fwd = gx * np.cos(yaw) + gy * np.sin(yaw)
-    slope_left = -gx * np.sin(yaw) + gy * np.cos(yaw)
-    # The robot sits on the terrain: nose up on climbs, rolled towards the downhill side.
-    pitch = np.arctan(slope_fwd) + rng.normal(0, np.deg2rad(0.5), n)
-    roll = np.arctan(slope_left) + rng.normal(0, np.deg2rad(0.5), n)
+    pitch, roll = terrain_tilt(world, xy, yaw, rng)
     z = world.height(xy[:, 0], xy[:, 1]) + height
     poses6 = np.stack([xy[:, 0], xy[:, 1], z, np.angle(np.exp(1j * yaw)), pitch, roll], -1)
     y, m, d = _START_DATES[season]
