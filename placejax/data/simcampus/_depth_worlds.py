@@ -70,8 +70,12 @@ def muted_look(key: jax.Array) -> _render.Look:
     a random share ``k`` of the way to one colour of the frame (both uniform in [0, 1]), and the ambient light
     reaches 0.9 (overcast) with the direct sun as weak as 0.
     """
+    return _mute(random_look(key), key)
+
+
+def _mute(look: _render.Look, key: jax.Array) -> _render.Look:
+    """:func:`muted_look` of ``key`` from ``random_look(key)`` already drawn."""
     k1, k2, k3, k4, k5, k6 = jax.random.split(jax.random.fold_in(key, 0x307E), 6)
-    look = random_look(key)
     sat, pull = _uniform(k1, ()), _uniform(k2, ())
     base = _uniform(k3, (3,))
 
@@ -182,7 +186,7 @@ def depth_training_batches(
         keys = jax.random.split(jax.random.fold_in(jax.random.key(seed), b), batch_size)
         looks = random_looks(keys)
         if muted_share > 0:
-            muted = jax.vmap(muted_look)(keys)
+            muted = jax.jit(jax.vmap(_mute))(looks, keys)
             looks = _per_frame(rng.uniform(size=batch_size) < muted_share, muted, looks)
         ids = jnp.asarray(b * batch_size + np.arange(batch_size), jnp.int32)
         r = _render.render_batch(geo, looks, jnp.asarray(poses, jnp.float32), kb, ids, hw=hw, look_per_frame=True)
