@@ -1,6 +1,7 @@
 """What keeps HHA of predicted depth from telling places apart: the far-depth convention, blur, or the geometry.
 
-    python -m experiments.hha_diagnose WORKDIR [--network DIR [--flip-average] [--shift-px K ...] [key=value ...]]
+    python -m experiments.hha_diagnose WORKDIR [--network DIR [--preset P] [--flip-average] [--shift-px K ...]
+                                                [key=value ...]]
 
 ``WORKDIR`` is a finished ``experiments.cross_season`` run on SimCampus (its ``grid.json`` and the ``cache/``
 with rendered and trained depth of the four sessions, e.g. ``data.world_seed=1`` for a world other than the
@@ -14,14 +15,14 @@ with the rendered depth put back on one region (sky, ground or objects: which re
 same 1-NN within each session (even frames against odd ones) for rendered and predicted depth, each as it is and
 with the far-depth step (rendered ≤ 80 m, predicted ≥ 50 m as sky); and the depth
 error by region: median |log predicted − log rendered| on sky, ground (rendered surface within 10° of level)
-and objects (the rest), and AbsRel without the sky.
+and objects (the rest), the median signed difference on objects, and AbsRel without the sky.
 
 ``--network DIR`` takes the predicted depth from another depth network, a finished ``experiments.train_depth
---workdir DIR [key=value ...]`` run (give the same overrides), instead of the run's cached one: how depth-network
-variants are compared on a world none of them trained on; ``--flip-average`` predicts as the experiment does with
-``depth.flip_average`` (the mean log depth of each image and its mirror image), ``--shift-px 2 4`` as it does with
-``depth.shift_px`` (also the image shifted sideways by ±2 and ±4 px). Only depth and HHA: no place
-classifier is trained and no fusion number is read.
+--workdir DIR [--preset P] [key=value ...]`` run (give the same preset and overrides), instead of the run's
+cached one: how depth-network variants are compared on a world none of them trained on; ``--flip-average``
+predicts as the experiment does with ``depth.flip_average`` (the mean log depth of each image and its mirror
+image), ``--shift-px 2 4`` as it does with ``depth.shift_px`` (also the image shifted sideways by ±2 and ±4 px).
+Only depth and HHA: no place classifier is trained and no fusion number is read.
 """
 
 from __future__ import annotations
@@ -54,13 +55,19 @@ def _log_blur(depth: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def _network_depth(
-    run: Path, overrides: list[str], images: dict, flip_average: bool, shifts: tuple[int, ...] = ()
+    run: Path,
+    overrides: list[str],
+    images: dict,
+    flip_average: bool,
+    shifts: tuple[int, ...] = (),
+    preset: str = "default",
 ) -> dict[str, np.ndarray]:
-    """Metric depth of every session frame from the finished depth-training run in ``run``."""
+    """Metric depth of every session frame from the finished depth-training run in ``run`` (``preset`` and
+    ``overrides`` as given to ``experiments.train_depth``)."""
     from experiments.train_depth import parse_overrides
     from placejax import depth
 
-    trained = depth.load_trained(run, parse_overrides(depth.PRESETS["default"], overrides))
+    trained = depth.load_trained(run, parse_overrides(depth.PRESETS[preset], overrides))
     if not trained.metric:
         raise ValueError(f"{run}: --network needs a metric depth network (target=log_metric)")
     out = {}
@@ -83,8 +90,9 @@ def _regions(rendered: np.ndarray, angle_deg: np.ndarray) -> dict[str, np.ndarra
 
 
 def region_errors(predicted: np.ndarray, rendered: np.ndarray, angle_deg: np.ndarray) -> dict[str, float]:
-    """Median |log predicted − log rendered| on all pixels, sky, ground and objects, and AbsRel without the sky,
-    both depths clamped at the network's 80 m (so sky set to 1000 m by ``far_to_sky`` counts as 80 m).
+    """Median |log predicted − log rendered| on all pixels, sky, ground and objects, the median signed difference
+    on objects (``objects_bias``: > 0 when objects come out too far), and AbsRel without the sky, both depths
+    clamped at the network's 80 m (so sky set to 1000 m by ``far_to_sky`` counts as 80 m).
 
     Ground is where the rendered surface lies within 10° of level (its HHA angle), objects are all other
     non-sky pixels.
@@ -93,26 +101,35 @@ def region_errors(predicted: np.ndarray, rendered: np.ndarray, angle_deg: np.nda
     sky = regions["sky"]
     within = np.minimum(rendered, 80.0)
     predicted = np.minimum(predicted, 80.0)
-    err = np.abs(np.log(predicted) - np.log(within))
+    signed = np.log(predicted) - np.log(within)
+    err = np.abs(signed)
     out = {name: float(np.median(err[m])) if m.any() else float("nan") for name, m in regions.items()}
+    objects = regions["objects"]
+    out["objects_bias"] = float(np.median(signed[objects])) if objects.any() else float("nan")
     out["all"] = float(np.median(err))
     out["abs_rel_no_sky"] = float(np.mean(np.abs(predicted[~sky] - within[~sky]) / within[~sky]))
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    from placejax.depth import PRESETS
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("workdir", type=Path)
     parser.add_argument("--network", type=Path, default=None, help="finished experiments.train_depth run folder")
+    parser.add_argument(
+        "--preset", default="default", choices=sorted(PRESETS), help="--network: the run's depth preset"
+    )
     parser.add_argument("--flip-average", action="store_true", help="--network: average with the mirror image")
     parser.add_argument(
         "--shift-px", type=int, nargs="+", default=[], help="--network: also average over views shifted by ±K px"
     )
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="the --network run's config overrides")
-    args = parser.parse_intermixed_args()
-    if (args.overrides or args.flip_average or args.shift_px) and args.network is None:
+    args = parser.parse_intermixed_args(argv)
+    if (args.overrides or args.flip_average or args.shift_px or args.preset != "default") and args.network is None:
         parser.error(
-            "key=value overrides, --flip-average and --shift-px describe the --network run: give --network DIR"
+            "key=value overrides, --preset, --flip-average and --shift-px describe the --network run: "
+            "give --network DIR"
         )
     root = args.workdir
     grid = PlaceGrid.load(root / "grid.json")
@@ -123,7 +140,9 @@ def main() -> None:
     if args.network is None:
         predicted = {s: np.asarray(_cache(root, s, "depth-trained").data, np.float32) for s in SESSIONS}
     else:
-        predicted = _network_depth(args.network, args.overrides, images, args.flip_average, tuple(args.shift_px))
+        predicted = _network_depth(
+            args.network, args.overrides, images, args.flip_average, tuple(args.shift_px), args.preset
+        )
 
     def encode(d: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """HHA images and angles with gravity of one session's depth."""
@@ -194,11 +213,15 @@ def main() -> None:
         f"rendered as is {nn_within(thumbs[next(iter(variants))]):5.1f}, "
         f"predicted ≥ 50 m as sky {nn_within(thumbs['predicted, ≥ 50 m set to 1000 m']):5.1f}"
     )
-    print("median |log predicted − log rendered| (both ≤ 80 m) by region; AbsRel without the sky")
-    print(f"{'session':<8} {'all':>6} {'sky':>6} {'ground':>7} {'objects':>8} {'AbsRel':>7}")
+    print(
+        "median |log predicted − log rendered| (both ≤ 80 m) by region, median signed difference on objects "
+        "(> 0: too far); AbsRel without the sky"
+    )
+    columns = (("all", 6), ("sky", 6), ("ground", 7), ("objects", 8), ("objects_bias", 13))
+    print(f"{'session':<8} {'all':>6} {'sky':>6} {'ground':>7} {'objects':>8} {'objects bias':>13} {'AbsRel':>7}")
     for s in SESSIONS:
         e = region_errors(predicted[s], rendered[s], encoded_80[s][1])
-        row = " ".join(f"{e[k]:{w}.3f}" for k, w in (("all", 6), ("sky", 6), ("ground", 7), ("objects", 8)))
+        row = " ".join(f"{e[k]:{w}.3f}" for k, w in columns)
         print(f"{s:<8} {row} {e['abs_rel_no_sky']:7.3f}")
 
 

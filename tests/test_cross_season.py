@@ -443,6 +443,36 @@ def test_ceilings_and_nearest_neighbour_baselines(smoke):
     assert "ceiling: seen class and heading ±45°" in table and "1-NN HHA 16² (rendered depth)" in table
 
 
+def test_hha_diagnose_on_the_smoke_run_reproduces_its_rendered_depth_baseline(smoke, tmp_path, capsys):
+    """``experiments.hha_diagnose`` on the smoke run, with predicted depth from a smoke depth network
+    (``--network``, ``--preset smoke``): its 1-NN on HHA of rendered depth as it is equals the run's own
+    ``nn_hha_true`` baseline (mean of the 12 pairs), reached by another path (its own encoding of the rendered
+    depth cache); every row is printed with an accuracy in [0, 100] and the error table has every session."""
+    from experiments import hha_diagnose
+    from placejax import depth
+
+    workdir, results = smoke
+    network = tmp_path / "depth"
+    depth.train(depth.PRESETS["smoke"], network, progress=False)
+    hha_diagnose.main([str(workdir), "--network", str(network), "--preset", "smoke", "--flip-average"])
+    out = capsys.readouterr().out
+    rows = {m[1].strip(): float(m[2]) for m in re.finditer(r"^(\S.*?)\s+(\d+\.\d)$", out, re.M)}
+    expected = 100.0 * np.mean([p["nn_hha_true"] for p in results["pairs"]])
+    assert rows["rendered, as is (sky at 1000 m)"] == pytest.approx(expected, abs=0.051)
+    for name in (
+        "rendered, clamped at 80 m",
+        "predicted",
+        "predicted, ≥ 50 m set to 1000 m",
+        "predicted, ≥ 50 m as sky, rendered on objects",
+    ):
+        assert 0.0 <= rows[name] <= 100.0, name
+    table = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line[:2] in SEASONS}
+    assert set(table) == set(SEASONS) and all(len(v) == 6 for v in table.values())
+    assert all(np.isfinite(float(v)) for k in SEASONS for v in table[k][2:])  # ground, objects, bias, AbsRel
+    with pytest.raises(SystemExit):
+        hha_diagnose.main([str(workdir), "--preset", "smoke"])  # --preset describes a --network run
+
+
 def test_nearest_neighbour_and_heading_ceiling_on_analytic_cases():
     from experiments.cross_season import baselines
 
