@@ -357,6 +357,62 @@ def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_
             dataclasses.replace(CFG, colour_augment=bad)
 
 
+def test_look_consistency_pairs_each_view_in_two_looks_and_adds_their_gap_to_the_loss():
+    """``paired_looks`` renders frames 2k and 2k+1 as one view (same depth, sky, objects) in two looks; the
+    config's ``look_consistency`` turns it on and reads the pairs as one element (``image`` / ``image_b``); the
+    objective supervises both looks with one flip per pair and adds the weighted mean |log-depth gap|: with the
+    second look equal to the first the gap is 0 and the loss is the unpaired objective's; with two looks the
+    loss grows by exactly weight × gap. Default 0 keeps the fingerprint; bad values are refused by name."""
+    from placejax import training
+    from placejax.data import simcampus, train_dataset
+
+    b = next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1, paired_looks=True))
+    for k in ("depth", "sky", "objects"):
+        np.testing.assert_array_equal(b[k][0::2], b[k][1::2])
+    assert not np.array_equal(b["rgb"][0::2], b["rgb"][1::2]) and not np.array_equal(b["depth"][0], b["depth"][2])
+    with pytest.raises(ValueError, match="even batch_size"):
+        next(simcampus.depth_training_batches(0, 3, (16, 16), n_worlds=1, paired_looks=True))
+
+    cfg = dataclasses.replace(CFG, frames=16, look_consistency=0.5)
+    assert cfg.paired and not CFG.paired
+    frames = depth_train.training_frames(cfg, progress=False)
+    source = depth_train.training_source(cfg, frames)
+    assert len(source) == 8
+    batch = depth_train._prepare(train_dataset(source, batch_size=cfg.batch_size // 2, seed=0)[0])
+    assert batch["image"].shape == batch["image_b"].shape == (4, 32, 32, 3) and batch["depth"].shape == (4, 32, 32)
+
+    variables = depth_train.init_variables(cfg)
+    state = training.create_state(
+        training.apply_fn(cfg.model()),
+        variables["params"],
+        training.make_optimizer("adamw"),
+        learning_rate=1e-3,
+        total_steps=1,
+        batch_stats=variables["batch_stats"],
+    )
+    key = jax.random.key(2)
+    paired = depth.DepthObjective.of(cfg)
+    plain = depth.DepthObjective.of(dataclasses.replace(cfg, look_consistency=0.0))
+    single = {k: v for k, v in batch.items() if k != "image_b"}
+    loss_plain = plain(state, state.params, single, key)[0]
+    loss_same, (metrics_same, _) = paired(state, state.params, {**single, "image_b": single["image"]}, key)
+    assert float(metrics_same["look_gap"]) < 1e-6
+    np.testing.assert_allclose(loss_same, loss_plain, rtol=1e-4)
+    loss_two, (metrics_two, _) = paired(state, state.params, batch, key)
+    loss_two_unweighted = plain(state, state.params, batch, key)[0]  # the pairs' supervised terms alone
+    assert float(metrics_two["look_gap"]) > 1e-4
+    np.testing.assert_allclose(loss_two, loss_two_unweighted + 0.5 * metrics_two["look_gap"], rtol=1e-5)
+
+    assert dataclasses.replace(CFG, look_consistency=0.0).fingerprint() == CFG.fingerprint()
+    assert train_depth.parse_overrides(CFG, ["look_consistency=1.0"]).fingerprint() != CFG.fingerprint()
+    for bad in (-1.0, float("nan"), True, "on"):
+        with pytest.raises(ValueError, match="look_consistency"):
+            dataclasses.replace(CFG, look_consistency=bad)
+    for other in ({"target": "inverse"}, {"batch_size": 7}, {"frames": 33}):
+        with pytest.raises(ValueError, match="look_consistency"):
+            dataclasses.replace(CFG, look_consistency=1.0, **other)
+
+
 def test_object_weight_is_checked_and_reaches_the_objective_and_the_fingerprint():
     """``object_weight`` must be positive and needs the metric target; 1 keeps the old fingerprint; the objective
     built from the config carries it, and the rendered training frames carry the objects mask it reads."""

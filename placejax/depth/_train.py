@@ -79,6 +79,11 @@ class DepthTrainConfig:
             orders, drawn afresh at every step. Each rendered frame keeps one look for all epochs; this shows the
             same geometry in other colours, so that what the net learns of an object's depth cannot hang on
             the colours it happened to be rendered in.
+        look_consistency: ``target="log_metric"`` only; 0 (off) or the weight of a term that asks for the same
+            prediction of one view in two looks. When > 0 the frames are rendered in pairs (one pose, two
+            independent random looks, the same depth; ``frames`` counts both), a step reads ``batch_size / 2``
+            pairs (the same number of images), both members are supervised as usual, and the mean
+            |log depth of look A − log depth of look B| over all pixels is added with this weight.
         seed: data order, augmentation and initialisation.
         checkpoint_every: steps between checkpoints.
         eval_frames: evaluation-campus frames per season for the report.
@@ -106,6 +111,7 @@ class DepthTrainConfig:
     camera_tilt: str = "random"
     muted_share: float = 0.0
     colour_augment: float = 0.0
+    look_consistency: float = 0.0
     seed: int = 0
     checkpoint_every: int = 100
     eval_frames: int = 48
@@ -140,6 +146,14 @@ class DepthTrainConfig:
             raise ValueError("weight_decay must be finite and >= 0, alpha finite")
         if not (isinstance(self.object_weight, int | float) and math.isfinite(self.object_weight)):
             raise ValueError(f"object_weight must be a finite number, got {self.object_weight!r}")
+        lc = self.look_consistency
+        if isinstance(lc, bool) or not (isinstance(lc, int | float) and math.isfinite(lc) and lc >= 0):
+            raise ValueError(f"look_consistency must be a finite number >= 0, got {lc!r}")
+        if lc > 0 and (self.target != "log_metric" or self.batch_size % 2 or self.frames % 2):
+            raise ValueError(
+                "look_consistency > 0 needs target='log_metric' and an even batch_size and frames (pairs of looks); "
+                f"got target={self.target!r}, batch_size={self.batch_size}, frames={self.frames}"
+            )
         if self.object_weight <= 0 or (self.object_weight != 1 and self.target != "log_metric"):
             raise ValueError(f"object_weight must be > 0, and 1 unless target='log_metric'; got {self.object_weight!r}")
         h = self.camera_height_m
@@ -152,6 +166,11 @@ class DepthTrainConfig:
 
     def model(self) -> MidasSmall:
         return MidasSmall(features=self.features, encoder_width=self.encoder_width)
+
+    @property
+    def paired(self) -> bool:
+        """Whether the frames come in pairs of looks (``look_consistency > 0``)."""
+        return self.look_consistency > 0
 
     @property
     def metric(self) -> bool:
@@ -173,6 +192,8 @@ class DepthTrainConfig:
             fields.pop("muted_share")  # likewise
         if self.colour_augment == 0:
             fields.pop("colour_augment")  # likewise
+        if self.look_consistency == 0:
+            fields.pop("look_consistency")  # likewise
         fields.pop("eval_frames")
         fields.pop("checkpoint_every")
         fields["recipe_version"] = _RECIPE_VERSION
@@ -283,6 +304,7 @@ class DepthObjective:
     target: str = "inverse"
     object_weight: float = 1.0
     colour_augment: float = 0.0
+    look_consistency: float = 0.0
 
     @classmethod
     def of(cls, cfg: DepthTrainConfig) -> DepthObjective:
@@ -295,10 +317,14 @@ class DepthObjective:
             cfg.target,
             cfg.object_weight,
             cfg.colour_augment,
+            cfg.look_consistency,
         )
 
     def __call__(self, state, params, batch, key):
         image = batch["image"]
+        paired = "image_b" in batch  # pairs of looks: one view's two renderings over one depth
+        if paired:
+            image = jnp.concatenate([image, batch["image_b"]])
         if self.colour_augment > 0:
             key, k_colour = jax.random.split(key)
             image = permute_channels(image, k_colour, self.colour_augment)
@@ -310,21 +336,31 @@ class DepthObjective:
                 weights = jnp.where(batch["objects"], self.object_weight, 1.0)
         else:
             tgt, mask = targets(batch["depth"], batch["sky"], self.max_depth_m, self.sky_in_loss)
-        # Horizontal flips: a scene and its mirror image have mirrored depth.
-        flip = jax.random.bernoulli(key, 0.5, (x.shape[0],))
-        x = jnp.where(flip[:, None, None, None], x[:, :, ::-1], x)
+        # Horizontal flips: a scene and its mirror image have mirrored depth (both looks of a pair alike).
+        flip = jax.random.bernoulli(key, 0.5, (tgt.shape[0],))
         tgt = jnp.where(flip[:, None, None], tgt[:, :, ::-1], tgt)
         mask = jnp.where(flip[:, None, None], mask[:, :, ::-1], mask)
         if weights is not None:
             weights = jnp.where(flip[:, None, None], weights[:, :, ::-1], weights)
+        if paired:
+            flip = jnp.concatenate([flip, flip])
+            tgt, mask = jnp.concatenate([tgt, tgt]), jnp.concatenate([mask, mask])
+            weights = None if weights is None else jnp.concatenate([weights, weights])
+        x = jnp.where(flip[:, None, None, None], x[:, :, ::-1], x)
         pred, updates = state.apply_fn(
             {"params": params, "batch_stats": state.batch_stats}, x, train=True, mutable=["batch_stats"]
         )
+        metrics = {}
         if self.target == "log_metric":
             loss = log_metric_loss(pred, tgt, mask, alpha=self.alpha, weights=weights)
         else:
             loss = midas_loss(pred, tgt, mask, variant=self.loss, alpha=self.alpha, trim=self.trim)
-        return loss, ({"loss": loss}, updates["batch_stats"])
+        if paired and self.look_consistency > 0:
+            a, b = jnp.split(pred, 2)
+            gap = jnp.mean(jnp.abs(a - b))
+            loss = loss + self.look_consistency * gap
+            metrics["look_gap"] = gap
+        return loss, ({"loss": loss, **metrics}, updates["batch_stats"])
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
@@ -353,6 +389,7 @@ def training_frames(cfg: DepthTrainConfig, progress: bool = True) -> dict[str, n
         camera_height_m=tuple(cfg.camera_height_m),
         camera_tilt=cfg.camera_tilt,
         muted_share=cfg.muted_share,
+        paired_looks=cfg.paired,
         progress=progress,
     )
 
@@ -362,7 +399,22 @@ def _checkpoint_dir(workdir: Path) -> Path:
 
 
 def _prepare(batch: dict) -> dict[str, np.ndarray]:
-    return {k: batch[k] for k in ("image", "depth", "sky", "objects")}
+    return {k: batch[k] for k in ("image", "image_b", "depth", "sky", "objects") if k in batch}
+
+
+def training_source(cfg: DepthTrainConfig, frames: dict[str, np.ndarray]):
+    """The grain source of the rendered training frames: one element per frame, or with ``cfg.paired`` one per
+    pair of looks (``image`` and ``image_b`` over the pair's one depth)."""
+    from placejax.data import FrameSource
+
+    if not cfg.paired:
+        return FrameSource(frames["rgb"], extras={k: frames[k] for k in ("depth", "sky", "objects")})
+    if not np.array_equal(frames["depth"][0::2], frames["depth"][1::2]):
+        raise ValueError("paired depth-training frames must share their depth")
+    return FrameSource(
+        frames["rgb"][0::2],
+        extras={"image_b": frames["rgb"][1::2], **{k: frames[k][0::2] for k in ("depth", "sky", "objects")}},
+    )
 
 
 def train(
@@ -389,22 +441,22 @@ def train(
     Returns:
         The final train state (replicated on the mesh).
     """
-    from placejax.data import FrameSource, train_dataset
+    from placejax.data import train_dataset
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     mesh = training.data_mesh(devices)
-    if cfg.batch_size % mesh.size:
-        raise ValueError(f"batch_size {cfg.batch_size} must be divisible by the {mesh.size} devices")
+    if cfg.batch_size % mesh.size or (cfg.paired and (cfg.batch_size // 2) % mesh.size):
+        what = "batch_size / 2 (pairs of looks)" if cfg.paired else "batch_size"
+        raise ValueError(f"{what} of batch_size {cfg.batch_size} must be divisible by the {mesh.size} devices")
     variables = init_variables(cfg)
 
     def batches():  # rendered only when steps remain
         frames = training_frames(cfg, progress=progress)
-        source = FrameSource(frames["rgb"], extras={k: frames[k] for k in ("depth", "sky", "objects")})
+        source = training_source(cfg, frames)
         epochs = math.ceil(cfg.steps * cfg.batch_size / cfg.frames)
-        return train_dataset(
-            source, batch_size=cfg.batch_size // jax.process_count(), seed=cfg.seed, num_epochs=epochs
-        )
+        per_step = cfg.batch_size // 2 if cfg.paired else cfg.batch_size  # elements: frames or pairs
+        return train_dataset(source, batch_size=per_step // jax.process_count(), seed=cfg.seed, num_epochs=epochs)
 
     return training.train(
         training.apply_fn(cfg.model()),

@@ -161,16 +161,21 @@ def depth_training_batches(
     camera_height_m: tuple[float, float] = (1.0, 2.0),
     camera_tilt: str = "random",
     muted_share: float = 0.0,
+    paired_looks: bool = False,
 ) -> Iterator[dict[str, np.ndarray]]:
     """Endless deterministic batches of domain-randomised RGB + depth (batch b comes from world b % n_worlds).
 
-    Each frame's look is :func:`random_look`'s, or with probability ``muted_share`` :func:`muted_look`'s.
+    Each frame's look is :func:`random_look`'s, or with probability ``muted_share`` :func:`muted_look`'s. With
+    ``paired_looks``, frames ``2k`` and ``2k + 1`` of a batch are one view (same pose, so the same depth) in two
+    independent looks (``batch_size`` must be even).
 
     Yields:
         dict with ``rgb`` uint8 ``(B, H, W, 3)``, ``depth`` float32 ``(B, H, W)`` z-depth (m, sky =
         `SKY_DEPTH`), ``sky`` and ``objects`` bool ``(B, H, W)`` (see ``render_batch``), ``K`` float64 ``(3, 3)``.
     """
     hw = _session._check_hw(hw)
+    if paired_looks and batch_size % 2:
+        raise ValueError(f"paired_looks needs an even batch_size, got {batch_size}")
     seeds = depth_world_seeds(seed, n_worlds, exclude_world_seeds)
     kmat = _session.intrinsics(hw, hfov_deg)
     kb = jnp.asarray(np.broadcast_to(kmat, (batch_size, 3, 3)), jnp.float32)
@@ -182,7 +187,10 @@ def depth_training_batches(
         # Geometry variety from the seasons too (foliage volume, snow banks, dynamic objects, the site).
         geo, _ = _session.season_scene(world, _seasons.SEASONS[(b // n_worlds) % len(_seasons.SEASONS)])
         rng = np.random.default_rng([seed, 0xDE97, b])
-        poses = random_poses(world, rng, batch_size, camera_height_m, camera_tilt)
+        if paired_looks:
+            poses = np.repeat(random_poses(world, rng, batch_size // 2, camera_height_m, camera_tilt), 2, axis=0)
+        else:
+            poses = random_poses(world, rng, batch_size, camera_height_m, camera_tilt)
         keys = jax.random.split(jax.random.fold_in(jax.random.key(seed), b), batch_size)
         looks = random_looks(keys)
         if muted_share > 0:
@@ -206,6 +214,7 @@ def depth_training_frames(
     camera_height_m: tuple[float, float] = (1.0, 2.0),
     camera_tilt: str = "random",
     muted_share: float = 0.0,
+    paired_looks: bool = False,
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
     """`n` domain-randomised RGB + depth frames from the depth-training worlds (first `n` of the batches).
@@ -227,6 +236,7 @@ def depth_training_frames(
         camera_height_m=camera_height_m,
         camera_tilt=camera_tilt,
         muted_share=muted_share,
+        paired_looks=paired_looks,
     )
     parts = []
     with tqdm.tqdm(total=n, desc="depth-training frames", unit="frame", disable=not progress) as bar:
