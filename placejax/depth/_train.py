@@ -292,7 +292,9 @@ class DepthObjective:
     metric log-depth loss (``target="log_metric"``).
 
     Reads ``batch["image"]`` uint8 ``(B, H, W, 3)``, ``batch["depth"]`` metres ``(B, H, W)``, ``batch["sky"]``
-    and, with ``object_weight != 1``, ``batch["objects"]``.
+    and, with ``object_weight != 1``, ``batch["objects"]``. A batch with ``batch["image_b"]`` (the same views in
+    a second look, :func:`training_source` with pairs) is read as 2B images over the B depths, one flip per
+    pair, plus ``look_consistency`` × their mean log-depth gap (metric ``look_gap``).
     A frozen dataclass: hashable, so each configuration compiles one step.
     """
 
