@@ -19,7 +19,15 @@ from placejax.depth._losses import (
     ssi_trimmed_mae,
 )
 from placejax.depth._metrics import aligned_depth, depth_metrics
-from placejax.depth._train import PRESETS, DepthObjective, DepthTrainConfig, TrainedDepth, load_trained, train
+from placejax.depth._train import (
+    PRESETS,
+    DepthObjective,
+    DepthTrainConfig,
+    TrainedDepth,
+    load_trained,
+    permute_channels,
+    train,
+)
 from placejax.depth._views import average_views, shift_columns, validate_shifts
 
 __all__ = [
@@ -45,6 +53,7 @@ __all__ = [
     "midas_loss",
     "network_size",
     "normalise_median_mad",
+    "permute_channels",
     "predict",
     "preprocess",
     "report_markdown",
