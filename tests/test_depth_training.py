@@ -308,11 +308,25 @@ def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerpri
             dataclasses.replace(CFG, muted_share=bad)
 
 
+def _untrained_state(cfg):
+    """A train state of ``cfg``'s untrained network, for calling an objective directly."""
+    from placejax import training
+
+    variables = depth_train.init_variables(cfg)
+    return training.create_state(
+        training.apply_fn(cfg.model()),
+        variables["params"],
+        training.make_optimizer("adamw"),
+        learning_rate=1e-3,
+        total_steps=1,
+        batch_stats=variables["batch_stats"],
+    )
+
+
 def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_and_the_fingerprint():
     """``permute_channels`` gives each image one of the six channel orders (every pixel alike), uniformly, for a
     ``share`` of the images; the objective trains on exactly those images (its loss equals the plain objective's
     on the permuted batch); share 0 keeps the old fingerprint; bad shares are refused by name."""
-    from placejax import training
 
     rng = np.random.default_rng(0)
     # Channel c holds values in [85c, 85c + 80): every output value tells which channel it came from.
@@ -332,15 +346,7 @@ def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_
     cfg = dataclasses.replace(CFG, frames=8, colour_augment=1.0)
     frames = depth_train.training_frames(cfg, progress=False)
     batch = {"image": frames["rgb"], "depth": frames["depth"], "sky": frames["sky"], "objects": frames["objects"]}
-    variables = depth_train.init_variables(cfg)
-    state = training.create_state(
-        training.apply_fn(cfg.model()),
-        variables["params"],
-        training.make_optimizer("adamw"),
-        learning_rate=1e-3,
-        total_steps=1,
-        batch_stats=variables["batch_stats"],
-    )
+    state = _untrained_state(cfg)
     augmented = depth.DepthObjective.of(cfg)
     plain = depth.DepthObjective.of(dataclasses.replace(cfg, colour_augment=0.0))
     assert augmented.colour_augment == 1.0 and plain.colour_augment == 0.0
@@ -363,7 +369,6 @@ def test_look_consistency_pairs_each_view_in_two_looks_and_adds_their_gap_to_the
     objective supervises both looks with one flip per pair and adds the weighted mean |log-depth gap|: with the
     second look equal to the first the gap is 0 and the loss is the unpaired objective's; with two looks the
     loss grows by exactly weight × gap. Default 0 keeps the fingerprint; bad values are refused by name."""
-    from placejax import training
     from placejax.data import simcampus, train_dataset
 
     b = next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1, paired_looks=True))
@@ -381,15 +386,7 @@ def test_look_consistency_pairs_each_view_in_two_looks_and_adds_their_gap_to_the
     batch = depth_train._prepare(train_dataset(source, batch_size=cfg.batch_size // 2, seed=0)[0])
     assert batch["image"].shape == batch["image_b"].shape == (4, 32, 32, 3) and batch["depth"].shape == (4, 32, 32)
 
-    variables = depth_train.init_variables(cfg)
-    state = training.create_state(
-        training.apply_fn(cfg.model()),
-        variables["params"],
-        training.make_optimizer("adamw"),
-        learning_rate=1e-3,
-        total_steps=1,
-        batch_stats=variables["batch_stats"],
-    )
+    state = _untrained_state(cfg)
     key = jax.random.key(2)
     paired = depth.DepthObjective.of(cfg)
     plain = depth.DepthObjective.of(dataclasses.replace(cfg, look_consistency=0.0))
