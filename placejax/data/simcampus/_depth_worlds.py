@@ -180,6 +180,7 @@ def depth_training_batches(
     kmat = _session.intrinsics(hw, hfov_deg)
     kb = jnp.asarray(np.broadcast_to(kmat, (batch_size, 3, 3)), jnp.float32)
     random_looks = jax.jit(jax.vmap(random_look))
+    muted_looks = jax.jit(jax.vmap(_mute))  # once per generator: a wrapper made per batch would recompile
     b = 0
     while True:
         w = b % n_worlds
@@ -194,7 +195,7 @@ def depth_training_batches(
         keys = jax.random.split(jax.random.fold_in(jax.random.key(seed), b), batch_size)
         looks = random_looks(keys)
         if muted_share > 0:
-            muted = jax.jit(jax.vmap(_mute))(looks, keys)
+            muted = muted_looks(looks, keys)
             looks = _per_frame(rng.uniform(size=batch_size) < muted_share, muted, looks)
         ids = jnp.asarray(b * batch_size + np.arange(batch_size), jnp.int32)
         r = _render.render_batch(geo, looks, jnp.asarray(poses, jnp.float32), kb, ids, hw=hw, look_per_frame=True)
