@@ -308,19 +308,27 @@ def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerpri
             dataclasses.replace(CFG, muted_share=bad)
 
 
-def _untrained_state(cfg):
-    """A train state of ``cfg``'s untrained network, for calling an objective directly."""
+def _untrained_state():
+    """A train state of the smoke network, untrained (``CFG``'s: its jitted initialisation is shared with the
+    other tests of this module; the frame count and objective options do not change the network)."""
     from placejax import training
 
-    variables = depth_train.init_variables(cfg)
+    variables = depth_train.init_variables(CFG)
     return training.create_state(
-        training.apply_fn(cfg.model()),
+        training.apply_fn(CFG.model()),
         variables["params"],
         training.make_optimizer("adamw"),
         learning_rate=1e-3,
         total_steps=1,
         batch_stats=variables["batch_stats"],
     )
+
+
+def _loss(objective, state, batch, key):
+    """``objective``'s loss and metrics at the state's parameters, jitted (op by op the first call of the deep
+    network costs several times its compilation)."""
+    loss, (metrics, _) = jax.jit(lambda p, b, k: objective(state, p, b, k))(state.params, batch, key)
+    return loss, metrics
 
 
 def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_and_the_fingerprint():
@@ -346,15 +354,15 @@ def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_
     cfg = dataclasses.replace(CFG, frames=8, colour_augment=1.0)
     frames = depth_train.training_frames(cfg, progress=False)
     batch = {"image": frames["rgb"], "depth": frames["depth"], "sky": frames["sky"], "objects": frames["objects"]}
-    state = _untrained_state(cfg)
+    state = _untrained_state()
     augmented = depth.DepthObjective.of(cfg)
     plain = depth.DepthObjective.of(dataclasses.replace(cfg, colour_augment=0.0))
     assert augmented.colour_augment == 1.0 and plain.colour_augment == 0.0
     k_rest, k_colour = jax.random.split(key)
     permuted = {**batch, "image": depth_train.permute_channels(batch["image"], k_colour, 1.0)}
-    loss_aug = augmented(state, state.params, batch, key)[0]
-    np.testing.assert_allclose(loss_aug, plain(state, state.params, permuted, k_rest)[0], rtol=1e-5)
-    assert not np.isclose(loss_aug, plain(state, state.params, batch, k_rest)[0], rtol=1e-4)
+    loss_aug = _loss(augmented, state, batch, key)[0]
+    np.testing.assert_allclose(loss_aug, _loss(plain, state, permuted, k_rest)[0], rtol=1e-5)
+    assert not np.isclose(loss_aug, _loss(plain, state, batch, k_rest)[0], rtol=1e-4)
 
     assert dataclasses.replace(CFG, colour_augment=0.0).fingerprint() == CFG.fingerprint()
     assert train_depth.parse_overrides(CFG, ["colour_augment=1.0"]).fingerprint() != CFG.fingerprint()
@@ -386,17 +394,17 @@ def test_look_consistency_pairs_each_view_in_two_looks_and_adds_their_gap_to_the
     batch = depth_train._prepare(train_dataset(source, batch_size=cfg.batch_size // 2, seed=0)[0])
     assert batch["image"].shape == batch["image_b"].shape == (4, 32, 32, 3) and batch["depth"].shape == (4, 32, 32)
 
-    state = _untrained_state(cfg)
+    state = _untrained_state()
     key = jax.random.key(2)
     paired = depth.DepthObjective.of(cfg)
     plain = depth.DepthObjective.of(dataclasses.replace(cfg, look_consistency=0.0))
     single = {k: v for k, v in batch.items() if k != "image_b"}
-    loss_plain = plain(state, state.params, single, key)[0]
-    loss_same, (metrics_same, _) = paired(state, state.params, {**single, "image_b": single["image"]}, key)
+    loss_plain = _loss(plain, state, single, key)[0]
+    loss_same, metrics_same = _loss(paired, state, {**single, "image_b": single["image"]}, key)
     assert float(metrics_same["look_gap"]) < 1e-6
     np.testing.assert_allclose(loss_same, loss_plain, rtol=1e-4)
-    loss_two, (metrics_two, _) = paired(state, state.params, batch, key)
-    loss_two_unweighted = plain(state, state.params, batch, key)[0]  # the pairs' supervised terms alone
+    loss_two, metrics_two = _loss(paired, state, batch, key)
+    loss_two_unweighted = _loss(plain, state, batch, key)[0]  # the pairs' supervised terms alone
     assert float(metrics_two["look_gap"]) > 1e-4
     np.testing.assert_allclose(loss_two, loss_two_unweighted + 0.5 * metrics_two["look_gap"], rtol=1e-5)
 
