@@ -308,6 +308,58 @@ def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerpri
             dataclasses.replace(CFG, muted_share=bad)
 
 
+def test_structured_looks_share_a_colour_per_kind_of_surface_and_reach_the_frames_and_the_fingerprint():
+    """``structured_look`` keeps ``random_look``'s sun direction, haze distance, noise and window grids and the
+    colours of the kinds it leaves wild (signs, props); roofs, crowns and conifers each share one colour up to the
+    ±15 % per object, walls stay each building's own; it snows (white roofs) in some frames, not in most; the
+    share picks it per frame (0: the old frames and fingerprint); bad shares are refused by name."""
+    from placejax.data import simcampus
+    from placejax.data.simcampus import _depth_worlds, _seasons
+    from placejax.data.simcampus import _world as W
+
+    world = simcampus.make_world(_depth_worlds.depth_world_seeds(0, 1)[0])
+    roles = simcampus.scene_roles(_seasons.scene_tables(world, "SU"))
+    box_role, cyl_role, ell_role = roles
+    assert len(box_role) == _seasons.N_BOX and (box_role == -1).any() and (box_role == W.ROLE_BUILDING).sum() >= 3
+    assert (ell_role == W.ROLE_CROWN).sum() >= 3 and (cyl_role == W.ROLE_TRUNK).sum() >= 3
+
+    keys = jax.random.split(jax.random.key(5), 64)
+    wild = jax.vmap(simcampus.random_look)(keys)
+    tidy = jax.vmap(simcampus.structured_look, in_axes=(0, None))(keys, roles)
+    for name in ("sun_dir", "fog_dist", "noise"):
+        np.testing.assert_array_equal(getattr(wild, name), getattr(tidy, name))
+    np.testing.assert_array_equal(wild.box[..., 9:], tidy.box[..., 9:])
+    kept = box_role != W.ROLE_BUILDING
+    np.testing.assert_array_equal(np.asarray(wild.box)[:, kept], np.asarray(tidy.box)[:, kept])
+    prop = ell_role == W.ROLE_PROP
+    np.testing.assert_array_equal(np.asarray(wild.ell)[:, prop], np.asarray(tidy.ell)[:, prop])
+    assert 0.0 <= float(np.min(tidy.ground[..., :6])) and float(np.max(tidy.ground[..., :6])) <= 1.0
+
+    def spread(rgb):  # (keys, objects, 3) → coefficient of variation over the objects of a look, mean over looks
+        rgb = np.asarray(rgb)
+        return float(np.mean(rgb.std(1) / (rgb.mean(1) + 1e-6)))
+
+    building, crown = box_role == W.ROLE_BUILDING, ell_role == W.ROLE_CROWN
+    for table, mask, cols in ((tidy.box, building, slice(6, 9)), (tidy.ell, crown, slice(0, 3))):
+        assert spread(np.asarray(table)[:, mask, cols]) < 0.1  # one colour ± 15 % (uniform: 0.087)
+    assert spread(np.asarray(wild.ell)[:, crown, 0:3]) > 0.4
+    assert spread(np.asarray(tidy.box)[:, building, 0:3]) > 0.3  # walls: each building its own
+    roofs = np.asarray(tidy.box)[:, building, 6:9].mean((1, 2))
+    assert 0.05 * len(keys) < (roofs > 0.75).sum() < 0.6 * len(keys)  # snow on the roofs at times
+
+    def frames(share):
+        return next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1, structured_share=share))["rgb"]
+
+    plain = next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1))["rgb"]
+    np.testing.assert_array_equal(frames(0.0), plain)
+    assert not np.array_equal(frames(1.0), plain)
+    assert dataclasses.replace(CFG, structured_share=0.0).fingerprint() == CFG.fingerprint()
+    assert train_depth.parse_overrides(CFG, ["structured_share=1"]).fingerprint() != CFG.fingerprint()
+    for bad in (-0.1, 1.5, "all"):
+        with pytest.raises(ValueError, match="structured_share"):
+            dataclasses.replace(CFG, structured_share=bad)
+
+
 def _untrained_state():
     """A train state of the smoke network, untrained (``CFG``'s: its jitted initialisation is shared with the
     other tests of this module; the frame count and objective options do not change the network)."""

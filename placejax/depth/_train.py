@@ -75,6 +75,9 @@ class DepthTrainConfig:
         muted_share: share of training frames in natural rather than wild colours
             (``simcampus.muted_look``: desaturated, drawn towards one palette, overcast light allowed); the rest
             in :func:`simcampus.random_look`'s independent uniform colours.
+        structured_share: share of training frames in :func:`simcampus.structured_look`'s looks: random
+            colours, but one per kind of surface (all lawns, all crowns, all roofs alike; snow on the ground,
+            roofs and conifers at times), as in a real season; drawn after ``muted_share`` (it wins).
         colour_augment: share of training images whose colour channels are put in a random one of their six
             orders, drawn afresh at every step. Each rendered frame keeps one look for all epochs; this shows the
             same geometry in other colours, so that what the net learns of an object's depth cannot hang on
@@ -110,6 +113,7 @@ class DepthTrainConfig:
     camera_height_m: tuple[float, float] = (1.0, 2.0)
     camera_tilt: str = "random"
     muted_share: float = 0.0
+    structured_share: float = 0.0
     colour_augment: float = 0.0
     look_consistency: float = 0.0
     seed: int = 0
@@ -124,7 +128,7 @@ class DepthTrainConfig:
             raise ValueError(f"target must be 'inverse' or 'log_metric', got {self.target!r}")
         if self.camera_tilt not in CAMERA_TILTS:
             raise ValueError(f"camera_tilt must be one of {CAMERA_TILTS}, got {self.camera_tilt!r}")
-        for name in ("muted_share", "colour_augment"):
+        for name in ("muted_share", "structured_share", "colour_augment"):
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, int | float) and 0.0 <= value <= 1.0):
                 raise ValueError(f"{name} must be a number in [0, 1], got {value!r}")
@@ -192,6 +196,8 @@ class DepthTrainConfig:
             fields.pop("muted_share")  # likewise
         if self.colour_augment == 0:
             fields.pop("colour_augment")  # likewise
+        if self.structured_share == 0:
+            fields.pop("structured_share")  # likewise
         if self.look_consistency == 0:
             fields.pop("look_consistency")  # likewise
         fields.pop("eval_frames")
@@ -391,6 +397,7 @@ def training_frames(cfg: DepthTrainConfig, progress: bool = True) -> dict[str, n
         camera_height_m=tuple(cfg.camera_height_m),
         camera_tilt=cfg.camera_tilt,
         muted_share=cfg.muted_share,
+        structured_share=cfg.structured_share,
         paired_looks=cfg.paired,
         progress=progress,
     )

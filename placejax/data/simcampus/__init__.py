@@ -6,8 +6,9 @@ cross-season experiment runs end to end anywhere. Sessions satisfy `placejax.dat
 
 Building blocks for other uses of the worlds (the depth-training and pretraining data): ``make_world``,
 ``path_frames`` (poses along the path network), ``random_poses``, ``random_look`` (a domain-randomised
-appearance), ``muted_look`` (the same in natural colours), ``season_scene`` (a world's geometry and look in a
-season) and ``render_batch``.
+appearance), ``muted_look`` (the same in natural colours), ``structured_look`` (one colour per kind of surface,
+snow at times: a season's structure in random colours; ``scene_roles`` gives it the kinds), ``season_scene`` (a
+world's geometry and look in a season) and ``render_batch``.
 
 Example:
     >>> from placejax.data import simcampus
@@ -23,6 +24,8 @@ from placejax.data.simcampus._depth_worlds import (
     muted_look,
     random_look,
     random_poses,
+    scene_roles,
+    structured_look,
 )
 from placejax.data.simcampus._render import SKY_DEPTH, render_batch
 from placejax.data.simcampus._seasons import SEASONS, STYLES, SeasonStyle, path_frames
@@ -57,5 +60,7 @@ __all__ = [
     "random_poses",
     "render",
     "render_batch",
+    "scene_roles",
     "season_scene",
+    "structured_look",
 ]

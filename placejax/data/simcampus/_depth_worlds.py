@@ -101,6 +101,118 @@ def _mute(look: _render.Look, key: jax.Array) -> _render.Look:
     )
 
 
+def _hsv(key: jax.Array, shape: tuple[int, ...], value: tuple[float, float] = (0.12, 0.95)) -> jax.Array:
+    """Random colours ``shape + (3,)`` of natural saturation: any hue, saturation mostly low (0.7·u², u uniform),
+    value uniform in ``value``."""
+    kh, ks, kv = jax.random.split(key, 3)
+    h, s, v = _uniform(kh, shape), 0.7 * _uniform(ks, shape) ** 2, _uniform(kv, shape, *value)
+    k = (jnp.array([5.0, 3.0, 1.0]).reshape((1,) * len(shape) + (3,)) + 6.0 * h[..., None]) % 6.0
+    return v[..., None] * (1.0 - s[..., None] * jnp.clip(jnp.minimum(k, 4.0 - k), 0.0, 1.0))
+
+
+def scene_roles(tables: _seasons.SceneTables) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The role of every box, cylinder and ellipsoid row of a scene's padded tables (padding rows: -1)."""
+
+    def pad(role, n):
+        return np.concatenate([np.asarray(role, np.int32), np.full(n - len(role), -1, np.int32)])
+
+    return (
+        pad(tables.boxes.role, _seasons.N_BOX),
+        pad(tables.cyls.role, _seasons.N_CYL),
+        pad(tables.ells.role, _seasons.N_ELL),
+    )
+
+
+def structured_look(key: jax.Array, roles: tuple[jax.Array, jax.Array, jax.Array]) -> _render.Look:
+    """A random look with the structure of a real season: surfaces of one kind share a colour.
+
+    :func:`random_look` colours every surface independently; in a real season all lawns are one green (or all under
+    snow), all deciduous crowns one colour, all roofs alike, while each building keeps its own walls. Here, from
+    ``random_look(key)``'s sun direction, haze distance, noise, textures and window grids: every ground material,
+    the crowns, the conifers, the trunks, the poles and the roofs get one colour each (±15 % per object), every
+    building's walls and windows their own; with probability 0.3 it is snowing — a near-white on each ground
+    material (with probability 0.75 each), on the roofs and in the conifers' speckle; the sky is a light gradient,
+    the backdrop a darker colour; ambient light and exposure are near grey (±8 % and ±6 % per channel), the sun of
+    low saturation. Colours come from broad natural ranges (:func:`_hsv`: any hue, low saturation), never from the
+    evaluation campus's seasons. Signs, landmarks, lamps and dynamic objects keep their wild colours. ``roles`` are
+    the scene's :func:`scene_roles`.
+    """
+    return _structure(random_look(key), key, roles)
+
+
+def _structure(look: _render.Look, key: jax.Array, roles) -> _render.Look:
+    """:func:`structured_look` of ``key`` from ``random_look(key)`` already drawn."""
+    box_role, cyl_role, ell_role = (jnp.asarray(r) for r in roles)
+    k = jax.random.split(jax.random.fold_in(key, 0x57C), 20)
+    snowing = _uniform(k[0], ()) < 0.3
+    snow = jnp.clip(_uniform(k[1], (), 0.8, 0.96) + _uniform(k[2], (3,), -0.03, 0.03), 0.0, 1.0)
+
+    def jitter(rgb, kk, n):  # one class colour (3,) → (n, 3), each object within ±15 %
+        return jnp.clip(rgb[None, :] * _uniform(kk, (n, 1), 0.85, 1.15), 0.0, 1.0)
+
+    def where(mask, new, old):
+        return jnp.where(mask[:, None], new, old)
+
+    nb, nc, ne = box_role.shape[0], cyl_role.shape[0], ell_role.shape[0]
+    building = box_role == W.ROLE_BUILDING
+    roof = jnp.where(snowing, snow, _hsv(k[3], ()))
+    box = look.box
+    box = box.at[:, 0:3].set(where(building, _hsv(k[4], (nb,)), box[:, 0:3]))
+    box = box.at[:, 3:6].set(where(building, _hsv(k[5], (nb,), (0.05, 0.8)), box[:, 3:6]))
+    box = box.at[:, 6:9].set(where(building, jitter(roof, k[6], nb), box[:, 6:9]))
+
+    cyl = look.cyl
+    for i, role in enumerate((W.ROLE_TRUNK, W.ROLE_POLE)):
+        kk = jax.random.fold_in(k[7], i)
+        base = _hsv(kk, (), (0.05, 0.7))
+        alt = jnp.clip(base * _uniform(jax.random.fold_in(kk, 1), (), 0.6, 1.4), 0.0, 1.0)
+        mask = cyl_role == role
+        cyl = cyl.at[:, 0:3].set(where(mask, jitter(base, jax.random.fold_in(kk, 2), nc), cyl[:, 0:3]))
+        cyl = cyl.at[:, 3:6].set(where(mask, jitter(alt, jax.random.fold_in(kk, 3), nc), cyl[:, 3:6]))
+
+    ell = look.ell
+    crown, conifer = ell_role == W.ROLE_CROWN, ell_role == W.ROLE_CONIFER
+    crown_rgb = _hsv(k[8], ())
+    crown_alt = 0.5 * (crown_rgb + _hsv(k[9], ()))
+    conifer_rgb = _hsv(k[10], (), (0.05, 0.5))
+    conifer_alt = jnp.where(snowing, snow, jnp.clip(conifer_rgb * _uniform(k[11], (), 0.6, 1.4), 0.0, 1.0))
+    ell = ell.at[:, 0:3].set(where(crown, jitter(crown_rgb, k[12], ne), ell[:, 0:3]))
+    ell = ell.at[:, 3:6].set(where(crown, jitter(crown_alt, k[13], ne), ell[:, 3:6]))
+    ell = ell.at[:, 0:3].set(where(conifer, jitter(conifer_rgb, k[14], ne), ell[:, 0:3]))
+    ell = ell.at[:, 3:6].set(where(conifer, jitter(conifer_alt, k[15], ne), ell[:, 3:6]))
+
+    nm = look.ground.shape[0]
+    ground_rgb = _hsv(k[16], (nm,))
+    speckle = 0.5 * (ground_rgb + _hsv(k[17], (nm,)))
+    covered = snowing & (_uniform(k[18], (nm,)) < 0.75)
+    snow_speckle = jnp.broadcast_to(0.92 * snow, (nm, 3))
+    ground = jnp.concatenate(
+        [where(covered, jnp.broadcast_to(snow, (nm, 3)), ground_rgb), where(covered, snow_speckle, speckle)], 1
+    )
+    ground = jnp.concatenate([ground, look.ground[:, 6:]], 1)
+    kz, kh, kmix, kb, ka, ks, kg = jax.random.split(k[19], 7)
+    zenith = _hsv(kz, (), (0.45, 1.0))
+    horizon = zenith + _uniform(kmix, (), 0.2, 0.8) * (_uniform(kh, (), 0.7, 1.0) - zenith)
+
+    def near_grey(kk, lo, hi, tint):  # a level in [lo, hi] with each channel within ±tint of it
+        k1, k2 = jax.random.split(kk)
+        return _uniform(k1, (), lo, hi) * (1.0 + _uniform(k2, (3,), -tint, tint))
+
+    return look._replace(
+        box=box,
+        cyl=cyl,
+        ell=ell,
+        ground=ground,
+        sky_zenith=zenith,
+        sky_horizon=horizon,
+        fog_rgb=0.5 * (horizon + look.fog_rgb),
+        backdrop_rgb=_hsv(kb, (), (0.1, 0.7)),
+        ambient_rgb=near_grey(ka, 0.25, 0.9, 0.08),
+        sun_rgb=_hsv(ks, (), (0.0, 1.0)),
+        gain=near_grey(kg, 0.8, 1.2, 0.06),
+    )
+
+
 def _per_frame(pick: np.ndarray, a: _render.Look, b: _render.Look) -> _render.Look:
     """Frame i's look from ``a`` where ``pick[i]``, else from ``b`` (looks with a leading batch axis)."""
     pick = jnp.asarray(pick)
@@ -161,11 +273,13 @@ def depth_training_batches(
     camera_height_m: tuple[float, float] = (1.0, 2.0),
     camera_tilt: str = "random",
     muted_share: float = 0.0,
+    structured_share: float = 0.0,
     paired_looks: bool = False,
 ) -> Iterator[dict[str, np.ndarray]]:
     """Endless deterministic batches of domain-randomised RGB + depth (batch b comes from world b % n_worlds).
 
-    Each frame's look is :func:`random_look`'s, or with probability ``muted_share`` :func:`muted_look`'s. With
+    Each frame's look is :func:`random_look`'s, or with probability ``muted_share`` :func:`muted_look`'s, or
+    with probability ``structured_share`` :func:`structured_look`'s (drawn after the muting: it wins). With
     ``paired_looks``, frames ``2k`` and ``2k + 1`` of a batch are one view (same pose, so the same depth) in two
     independent looks (``batch_size`` must be even).
 
@@ -181,12 +295,14 @@ def depth_training_batches(
     kb = jnp.asarray(np.broadcast_to(kmat, (batch_size, 3, 3)), jnp.float32)
     random_looks = jax.jit(jax.vmap(random_look))
     muted_looks = jax.jit(jax.vmap(_mute))  # once per generator: a wrapper made per batch would recompile
+    structured_looks = jax.jit(jax.vmap(_structure, in_axes=(0, 0, None)))
     b = 0
     while True:
         w = b % n_worlds
         world = _session.make_world(seeds[w])
         # Geometry variety from the seasons too (foliage volume, snow banks, dynamic objects, the site).
-        geo, _ = _session.season_scene(world, _seasons.SEASONS[(b // n_worlds) % len(_seasons.SEASONS)])
+        tables = _seasons.scene_tables(world, _seasons.SEASONS[(b // n_worlds) % len(_seasons.SEASONS)])
+        geo = _seasons.geometry_from_tables(world, tables)
         rng = np.random.default_rng([seed, 0xDE97, b])
         if paired_looks:
             poses = np.repeat(random_poses(world, rng, batch_size // 2, camera_height_m, camera_tilt), 2, axis=0)
@@ -197,6 +313,9 @@ def depth_training_batches(
         if muted_share > 0:
             muted = muted_looks(looks, keys)
             looks = _per_frame(rng.uniform(size=batch_size) < muted_share, muted, looks)
+        if structured_share > 0:
+            structured = structured_looks(looks, keys, scene_roles(tables))
+            looks = _per_frame(rng.uniform(size=batch_size) < structured_share, structured, looks)
         ids = jnp.asarray(b * batch_size + np.arange(batch_size), jnp.int32)
         r = _render.render_batch(geo, looks, jnp.asarray(poses, jnp.float32), kb, ids, hw=hw, look_per_frame=True)
         yield {**{k: np.asarray(v) for k, v in r._asdict().items()}, "K": kmat}
@@ -215,6 +334,7 @@ def depth_training_frames(
     camera_height_m: tuple[float, float] = (1.0, 2.0),
     camera_tilt: str = "random",
     muted_share: float = 0.0,
+    structured_share: float = 0.0,
     paired_looks: bool = False,
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
@@ -237,6 +357,7 @@ def depth_training_frames(
         camera_height_m=camera_height_m,
         camera_tilt=camera_tilt,
         muted_share=muted_share,
+        structured_share=structured_share,
         paired_looks=paired_looks,
     )
     parts = []
