@@ -11,6 +11,10 @@ import pytest
 from placejax import pretrain, training
 from placejax.models import VGG16
 
+# Under the README's ``--dist loadgroup`` every test of this module runs on one worker, so the smoke pretraining
+# (module fixture, about a minute) is done once rather than once per worker that runs one of its tests.
+pytestmark = pytest.mark.xdist_group("pretrain")
+
 
 def assert_spatial_map(image_size: int, width: float) -> tuple[int, int]:
     """Fails when the trunk's last max-pooled map is 1 × 1 at ``image_size`` (fc6 would see no layout)."""
