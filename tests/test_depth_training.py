@@ -268,6 +268,25 @@ def test_camera_tilt_follows_the_terrain_like_the_robot_and_reaches_the_frames_a
     assert a["rgb"].shape == b["rgb"].shape and not np.array_equal(a["depth"], b["depth"])
 
 
+def _check_look_share(name: str):
+    """A share of frames in another look (``muted_share``, ``structured_share``): 0 gives the old frames and
+    fingerprint, 1 other frames and another fingerprint; a share outside [0, 1] or not a number is refused by
+    name."""
+    from placejax.data import simcampus
+
+    def frames(**share):
+        return next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1, **share))["rgb"]
+
+    plain = frames()
+    np.testing.assert_array_equal(frames(**{name: 0.0}), plain)
+    assert not np.array_equal(frames(**{name: 1.0}), plain)
+    assert dataclasses.replace(CFG, **{name: 0.0}).fingerprint() == CFG.fingerprint()
+    assert train_depth.parse_overrides(CFG, [f"{name}=0.5"]).fingerprint() != CFG.fingerprint()
+    for bad in (-0.1, 1.5, "half"):
+        with pytest.raises(ValueError, match=name):
+            dataclasses.replace(CFG, **{name: bad})
+
+
 def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerprint():
     """``muted_look`` keeps ``random_look``'s geometry-free fields but desaturates its colours and draws them to
     one palette (over many keys: much lower saturation and spread between surfaces); ``muted_share`` picks it per
@@ -294,18 +313,7 @@ def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerpri
     assert saturation(m).mean() < 0.6 * saturation(w).mean()
     assert m.std(1).mean() < 0.8 * w.std(1).mean()  # surfaces of a frame share a palette
 
-    def frames(share):
-        batches = simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1, muted_share=share)
-        return next(batches)["rgb"]
-
-    plain = next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1))["rgb"]
-    np.testing.assert_array_equal(frames(0.0), plain)
-    assert not np.array_equal(frames(1.0), plain)
-    assert dataclasses.replace(CFG, muted_share=0.0).fingerprint() == CFG.fingerprint()
-    assert train_depth.parse_overrides(CFG, ["muted_share=0.5"]).fingerprint() != CFG.fingerprint()
-    for bad in (-0.1, 1.5, "half"):
-        with pytest.raises(ValueError, match="muted_share"):
-            dataclasses.replace(CFG, muted_share=bad)
+    _check_look_share("muted_share")
 
 
 def test_structured_looks_share_a_colour_per_kind_of_surface_and_reach_the_frames_and_the_fingerprint():
@@ -347,17 +355,7 @@ def test_structured_looks_share_a_colour_per_kind_of_surface_and_reach_the_frame
     roofs = np.asarray(tidy.box)[:, building, 6:9].mean((1, 2))
     assert 0.05 * len(keys) < (roofs > 0.75).sum() < 0.6 * len(keys)  # snow on the roofs at times
 
-    def frames(share):
-        return next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1, structured_share=share))["rgb"]
-
-    plain = next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1))["rgb"]
-    np.testing.assert_array_equal(frames(0.0), plain)
-    assert not np.array_equal(frames(1.0), plain)
-    assert dataclasses.replace(CFG, structured_share=0.0).fingerprint() == CFG.fingerprint()
-    assert train_depth.parse_overrides(CFG, ["structured_share=1"]).fingerprint() != CFG.fingerprint()
-    for bad in (-0.1, 1.5, "all"):
-        with pytest.raises(ValueError, match="structured_share"):
-            dataclasses.replace(CFG, structured_share=bad)
+    _check_look_share("structured_share")
 
 
 def _untrained_state():

@@ -262,6 +262,12 @@ def depth_world_seeds(seed: int, n_worlds: int, exclude_world_seeds=(0,)) -> lis
     return seeds
 
 
+# Batched looks, made once: a jit wrapper made per generator (or per batch) would trace and compile again.
+_random_looks = jax.jit(jax.vmap(random_look))
+_muted_looks = jax.jit(jax.vmap(_mute))
+_structured_looks = jax.jit(jax.vmap(_structure, in_axes=(0, 0, None)))
+
+
 def depth_training_batches(
     seed: int,
     batch_size: int,
@@ -293,9 +299,6 @@ def depth_training_batches(
     seeds = depth_world_seeds(seed, n_worlds, exclude_world_seeds)
     kmat = _session.intrinsics(hw, hfov_deg)
     kb = jnp.asarray(np.broadcast_to(kmat, (batch_size, 3, 3)), jnp.float32)
-    random_looks = jax.jit(jax.vmap(random_look))
-    muted_looks = jax.jit(jax.vmap(_mute))  # once per generator: a wrapper made per batch would recompile
-    structured_looks = jax.jit(jax.vmap(_structure, in_axes=(0, 0, None)))
     b = 0
     while True:
         w = b % n_worlds
@@ -309,12 +312,12 @@ def depth_training_batches(
         else:
             poses = random_poses(world, rng, batch_size, camera_height_m, camera_tilt)
         keys = jax.random.split(jax.random.fold_in(jax.random.key(seed), b), batch_size)
-        looks = random_looks(keys)
+        looks = _random_looks(keys)
         if muted_share > 0:
-            muted = muted_looks(looks, keys)
+            muted = _muted_looks(looks, keys)
             looks = _per_frame(rng.uniform(size=batch_size) < muted_share, muted, looks)
         if structured_share > 0:
-            structured = structured_looks(looks, keys, scene_roles(tables))
+            structured = _structured_looks(looks, keys, scene_roles(tables))
             looks = _per_frame(rng.uniform(size=batch_size) < structured_share, structured, looks)
         ids = jnp.asarray(b * batch_size + np.arange(batch_size), jnp.int32)
         r = _render.render_batch(geo, looks, jnp.asarray(poses, jnp.float32), kb, ids, hw=hw, look_per_frame=True)
