@@ -35,3 +35,14 @@ def midas_recipe_npz(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("midas_recipe") / "midas_recipe_state_dict.npz"
     np.savez(path, **recipe_state_dict(with_num_batches_tracked=True))
     return path
+
+
+@pytest.fixture(scope="session")
+def smoke_depth_run(tmp_path_factory) -> Path:
+    """A finished run of the smoke depth-training preset, trained once per test process for every test that needs
+    one (the depth tests, ``experiments.hha_diagnose``'s). Read it only: copy it before writing to it."""
+    from placejax import depth
+
+    workdir = tmp_path_factory.mktemp("smoke_depth_run")
+    depth.train(depth.PRESETS["smoke"], workdir, progress=False)
+    return workdir

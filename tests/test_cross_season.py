@@ -443,18 +443,15 @@ def test_ceilings_and_nearest_neighbour_baselines(smoke):
     assert "ceiling: seen class and heading ±45°" in table and "1-NN HHA 16² (rendered depth)" in table
 
 
-def test_hha_diagnose_on_the_smoke_run_reproduces_its_rendered_depth_baseline(smoke, tmp_path, capsys):
+def test_hha_diagnose_on_the_smoke_run_reproduces_its_rendered_depth_baseline(smoke, smoke_depth_run, capsys):
     """``experiments.hha_diagnose`` on the smoke run, with predicted depth from a smoke depth network
     (``--network``, ``--preset smoke``): its 1-NN on HHA of rendered depth as it is equals the run's own
     ``nn_hha_true`` baseline (mean of the 12 pairs), reached by another path (its own encoding of the rendered
     depth cache); every row is printed with an accuracy in [0, 100] and the error table has every session."""
     from experiments import hha_diagnose
-    from placejax import depth
 
     workdir, results = smoke
-    network = tmp_path / "depth"
-    depth.train(depth.PRESETS["smoke"], network, progress=False)
-    hha_diagnose.main([str(workdir), "--network", str(network), "--preset", "smoke", "--flip-average"])
+    hha_diagnose.main([str(workdir), "--network", str(smoke_depth_run), "--preset", "smoke", "--flip-average"])
     out = capsys.readouterr().out
     rows = {m[1].strip(): float(m[2]) for m in re.finditer(r"^(\S.*?)\s+(\d+\.\d)$", out, re.M)}
     expected = 100.0 * np.mean([p["nn_hha_true"] for p in results["pairs"]])

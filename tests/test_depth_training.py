@@ -18,10 +18,10 @@ OLD_DEFAULT_FINGERPRINT = "69a32e715f24"
 
 
 @pytest.fixture(scope="module")
-def uninterrupted_dir(tmp_path_factory):
-    workdir = tmp_path_factory.mktemp("uninterrupted")
-    depth.train(CFG, workdir, progress=False)
-    return workdir
+def uninterrupted_dir(smoke_depth_run):
+    """The smoke preset (``CFG``) trained without interruption (the session's shared run; read-only)."""
+    assert CFG == depth.PRESETS["smoke"]
+    return smoke_depth_run
 
 
 @pytest.fixture(scope="module")
