@@ -16,6 +16,10 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # functions: the renderer, the models' steps); it only ever saves time, results are unchanged.
 _JAX_CACHE = os.environ.get("PLACEJAX_TEST_JAX_CACHE", "/tmp/placejax-test-jax-cache")
 jax.config.update("jax_compilation_cache_dir", _JAX_CACHE)
+# Every program, not only those that took a second to compile: the suite compiles the same small steps in both
+# workers and in the runs it starts as subprocesses (which inherit this through the environment).
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import zipfile
 from pathlib import Path
 
@@ -26,9 +27,14 @@ pytestmark = pytest.mark.xdist_group("classify")
 
 
 @pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory):
-    """A smoke run with a (4-step) trained depth network, two seasons: a classifier can be built from it."""
+def smoke_run(tmp_path_factory, smoke_depth_run):
+    """A smoke run with a (4-step) trained depth network, two seasons, one device: a classifier can be built from
+    it. Its depth cache is seeded with the session's smoke depth network (the experiment reuses it, as it would
+    its own from an earlier run, and writes its report)."""
+    from placejax import depth
+
     root = tmp_path_factory.mktemp("classify")
+    shutil.copytree(smoke_depth_run, depth.run_dir(depth.PRESETS["smoke"], "smoke", root / "depth"))
     cfg = get_config("smoke")
     apply_overrides(
         cfg,
@@ -40,6 +46,7 @@ def smoke_run(tmp_path_factory):
             "ablations.depth1=False",
             "figures=False",
             "progress=False",
+            "devices=1",
         ],
     )
     workdir = root / "run"

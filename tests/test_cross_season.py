@@ -27,17 +27,27 @@ pytestmark = pytest.mark.xdist_group("cross_season")
 SEASONS = ("WI", "SP", "SU", "AU")
 
 
+# The smoke runs of this module train on one device, as the default run does on a machine with one CPU device:
+# under the test suite's two forced host devices a step costs about twice as much on 2 devices as on 1, and
+# the smoke runs' training is the suite's largest part. The 2-device path (and 2 processes) has its own test.
+SMOKE_OVERRIDES = ("devices=1", "progress=False")
+
+
+def _smoke_config(*overrides: str):
+    cfg = get_config("smoke")
+    apply_overrides(cfg, [*SMOKE_OVERRIDES, *overrides])
+    return cfg
+
+
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):
     workdir = tmp_path_factory.mktemp("smoke")
-    cfg = get_config("smoke")
-    cfg.progress = False
-    return workdir, run(cfg, workdir)
+    return workdir, run(_smoke_config(), workdir)
 
 
 def _accuracies(results: dict) -> dict:
     methods = ("ours", "rgb_net", "hha_net", "depth1_net", "average")
-    return {(p["train"], p["test"]): tuple(p[m] for m in methods) for p in results["pairs"]}
+    return {(p["train"], p["test"]): tuple(p.get(m) for m in methods) for p in results["pairs"]}
 
 
 def test_smoke_table_and_results(smoke):
@@ -133,8 +143,7 @@ def test_frozen_trunk_features_are_cached_once_and_reused(smoke, monkeypatch):
 
     feats = [d for d in (workdir / "cache").iterdir() if "-convfeat-" in d.name and d.is_dir()]
     assert len(feats) == len(SEASONS) * 3  # sessions × (rgb, hha, depth1), not × seeds
-    cfg = get_config("smoke")
-    cfg.progress = False
+    cfg = _smoke_config()
     ctx = P.Context(config=cfg, workdir=workdir, mesh=P.data_mesh(None))
     sessions = P.load_sessions(ctx)
     P.fit_grid(ctx, sessions)
@@ -156,8 +165,7 @@ def test_shuffled_labels_score_at_chance(smoke, tmp_path):
     image–label link broken) is scored against the true labels: it must fall to chance where the real run has
     learnt its training sessions, so the accuracies come from what the networks learnt from the images."""
     _, real = smoke
-    cfg = get_config("smoke")
-    apply_overrides(cfg, ["train.shuffle_labels=True", "ablations.depth1=False", "progress=False", "figures=False"])
+    cfg = _smoke_config("train.shuffle_labels=True", "ablations.depth1=False", "figures=False")
     shuffled = run(cfg, tmp_path / "shuffled")
     grid = PlaceGrid.load(tmp_path / "shuffled" / "grid.json")
     # Measured (same-session top-1, mean over the 4 seasons): real 0.86 / 0.46 / 0.77, shuffled 0.18 / 0.19 / 0.19.
@@ -189,6 +197,9 @@ def _cli(workdir: Path, *extra: str) -> list[str]:
     ]
 
 
+_RESUME_RUN = ("devices=1",)  # the smoke fixture's device count: the resumed run must reproduce its accuracies
+
+
 def _interrupt_when(workdir: Path, env: dict, n_nets: int, sig: int) -> subprocess.CompletedProcess:
     """Starts the smoke run and sends ``sig`` once ``n_nets`` networks have a checkpoint."""
     # A shell runs background jobs with SIGINT ignored, and an ignored signal stays ignored across exec: while the
@@ -196,7 +207,9 @@ def _interrupt_when(workdir: Path, env: dict, n_nets: int, sig: int) -> subproce
     # Python's KeyboardInterrupt however the test suite itself was started.
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        proc = subprocess.Popen(_cli(workdir), cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        proc = subprocess.Popen(
+            _cli(workdir, *_RESUME_RUN), cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+        )
     finally:
         signal.signal(signal.SIGINT, previous)
     nets = workdir / "nets"
@@ -235,7 +248,7 @@ def test_interrupted_and_killed_run_resumes_to_the_same_accuracies(smoke, tmp_pa
     # SIGKILL later in the same stage: no handler runs at all.
     _interrupt_when(workdir, env, 3, signal.SIGKILL)
     assert not (workdir / "results.json").exists()
-    done = subprocess.run(_cli(workdir), cwd=REPO, env=env, capture_output=True, text=True)
+    done = subprocess.run(_cli(workdir, *_RESUME_RUN), cwd=REPO, env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-3000:]
     resumed = json.loads((workdir / "results.json").read_text())
     assert _accuracies(resumed) == _accuracies(uninterrupted)
@@ -371,8 +384,7 @@ def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smok
     from experiments.cross_season import pipeline
 
     workdir, _ = smoke
-    cfg = get_config("smoke")
-    cfg.progress = False
+    cfg = _smoke_config()
     with pipeline.workdir_lock(workdir):
         with pytest.raises(RuntimeError, match=r"in use by another run \(pid \d+"):
             run(cfg, workdir)
@@ -382,7 +394,7 @@ def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smok
     monkeypatch.setattr(pipeline.os, "access", lambda p, mode: False if mode == os.W_OK else real_access(p, mode))
     monkeypatch.setattr(pipeline, "_run", lambda *a: pytest.fail("a read-only finished run must not be rerun"))
     assert run(cfg, workdir) == json.loads((workdir / "results.json").read_text())
-    other = get_config("smoke")
+    other = _smoke_config()
     other.seed = 1
     with pytest.raises(PermissionError, match="read-only"):
         run(other, workdir)
@@ -390,19 +402,30 @@ def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smok
 
 def test_two_processes_train_exactly_like_one_process_with_two_devices(smoke, tmp_path):
     """2 JAX processes × 1 device (JAX's distributed runtime, gloo collectives on CPU, started by
-    placejax.training.launch) against the smoke fixture's 1 process × 2 devices: every accuracy of every pair
-    identical (each process reads its rows of the same global batches; the gradient all-reduce adds the same
-    two partial sums)."""
-    _, one = smoke
+    placejax.training.launch) against 1 process × 2 devices, on the smoke preset with one seed and no 1-channel
+    ablation: every accuracy of every pair identical (each process reads its rows of the same global batches;
+    the gradient all-reduce adds the same two partial sums). The 2-process run builds its own data caches; the
+    1-process run starts from a copy of the 1-device smoke fixture's, net outputs included: outputs of nets with
+    other weights (the same recipe on 1 device) must not be taken for its own, which are keyed by their weights."""
+    smoke_dir, _ = smoke
+    reduced = ("n_seeds=1", "ablations.depth1=False", "figures=False", "progress=False")
+    shutil.copytree(smoke_dir / "cache", tmp_path / "one" / "cache")
+    cfg = get_config("smoke")
+    apply_overrides(cfg, ["devices=2", *reduced])
+    one = run(cfg, tmp_path / "one")
     workdir = tmp_path / "mp"
     env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir}
     cmd = [sys.executable, "-m", "placejax.training.launch", "--processes", "2", "--devices-per-process", "1", "--"]
-    done = subprocess.run([*cmd, *_cli(workdir)], cwd=REPO, env=env, capture_output=True, text=True, timeout=1200)
+    done = subprocess.run(
+        [*cmd, *_cli(workdir, *reduced[:2])], cwd=REPO, env=env, capture_output=True, text=True, timeout=1200
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     two = json.loads((workdir / "results.json").read_text())
     assert two["devices"] == {"count": 2, "platform": "cpu", "processes": 2}
-    assert one["devices"]["processes"] == 1 and one["devices"]["count"] == 2
+    assert one["devices"] == {"count": 2, "platform": "cpu", "processes": 1}
+    assert two["seeds"] == one["seeds"] == {"seed": 0, "seeds": [0]}
     assert _accuracies(two) == _accuracies(one)
+    assert all(a is not None for acc in _accuracies(one).values() for a in acc[:3])
     # Process 0 alone holds the work-directory lock (and writes the shared files).
     assert (workdir / ".lock").read_text().startswith("pid ")
     assert "[process 0]" in done.stdout and "[process 1]" in done.stdout

@@ -380,6 +380,16 @@ def _vgg_key(ctx: Context, modality: str) -> dict:
     return out
 
 
+def params_digest(params: Any) -> str:
+    """16 hex digits of the SHA-256 of a parameter tree: every leaf's path, dtype, shape and bytes, in order."""
+    h = hashlib.sha256()
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        a = np.ascontiguousarray(jax.device_get(leaf))
+        h.update(f"{jax.tree_util.keystr(path)}:{a.dtype.str}:{a.shape};".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
 def _net_key(ctx: Context, s: SessionData, labels: np.ndarray, modality: str, num_classes: int) -> dict:
     cfg = ctx.config
     return {
@@ -571,7 +581,11 @@ def train_nets(
                 # momentum: as large as the parameters, ~0.5 GB per full-width fc6–fc8) of every net kept until the
                 # end of the run doubled the peak memory of the paper preset (measured: 12 nets held ~12 GB).
                 state = state.replace(opt_state=None)
-                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, {**net_key, "ckpt": folder.name})
+                # The outputs and the fusion MLP are keyed by the weights themselves, not only by the recipe: a
+                # net retrained under the same recipe (its folder deleted, another device count: the sums of a
+                # step are grouped differently) must not meet the outputs of the one before.
+                identity = {**net_key, "ckpt": folder.name, "weights": params_digest(state.params)}
+                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, identity)
     return nets
 
 
