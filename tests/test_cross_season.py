@@ -402,13 +402,14 @@ def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smok
 
 def test_two_processes_train_exactly_like_one_process_with_two_devices(smoke, tmp_path):
     """2 JAX processes × 1 device (JAX's distributed runtime, gloo collectives on CPU, started by
-    placejax.training.launch) against 1 process × 2 devices, on the smoke preset with one seed and no 1-channel
-    ablation: every accuracy of every pair identical (each process reads its rows of the same global batches;
-    the gradient all-reduce adds the same two partial sums). The 2-process run builds its own data caches; the
-    1-process run starts from a copy of the 1-device smoke fixture's, net outputs included: outputs of nets with
-    other weights (the same recipe on 1 device) must not be taken for its own, which are keyed by their weights."""
+    placejax.training.launch) against 1 process × 2 devices, on the smoke preset with two seasons, one seed and
+    no 1-channel ablation: every accuracy of both pairs identical (each process reads its rows of the same global
+    batches; the gradient all-reduce adds the same two partial sums). The 2-process run builds its own data
+    caches; the 1-process run starts from a copy of the 1-device smoke fixture's, net outputs included: outputs
+    of nets with other weights (the same recipe on 1 device) must not be taken for its own, which are keyed by
+    their weights."""
     smoke_dir, _ = smoke
-    reduced = ("n_seeds=1", "ablations.depth1=False", "figures=False", "progress=False")
+    reduced = ("n_seeds=1", "ablations.depth1=False", "data.sessions=('WI','SU')", "figures=False", "progress=False")
     shutil.copytree(smoke_dir / "cache", tmp_path / "one" / "cache")
     cfg = get_config("smoke")
     apply_overrides(cfg, ["devices=2", *reduced])
@@ -417,7 +418,7 @@ def test_two_processes_train_exactly_like_one_process_with_two_devices(smoke, tm
     env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir}
     cmd = [sys.executable, "-m", "placejax.training.launch", "--processes", "2", "--devices-per-process", "1", "--"]
     done = subprocess.run(
-        [*cmd, *_cli(workdir, *reduced[:2])], cwd=REPO, env=env, capture_output=True, text=True, timeout=1200
+        [*cmd, *_cli(workdir, *reduced[:3])], cwd=REPO, env=env, capture_output=True, text=True, timeout=1200
     )
     assert done.returncode == 0, done.stderr[-3000:]
     two = json.loads((workdir / "results.json").read_text())
@@ -425,6 +426,7 @@ def test_two_processes_train_exactly_like_one_process_with_two_devices(smoke, tm
     assert one["devices"] == {"count": 2, "platform": "cpu", "processes": 1}
     assert two["seeds"] == one["seeds"] == {"seed": 0, "seeds": [0]}
     assert _accuracies(two) == _accuracies(one)
+    assert set(_accuracies(one)) == {("WI", "SU"), ("SU", "WI")}
     assert all(a is not None for acc in _accuracies(one).values() for a in acc[:3])
     # Process 0 alone holds the work-directory lock (and writes the shared files).
     assert (workdir / ".lock").read_text().startswith("pid ")
