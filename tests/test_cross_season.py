@@ -197,7 +197,7 @@ def _cli(workdir: Path, *extra: str) -> list[str]:
     ]
 
 
-_RESUME_RUN = ("devices=1",)  # the smoke fixture's device count: the resumed run must reproduce its accuracies
+_RESUME_RUN = SMOKE_OVERRIDES  # the smoke fixture's settings: the resumed run must reproduce its accuracies
 
 
 def _interrupt_when(workdir: Path, env: dict, n_nets: int, sig: int) -> subprocess.CompletedProcess:
@@ -409,16 +409,16 @@ def test_two_processes_train_exactly_like_one_process_with_two_devices(smoke, tm
     of nets with other weights (the same recipe on 1 device) must not be taken for its own, which are keyed by
     their weights."""
     smoke_dir, _ = smoke
-    reduced = ("n_seeds=1", "ablations.depth1=False", "data.sessions=('WI','SU')", "figures=False", "progress=False")
+    reduced = ("n_seeds=1", "ablations.depth1=False", "data.sessions=('WI','SU')")
     shutil.copytree(smoke_dir / "cache", tmp_path / "one" / "cache")
     cfg = get_config("smoke")
-    apply_overrides(cfg, ["devices=2", *reduced])
+    apply_overrides(cfg, ["devices=2", *reduced, "figures=False", "progress=False"])  # as _cli's
     one = run(cfg, tmp_path / "one")
     workdir = tmp_path / "mp"
     env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir}
     cmd = [sys.executable, "-m", "placejax.training.launch", "--processes", "2", "--devices-per-process", "1", "--"]
     done = subprocess.run(
-        [*cmd, *_cli(workdir, *reduced[:3])], cwd=REPO, env=env, capture_output=True, text=True, timeout=1200
+        [*cmd, *_cli(workdir, *reduced)], cwd=REPO, env=env, capture_output=True, text=True, timeout=1200
     )
     assert done.returncode == 0, done.stderr[-3000:]
     two = json.loads((workdir / "results.json").read_text())
