@@ -11,7 +11,10 @@ predicts at most ``max_depth_m`` = 80 m), blurred in log depth (σ = 1, 2, 4 px 
 predicted depth, and for the predicted depth with everything from 40, 50 (the experiment's ``depth.far_as_sky_m``),
 60 or 70 m on set to the rendered sky's 1000 m (``placejax.depth.far_to_sky``; a run's cached depth has its own
 ``depth.far_as_sky_m`` applied already, ``--network`` gives the network's raw output), and for the latter at 50 m
-with the rendered depth put back on one region (sky, ground or objects: which region's error costs most); the
+with the rendered depth put back on one region (sky, ground or objects: which region's error costs most), for
+rendered and predicted depth with the sky left out of HHA (missing, instead of at its farthest depth; with it, a
+gravity estimate a degree off puts the floor far below the camera and caps most heights at 255: the share of
+such pixels is printed too); the
 same 1-NN within each session (even frames against odd ones) for rendered and predicted depth, each as it is and
 with the far-depth step (rendered ≤ 80 m, predicted ≥ 50 m as sky); and the depth
 error by region: median |log predicted − log rendered| on sky, ground (rendered surface within 10° of level)
@@ -144,9 +147,9 @@ def main(argv: list[str] | None = None) -> None:
             args.network, args.overrides, images, args.flip_average, tuple(args.shift_px), args.preset
         )
 
-    def encode(d: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """HHA images and angles with gravity of one session's depth."""
-        parts = [hha.encode_full(d[i : i + 256], k) for i in range(0, len(d), 256)]
+    def encode(d: np.ndarray, k: np.ndarray, **options) -> tuple[np.ndarray, np.ndarray]:
+        """HHA images and angles with gravity of one session's depth (``options``: ``hha.encode_full``'s)."""
+        parts = [hha.encode_full(d[i : i + 256], k, **options) for i in range(0, len(d), 256)]
         return tuple(np.concatenate([np.asarray(getattr(p, f)) for p in parts]) for f in ("hha", "angle_deg"))
 
     def thumbnails(hha_images: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -191,13 +194,14 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'depth':<52} cross-season 1-NN on HHA 16² (%)")
     # Every variant is encoded once; the within-session row reuses two of them, the error table the angles of one.
     encoded_80 = {s: encode(within_80[s], intrinsics[s]) for s in SESSIONS}
-    thumbs = {}
+    thumbs, capped = {}, {}
     for name, depth in variants.items():
         if depth is within_80:
             hha_images = {s: encoded_80[s][0] for s in SESSIONS}
         else:
             hha_images = {s: encode(depth[s], intrinsics[s])[0] for s in SESSIONS}
         thumbs[name] = thumbnails(hha_images)
+        capped[name] = 100.0 * float(np.mean([np.mean(h[..., 1] == 255) for h in hha_images.values()]))
         print(f"{name:<52} {nn_accuracy(thumbs[name]):5.1f}", flush=True)
     # Which region's error costs most: the predicted depth (far predictions as sky) with one region rendered.
     regions = {s: _regions(rendered[s], encoded_80[s][1]) for s in SESSIONS}
@@ -206,6 +210,17 @@ def main(argv: list[str] | None = None) -> None:
         swapped = {s: np.where(regions[s][region], rendered[s], at_sky[s]) for s in SESSIONS}
         h = {s: encode(swapped[s], intrinsics[s])[0] for s in SESSIONS}
         print(f"{'predicted, ≥ 50 m as sky, rendered on ' + region:<52} {nn_accuracy(thumbnails(h)):5.1f}", flush=True)
+    # The sky at HHA's farthest depth makes any error of the gravity estimate a floor far below the camera (the
+    # lowest point is the floor), so the height channel is mostly at its cap; left out instead (missing), it has
+    # no height, normal or say in gravity and floor, and heights come from real surfaces.
+    for name, depth in (("rendered", rendered), ("predicted, ≥ 50 m as sky", at_sky)):
+        h = {s: encode(depth[s], intrinsics[s], max_depth_m=SKY_DEPTH / 2)[0] for s in SESSIONS}
+        print(f"{name + ', sky left out of HHA':<52} {nn_accuracy(thumbnails(h)):5.1f}", flush=True)
+    print(
+        f"{'height channel at its cap (255), share of pixels':<52} "
+        f"rendered as is {capped[next(iter(variants))]:.1f} %, "
+        f"predicted ≥ 50 m as sky {capped['predicted, ≥ 50 m set to 1000 m']:.1f} %"
+    )
     print(
         f"{'within each session (even frames vs odd)':<52} "
         f"rendered ≤ 80 m {nn_within(thumbs['rendered, clamped at 80 m']):5.1f}, "
