@@ -184,3 +184,64 @@ def test_far_to_sky_moves_only_the_far_predictions():
         np.float32([[0.5, 49.9, 900.0, 900.0, 900.0]]),
     )
     assert L.far_to_sky(d, 0.0) is d
+
+
+def _plane_depth(normal, distance, kmat, hw):
+    """Z-depth of the plane n·X = d seen through ``kmat`` at every pixel of an ``hw`` image."""
+    h, w = hw
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    xbar, ybar = (u - kmat[0, 2]) / kmat[0, 0], (v - kmat[1, 2]) / kmat[1, 1]
+    return distance / (normal[0] * xbar + normal[1] * ybar + normal[2])
+
+
+@pytest.mark.parametrize("normal", [(0.0, 0.0, 1.0), (0.2, -0.3, 0.9), (0.5, 0.1, 0.8), (0.0, -0.6, 0.8)])
+def test_window_normals_of_a_plane_are_its_normal(normal):
+    """Analytic: every window of a plane's depth map fits that plane, whatever the depth's scale."""
+    from placejax.data.simcampus import intrinsics
+
+    kmat = intrinsics((40, 48))
+    n = np.asarray(normal) / np.linalg.norm(normal)
+    depth = _plane_depth(n, 5.0, kmat, (40, 48))
+    assert depth.min() > 0
+    got = np.asarray(L.window_normals(jnp.log(jnp.asarray(depth[None], jnp.float32)), kmat))
+    assert got.shape == (1, 34, 42, 3)
+    np.testing.assert_allclose(got, np.broadcast_to(n, got.shape), atol=2e-5)
+    scaled = np.asarray(L.window_normals(jnp.log(jnp.asarray(7.0 * depth[None], jnp.float32)), kmat))
+    np.testing.assert_allclose(scaled, got, atol=2e-5)
+
+
+def test_window_normals_agree_with_the_hha_encoders_normals():
+    """Independent check: on a rendered SimCampus frame (everything within range, so every window is full) the
+    normals are the HHA encoder's 7×7 normals, up to its orientation convention."""
+    from placejax import hha
+    from placejax.data import simcampus
+
+    session = simcampus.load_session("SU", image_size=(48, 64), max_frames=2)
+    depth = np.minimum(session.render([0, 1])["depth"], 60.0).astype(np.float32)
+    kmat = session.intrinsics
+    ours = np.asarray(L.window_normals(jnp.log(jnp.asarray(depth)), kmat))
+    theirs = np.asarray(hha.encode_full(depth, kmat).normals)[:, 3:-3, 3:-3]
+    cos = np.abs(np.sum(ours * theirs, axis=-1))
+    assert np.quantile(cos, 0.01) > 0.999, np.quantile(cos, [0.0, 0.01, 0.5])
+
+
+def test_normal_loss_prices_orientation_not_scale_and_only_on_full_surface_windows():
+    """1 − cos of the window normals: 0 for the target at any scale, > 0 for a wall drawn as a slope; windows
+    touching a non-surface pixel do not count, and uniform weights change nothing."""
+    from placejax.data.simcampus import intrinsics
+
+    kmat = intrinsics((32, 32))
+    wall = np.log(_plane_depth(np.array([0.0, 0.0, 1.0]), 6.0, kmat, (32, 32)))[None].astype(np.float32)
+    slope = np.log(_plane_depth(np.array([0.0, -0.6, 0.8]), 6.0, kmat, (32, 32)))[None].astype(np.float32)
+    target, surface = jnp.asarray(wall), jnp.ones((1, 32, 32), jnp.float32)
+    assert float(L.normal_loss(target + 0.7, target, surface, kmat)) == pytest.approx(0.0, abs=1e-6)
+    expected = 1.0 - 0.8  # the two planes' normals meet at cos = 0.8
+    assert float(L.normal_loss(jnp.asarray(slope), target, surface, kmat)) == pytest.approx(expected, abs=1e-4)
+    hole = surface.at[:, :, :12].set(0.0)  # the left columns are sky: windows reaching them drop out
+    garbage = jnp.where(hole > 0, target, 9.0 * jax.random.uniform(jax.random.key(0), target.shape))
+    assert float(L.normal_loss(garbage, target, hole, kmat)) == pytest.approx(0.0, abs=1e-6)
+    assert float(L.normal_loss(garbage, target, surface, kmat)) > 0.01
+    twos = 2.0 * jnp.ones_like(surface)
+    assert float(L.normal_loss(jnp.asarray(slope), target, surface, kmat, weights=twos)) == pytest.approx(
+        float(L.normal_loss(jnp.asarray(slope), target, surface, kmat)), rel=1e-6
+    )

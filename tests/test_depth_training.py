@@ -575,3 +575,28 @@ def test_shifts_are_checked_with_a_clear_error():
     x = np.zeros((1, 4, 6, 3), np.float32)
     with pytest.raises(ValueError, match="below the image width 6"):
         depth.average_views(lambda v: v[..., 0], x, shifts=(6,))
+
+
+def test_normal_weight_adds_the_window_normal_term_and_reaches_the_fingerprint():
+    """``normal_weight`` adds weight × ``normal_loss`` (reported as the ``normals`` metric) to the metric objective
+    and nothing else; 0 keeps the old fingerprint; negative, non-finite or inverse-depth uses are refused by
+    name."""
+    cfg = dataclasses.replace(CFG, frames=8, target="log_metric", object_weight=4.0, normal_weight=0.5)
+    frames = depth_train.training_frames(cfg, progress=False)
+    batch = {"image": frames["rgb"], "depth": frames["depth"], "sky": frames["sky"], "objects": frames["objects"]}
+    state = _untrained_state()
+    key = jax.random.key(4)
+    with_normals = depth.DepthObjective.of(cfg)
+    plain = depth.DepthObjective.of(dataclasses.replace(cfg, normal_weight=0.0))
+    loss, metrics = _loss(with_normals, state, batch, key)
+    loss_plain, metrics_plain = _loss(plain, state, batch, key)
+    assert "normals" not in metrics_plain and 0.0 < float(metrics["normals"]) < 2.0
+    np.testing.assert_allclose(loss, loss_plain + 0.5 * metrics["normals"], rtol=1e-5)
+
+    assert dataclasses.replace(CFG, normal_weight=0.0).fingerprint() == CFG.fingerprint()
+    assert train_depth.parse_overrides(cfg, ["normal_weight=1.0"]).fingerprint() != cfg.fingerprint()
+    for bad in (-1.0, float("nan"), True, "on"):
+        with pytest.raises(ValueError, match="normal_weight"):
+            dataclasses.replace(cfg, normal_weight=bad)
+    with pytest.raises(ValueError, match="normal_weight"):
+        dataclasses.replace(cfg, target="inverse", object_weight=1.0, normal_weight=1.0)

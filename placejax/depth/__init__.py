@@ -14,9 +14,11 @@ from placejax.depth._losses import (
     log_depth,
     log_metric_loss,
     midas_loss,
+    normal_loss,
     normalise_median_mad,
     ssi_mse,
     ssi_trimmed_mae,
+    window_normals,
 )
 from placejax.depth._metrics import aligned_depth, depth_metrics
 from placejax.depth._train import (
@@ -52,6 +54,7 @@ __all__ = [
     "log_metric_loss",
     "midas_loss",
     "network_size",
+    "normal_loss",
     "normalise_median_mad",
     "permute_channels",
     "predict",
@@ -63,5 +66,6 @@ __all__ = [
     "ssi_trimmed_mae",
     "train",
     "validate_shifts",
+    "window_normals",
     "write_report",
 ]

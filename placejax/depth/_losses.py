@@ -239,3 +239,84 @@ def log_metric_loss(
     w = m if weights is None else m * weights.astype(pred.dtype)
     data = _per_image_mean(_masked_sums(jnp.abs(pred - target), w), _masked_sums(jnp.ones_like(pred), w))
     return data + alpha * gradient_matching(pred, target, m, scales, align=False)
+
+
+def _window_planes(inv_depth: jax.Array, radius: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Least-squares plane ``1/Z ≈ a·s + b·t + c`` in every full ``(2r+1)²`` window of ``(B, H, W)`` inverse depth
+    (s, t: column and row offsets from the window's centre); "valid" part only, ``(B, H − 2r, W − 2r)`` each.
+
+    Over a full, symmetric window the offsets' cross moments vanish, so the fit is three separable sums.
+    """
+    n = 2 * radius + 1
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
+
+    def correlate(x, kernel, axis):
+        length = x.shape[axis] - 2 * radius
+        taps = [jax.lax.slice_in_dim(x, k, k + length, axis=axis) for k in range(n)]
+        return sum(float(w) * t for w, t in zip(kernel, taps, strict=True))
+
+    ones = np.ones(n)
+    rows_sum = correlate(inv_depth, ones, axis=-2)
+    rows_first = correlate(inv_depth, offsets, axis=-2)
+    second = float(n * np.sum(offsets**2))  # Σ s² over the window (= Σ t²)
+    a = correlate(rows_sum, offsets, axis=-1) / second
+    b = correlate(rows_first, ones, axis=-1) / second
+    c = correlate(rows_sum, ones, axis=-1) / (n * n)
+    return a, b, c
+
+
+def window_normals(log_depth_map: jax.Array, kmat, radius: int = 3) -> jax.Array:
+    """Unit surface normals of the plane fitted to inverse depth in each full ``(2r+1)²`` window — how the HHA
+    encoder's angle channel sees the surface (its 7×7 fits, r = 3) — as ``(B, H − 2r, W − 2r, 3)`` in the camera
+    frame (x right, y down, z forward). Scale-free: any depth scale gives the same normals.
+
+    A plane n·X = d seen through the pinhole ``kmat`` has 1/Z = (n_x x̄ + n_y ȳ + n_z) / d in the normalised image
+    coordinates x̄ = (u − c_x) / f_x, ȳ = (v − c_y) / f_y, so the window's slopes give n ∝ (a f_x, b f_y,
+    c − a f_x x̄ − b f_y ȳ).
+
+    Args:
+        log_depth_map: ``(B, H, W)`` log depth (any offset: :func:`log_depth` or log metres).
+        kmat: ``(3, 3)`` pinhole matrix of the images.
+        radius: window radius r.
+    """
+    k = np.asarray(kmat, np.float64)
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    # Inverse depth up to scale, centred per image in log space so that exp stays in range for any offset.
+    centred = log_depth_map - jnp.mean(log_depth_map, axis=(-2, -1), keepdims=True)
+    a, b, c = _window_planes(jnp.exp(-centred), radius)
+    h, w = log_depth_map.shape[-2:]
+    xbar = ((jnp.arange(radius, w - radius) - cx) / fx).astype(a.dtype)[None, None, :]
+    ybar = ((jnp.arange(radius, h - radius) - cy) / fy).astype(a.dtype)[None, :, None]
+    nx, ny = a * fx, b * fy
+    nz = c - nx * xbar - ny * ybar
+    n = jnp.stack([nx, ny, nz], axis=-1)
+    return n * jax.lax.rsqrt(jnp.sum(n * n, axis=-1, keepdims=True) + _EPS**2)
+
+
+def normal_loss(
+    pred: jax.Array,
+    target: jax.Array,
+    surface: jax.Array,
+    kmat,
+    *,
+    radius: int = 3,
+    weights: jax.Array | None = None,
+) -> jax.Array:
+    """Mean ``1 − cos`` between the window normals (:func:`window_normals`) of predicted and true log depth, over
+    the windows whose pixels are all real surface (no sky, nothing beyond the far limit); per image, then the
+    batch mean. Depth error that keeps each window's plane costs nothing here; a wall predicted as a slope does.
+
+    Args:
+        pred, target: ``(B, H, W)`` predicted and true log depth.
+        surface: ``(B, H, W)`` 1 on real surfaces (the true depth is finite and within the far limit).
+        kmat: ``(3, 3)`` pinhole matrix of the images.
+        radius: window radius (3: the HHA encoder's 7×7 normals).
+        weights: ``(B, H, W)`` positive weights, taken at each window's centre.
+    """
+    r = radius
+    full = _window_planes(surface.astype(pred.dtype), r)[2] > 1.0 - 1e-4  # window mean of the mask is 1
+    cos = jnp.sum(window_normals(pred, kmat, r) * window_normals(target, kmat, r), axis=-1)
+    w = full.astype(pred.dtype)
+    if weights is not None:
+        w = w * weights[..., r:-r, r:-r].astype(pred.dtype)
+    return _per_image_mean(_masked_sums(1.0 - cos, w), _masked_sums(jnp.ones_like(cos), w))

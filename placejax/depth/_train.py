@@ -25,7 +25,8 @@ import numpy as np
 
 from placejax import training
 from placejax.data.simcampus import CAMERA_TILTS
-from placejax.depth._losses import depth_from_log, log_depth, log_metric_loss, midas_loss
+from placejax.data.simcampus import intrinsics as simcampus_intrinsics
+from placejax.depth._losses import depth_from_log, log_depth, log_metric_loss, midas_loss, normal_loss
 from placejax.depth._views import average_views
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall
 
@@ -87,6 +88,11 @@ class DepthTrainConfig:
             independent random looks, the same depth; ``frames`` counts both), a step reads ``batch_size / 2``
             pairs (the same number of images), both members are supervised as usual, and the mean
             |log depth of look A − log depth of look B| over all pixels is added with this weight.
+        normal_weight: ``target="log_metric"`` only; 0 (off) or the weight of a surface-normal term
+            (:func:`placejax.depth.normal_loss`): 1 − cos between the normals of the planes fitted in 7×7
+            windows — the HHA angle channel's normals — of the predicted and the rendered depth, over windows of
+            real surface, object windows weighted by ``object_weight``. The L1 term prices a wall drawn as a
+            slope by its depth error only; this prices its orientation, which is what HHA's angle channel shows.
         seed: data order, augmentation and initialisation.
         checkpoint_every: steps between checkpoints.
         eval_frames: evaluation-campus frames per season for the report.
@@ -116,6 +122,7 @@ class DepthTrainConfig:
     structured_share: float = 0.0
     colour_augment: float = 0.0
     look_consistency: float = 0.0
+    normal_weight: float = 0.0
     seed: int = 0
     checkpoint_every: int = 100
     eval_frames: int = 48
@@ -158,6 +165,11 @@ class DepthTrainConfig:
                 "look_consistency > 0 needs target='log_metric' and an even batch_size and frames (pairs of looks); "
                 f"got target={self.target!r}, batch_size={self.batch_size}, frames={self.frames}"
             )
+        nw = self.normal_weight
+        if isinstance(nw, bool) or not (isinstance(nw, int | float) and math.isfinite(nw) and nw >= 0):
+            raise ValueError(f"normal_weight must be a finite number >= 0, got {nw!r}")
+        if nw > 0 and self.target != "log_metric":
+            raise ValueError(f"normal_weight > 0 needs target='log_metric', got target={self.target!r}")
         if self.object_weight <= 0 or (self.object_weight != 1 and self.target != "log_metric"):
             raise ValueError(f"object_weight must be > 0, and 1 unless target='log_metric'; got {self.object_weight!r}")
         h = self.camera_height_m
@@ -200,6 +212,8 @@ class DepthTrainConfig:
             fields.pop("structured_share")  # likewise
         if self.look_consistency == 0:
             fields.pop("look_consistency")  # likewise
+        if self.normal_weight == 0:
+            fields.pop("normal_weight")  # likewise
         fields.pop("eval_frames")
         fields.pop("checkpoint_every")
         fields["recipe_version"] = _RECIPE_VERSION
@@ -300,7 +314,9 @@ class DepthObjective:
     Reads ``batch["image"]`` uint8 ``(B, H, W, 3)``, ``batch["depth"]`` metres ``(B, H, W)``, ``batch["sky"]``
     and, with ``object_weight != 1``, ``batch["objects"]``. A batch with ``batch["image_b"]`` (the same views in
     a second look, :func:`training_source` with pairs) is read as 2B images over the B depths, one flip per
-    pair, plus ``look_consistency`` × their mean log-depth gap (metric ``look_gap``).
+    pair, plus ``look_consistency`` × their mean log-depth gap (metric ``look_gap``). With ``normal_weight > 0``
+    (metric only) it adds that weight × :func:`placejax.depth.normal_loss` (metric ``normals``) under the training
+    frames' camera (SimCampus's default field of view).
     A frozen dataclass: hashable, so each configuration compiles one step.
     """
 
@@ -313,6 +329,7 @@ class DepthObjective:
     object_weight: float = 1.0
     colour_augment: float = 0.0
     look_consistency: float = 0.0
+    normal_weight: float = 0.0
 
     @classmethod
     def of(cls, cfg: DepthTrainConfig) -> DepthObjective:
@@ -326,6 +343,7 @@ class DepthObjective:
             cfg.object_weight,
             cfg.colour_augment,
             cfg.look_consistency,
+            cfg.normal_weight,
         )
 
     def __call__(self, state, params, batch, key):
@@ -338,22 +356,29 @@ class DepthObjective:
             image = permute_channels(image, k_colour, self.colour_augment)
         x = normalise(image)
         weights = None
+        surface = None  # real surfaces within the far limit: where the normal term looks
         if self.target == "log_metric":
             tgt, mask = log_metric_targets(batch["depth"], batch["sky"], self.max_depth_m)
             if self.object_weight != 1:
                 weights = jnp.where(batch["objects"], self.object_weight, 1.0)
+            if self.normal_weight > 0:
+                d = batch["depth"]
+                surface = (~batch["sky"] & jnp.isfinite(d) & (d > 0) & (d < self.max_depth_m)).astype(jnp.float32)
         else:
             tgt, mask = targets(batch["depth"], batch["sky"], self.max_depth_m, self.sky_in_loss)
         # Horizontal flips: a scene and its mirror image have mirrored depth (both looks of a pair alike).
         flip = jax.random.bernoulli(key, 0.5, (tgt.shape[0],))
-        tgt = jnp.where(flip[:, None, None], tgt[:, :, ::-1], tgt)
-        mask = jnp.where(flip[:, None, None], mask[:, :, ::-1], mask)
-        if weights is not None:
-            weights = jnp.where(flip[:, None, None], weights[:, :, ::-1], weights)
+
+        def flipped(x):
+            return None if x is None else jnp.where(flip[:, None, None], x[:, :, ::-1], x)
+
+        def doubled(x):
+            return None if x is None else jnp.concatenate([x, x])
+
+        tgt, mask, weights, surface = (flipped(x) for x in (tgt, mask, weights, surface))
         if paired:
-            flip = jnp.concatenate([flip, flip])
-            tgt, mask = jnp.concatenate([tgt, tgt]), jnp.concatenate([mask, mask])
-            weights = None if weights is None else jnp.concatenate([weights, weights])
+            flip = doubled(flip)
+            tgt, mask, weights, surface = (doubled(x) for x in (tgt, mask, weights, surface))
         x = jnp.where(flip[:, None, None, None], x[:, :, ::-1], x)
         pred, updates = state.apply_fn(
             {"params": params, "batch_stats": state.batch_stats}, x, train=True, mutable=["batch_stats"]
@@ -361,6 +386,12 @@ class DepthObjective:
         metrics = {}
         if self.target == "log_metric":
             loss = log_metric_loss(pred, tgt, mask, alpha=self.alpha, weights=weights)
+            if self.normal_weight > 0:
+                # The training frames' camera: SimCampus's default field of view at this image size.
+                kmat = simcampus_intrinsics(tgt.shape[-2:])
+                normals = normal_loss(pred, tgt, surface, kmat, weights=weights)
+                loss = loss + self.normal_weight * normals
+                metrics["normals"] = normals
         else:
             loss = midas_loss(pred, tgt, mask, variant=self.loss, alpha=self.alpha, trim=self.trim)
         if paired and self.look_consistency > 0:
