@@ -14,10 +14,11 @@ predicted depth, and for the predicted depth with everything from 40, 50 (the ex
 with the rendered depth put back on one region (sky, ground or objects: which region's error costs most), for
 rendered and predicted depth with the sky left out of HHA (missing, instead of at its farthest depth; with it, a
 gravity estimate a degree off puts the floor far below the camera and caps most heights at 255: the share of
-such pixels is printed too); the
-same 1-NN within each session (even frames against odd ones) for rendered and predicted depth, each as it is and
-with the far-depth step (rendered ≤ 80 m, predicted ≥ 50 m as sky); and the depth
-error by region: median |log predicted − log rendered| on sky, ground (rendered surface within 10° of level)
+such pixels is printed too), for each HHA channel alone (disparity, height, angle: which channel tells places
+apart, and where predicted depth loses most) of rendered depth as it is and of predicted depth with far
+predictions as sky; the same 1-NN within each session (even frames against odd ones) for rendered and predicted
+depth, each as it is and with the far-depth step (rendered ≤ 80 m, predicted ≥ 50 m as sky); and the depth error
+by region: median |log predicted − log rendered| on sky, ground (rendered surface within 10° of level)
 and objects (the rest), the median signed difference on objects, and AbsRel without the sky.
 
 ``--network DIR`` takes the predicted depth from another depth network, a finished ``experiments.train_depth
@@ -114,6 +115,31 @@ def region_errors(predicted: np.ndarray, rendered: np.ndarray, angle_deg: np.nda
     return out
 
 
+HHA_CHANNELS = ("disparity", "height", "angle")
+
+
+def cross_season_nn(thumbs: dict[str, np.ndarray], labels: dict[str, np.ndarray]) -> float:
+    """Mean over the ordered session pairs of 1-NN top-1 (%) of the test session's thumbnails against the
+    training session's (the run's ``nn_hha`` baseline)."""
+    accs = [
+        np.mean(baselines.nearest_neighbour_labels(thumbs[a], labels[a], thumbs[b]) == labels[b])
+        for a, b in itertools.permutations(thumbs, 2)
+    ]
+    return 100.0 * float(np.mean(accs))
+
+
+def per_channel_nn(hha_images: dict[str, np.ndarray], labels: dict[str, np.ndarray]) -> dict[str, float]:
+    """:func:`cross_season_nn` on 16 × 16 thumbnails of each HHA channel alone: which channel tells places apart."""
+    size = baselines.THUMB_SIZES["nn_hha"]
+    return {
+        name: cross_season_nn(
+            {s: baselines.thumbnails(np.ascontiguousarray(h[..., c : c + 1]), size) for s, h in hha_images.items()},
+            labels,
+        )
+        for c, name in enumerate(HHA_CHANNELS)
+    }
+
+
 def main(argv: list[str] | None = None) -> None:
     from placejax.depth import PRESETS
 
@@ -156,11 +182,7 @@ def main(argv: list[str] | None = None) -> None:
         return {s: baselines.thumbnails(h, baselines.THUMB_SIZES["nn_hha"]) for s, h in hha_images.items()}
 
     def nn_accuracy(thumbs: dict[str, np.ndarray]) -> float:
-        accs = [
-            np.mean(baselines.nearest_neighbour_labels(thumbs[a], labels[a], thumbs[b]) == labels[b])
-            for a, b in itertools.permutations(SESSIONS, 2)
-        ]
-        return 100.0 * float(np.mean(accs))
+        return cross_season_nn(thumbs, labels)
 
     def nn_within(thumbs: dict[str, np.ndarray]) -> float:
         accs = [
@@ -195,15 +217,16 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'depth':<52} cross-season 1-NN on HHA 16² (%)")
     # Every variant is encoded once; the within-session row reuses two of them, the error table the angles of one.
     encoded_80 = {s: encode(within_80[s], intrinsics[s]) for s in SESSIONS}
-    thumbs, capped = {}, {}
+    thumbs, capped, by_channel = {}, {}, {}
     for name, depth in variants.items():
         if depth is within_80:
             hha_images = {s: encoded_80[s][0] for s in SESSIONS}
         else:
             hha_images = {s: encode(depth[s], intrinsics[s])[0] for s in SESSIONS}
         thumbs[name] = thumbnails(hha_images)
-        if name in (as_is, at_50):  # the height channel's share at its cap, for the line after the sky rows
+        if name in (as_is, at_50):  # the height channel's share at its cap and the channels alone, for lines below
             capped[name] = 100.0 * float(np.mean([np.mean(h[..., 1] == 255) for h in hha_images.values()]))
+            by_channel[name] = per_channel_nn(hha_images, labels)
         print(f"{name:<52} {nn_accuracy(thumbs[name]):5.1f}", flush=True)
     # Which region's error costs most: the predicted depth (far predictions as sky) with one region rendered.
     regions = {s: _regions(rendered[s], encoded_80[s][1]) for s in SESSIONS}
@@ -222,6 +245,14 @@ def main(argv: list[str] | None = None) -> None:
     print(
         f"{'height channel at its cap (255), share of pixels':<52} "
         f"rendered as is {capped[as_is]:.1f} %, predicted ≥ 50 m as sky {capped[at_50]:.1f} %"
+    )
+    channels = " / ".join(HHA_CHANNELS)
+    print(
+        f"{'one HHA channel alone: ' + channels:<52} "
+        + ", ".join(
+            f"{label} " + " / ".join(f"{by_channel[name][c]:.1f}" for c in HHA_CHANNELS)
+            for label, name in (("rendered as is", as_is), ("predicted ≥ 50 m as sky", at_50))
+        )
     )
     print(
         f"{'within each session (even frames vs odd)':<52} "

@@ -492,6 +492,12 @@ def test_hha_diagnose_on_the_smoke_run_reproduces_its_rendered_depth_baseline(sm
         assert 0.0 <= rows[name] <= 100.0, name
     capped = re.search(r"^height channel at its cap.* rendered as is (\S+) %, predicted .* (\S+) %$", out, re.M)
     assert all(0.0 <= float(v) <= 100.0 for v in capped.groups())
+    alone = re.search(
+        r"^one HHA channel alone: .* rendered as is (\S+) / (\S+) / (\S+), predicted .* (\S+) / (\S+) / (\S+)$",
+        out,
+        re.M,
+    )
+    assert all(0.0 <= float(v) <= 100.0 for v in alone.groups())
     table = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line[:2] in SEASONS}
     assert set(table) == set(SEASONS) and all(len(v) == 6 for v in table.values())
     assert all(np.isfinite(float(v)) for k in SEASONS for v in table[k][2:])  # ground, objects, bias, AbsRel
