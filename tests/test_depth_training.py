@@ -381,6 +381,16 @@ def _loss(objective, state, batch, key):
     return loss, metrics
 
 
+def _option_keeps_old_fingerprint_and_refuses(name: str, on: float, bad_values: tuple) -> None:
+    """An objective option at 0 keeps ``CFG``'s fingerprint (networks trained before it existed keep their cache
+    folders), ``on`` (as an override) changes it, and each bad value is refused with an error naming the field."""
+    assert dataclasses.replace(CFG, **{name: 0.0}).fingerprint() == CFG.fingerprint()
+    assert train_depth.parse_overrides(CFG, [f"{name}={on}"]).fingerprint() != CFG.fingerprint()
+    for bad in bad_values:
+        with pytest.raises(ValueError, match=name):
+            dataclasses.replace(CFG, **{name: bad})
+
+
 def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_and_the_fingerprint():
     """``permute_channels`` gives each image one of the six channel orders (every pixel alike), uniformly, for a
     ``share`` of the images; the objective trains on exactly those images (its loss equals the plain objective's
@@ -414,11 +424,7 @@ def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_
     np.testing.assert_allclose(loss_aug, _loss(plain, state, permuted, k_rest)[0], rtol=1e-5)
     assert not np.isclose(loss_aug, _loss(plain, state, batch, k_rest)[0], rtol=1e-4)
 
-    assert dataclasses.replace(CFG, colour_augment=0.0).fingerprint() == CFG.fingerprint()
-    assert train_depth.parse_overrides(CFG, ["colour_augment=1.0"]).fingerprint() != CFG.fingerprint()
-    for bad in (-0.1, 1.5, "all", True):
-        with pytest.raises(ValueError, match="colour_augment"):
-            dataclasses.replace(CFG, colour_augment=bad)
+    _option_keeps_old_fingerprint_and_refuses("colour_augment", 1.0, (-0.1, 1.5, "all", True))
 
 
 def test_look_consistency_pairs_each_view_in_two_looks_and_adds_their_gap_to_the_loss():
@@ -458,11 +464,7 @@ def test_look_consistency_pairs_each_view_in_two_looks_and_adds_their_gap_to_the
     assert float(metrics_two["look_gap"]) > 1e-4
     np.testing.assert_allclose(loss_two, loss_two_unweighted + 0.5 * metrics_two["look_gap"], rtol=1e-5)
 
-    assert dataclasses.replace(CFG, look_consistency=0.0).fingerprint() == CFG.fingerprint()
-    assert train_depth.parse_overrides(CFG, ["look_consistency=1.0"]).fingerprint() != CFG.fingerprint()
-    for bad in (-1.0, float("nan"), True, "on"):
-        with pytest.raises(ValueError, match="look_consistency"):
-            dataclasses.replace(CFG, look_consistency=bad)
+    _option_keeps_old_fingerprint_and_refuses("look_consistency", 1.0, (-1.0, float("nan"), True, "on"))
     for other in ({"target": "inverse"}, {"batch_size": 7}, {"frames": 33}):
         with pytest.raises(ValueError, match="look_consistency"):
             dataclasses.replace(CFG, look_consistency=1.0, **other)
@@ -593,10 +595,7 @@ def test_normal_weight_adds_the_window_normal_term_and_reaches_the_fingerprint()
     assert "normals" not in metrics_plain and 0.0 < float(metrics["normals"]) < 2.0
     np.testing.assert_allclose(loss, loss_plain + 0.5 * metrics["normals"], rtol=1e-5)
 
-    assert dataclasses.replace(CFG, normal_weight=0.0).fingerprint() == CFG.fingerprint()
+    _option_keeps_old_fingerprint_and_refuses("normal_weight", 1.0, (-1.0, float("nan"), True, "on"))
     assert train_depth.parse_overrides(cfg, ["normal_weight=1.0"]).fingerprint() != cfg.fingerprint()
-    for bad in (-1.0, float("nan"), True, "on"):
-        with pytest.raises(ValueError, match="normal_weight"):
-            dataclasses.replace(cfg, normal_weight=bad)
     with pytest.raises(ValueError, match="normal_weight"):
         dataclasses.replace(cfg, target="inverse", object_weight=1.0, normal_weight=1.0)
