@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax.hha._constants import MAX_DEPTH_M
+from placejax.hha._constants import MAX_DEPTH_M, RADIUS_ANGLE
+from placejax.hha._encode import _correlate
 
 _EPS = 1e-6
 
@@ -241,34 +242,25 @@ def log_metric_loss(
     return data + alpha * gradient_matching(pred, target, m, scales, align=False)
 
 
-def _window_planes(inv_depth: jax.Array, radius: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Least-squares plane ``1/Z ≈ a·s + b·t + c`` in every full ``(2r+1)²`` window of ``(B, H, W)`` inverse depth
-    (s, t: column and row offsets from the window's centre); "valid" part only, ``(B, H − 2r, W − 2r)`` each.
+def _window_planes(inv_depth: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Least-squares plane ``1/Z ≈ a·s + b·t + c`` in every full 7×7 window (the HHA encoder's angle windows) of
+    ``(B, H, W)`` inverse depth (s, t: column and row offsets from the window's centre); "valid" part only,
+    ``(B, H − 6, W − 6)`` each, from the encoder's own window sums (:func:`placejax.hha._encode._correlate`).
 
     Over a full, symmetric window the offsets' cross moments vanish, so the fit is three separable sums.
     """
-    n = 2 * radius + 1
-    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
-
-    def correlate(x, kernel, axis):
-        length = x.shape[axis] - 2 * radius
-        taps = [jax.lax.slice_in_dim(x, k, k + length, axis=axis) for k in range(n)]
-        return sum(float(w) * t for w, t in zip(kernel, taps, strict=True))
-
-    ones = np.ones(n)
-    rows_sum = correlate(inv_depth, ones, axis=-2)
-    rows_first = correlate(inv_depth, offsets, axis=-2)
-    second = float(n * np.sum(offsets**2))  # Σ s² over the window (= Σ t²)
-    a = correlate(rows_sum, offsets, axis=-1) / second
-    b = correlate(rows_first, ones, axis=-1) / second
-    c = correlate(rows_sum, ones, axis=-1) / (n * n)
-    return a, b, c
+    n = 2 * RADIUS_ANGLE + 1
+    second = float(n * sum(k * k for k in range(-RADIUS_ANGLE, RADIUS_ANGLE + 1)))  # Σ s² over the window (= Σ t²)
+    rows = _correlate(inv_depth, (0, 1), axis=-2)  # Σ_t x, Σ_t t·x
+    cols = _correlate(rows[0], (0, 1), axis=-1)  # Σ x, Σ s·x
+    b = _correlate(rows[1], (0,), axis=-1)[0] / second
+    return cols[1] / second, b, cols[0] / (n * n)
 
 
-def window_normals(log_depth_map: jax.Array, kmat, radius: int = 3) -> jax.Array:
-    """Unit surface normals of the plane fitted to inverse depth in each full ``(2r+1)²`` window — how the HHA
-    encoder's angle channel sees the surface (its 7×7 fits, r = 3) — as ``(B, H − 2r, W − 2r, 3)`` in the camera
-    frame (x right, y down, z forward). Scale-free: any depth scale gives the same normals.
+def window_normals(log_depth_map: jax.Array, kmat) -> jax.Array:
+    """Unit surface normals of the plane fitted to inverse depth in each full 7×7 window — how the HHA encoder's
+    angle channel sees the surface — as ``(B, H − 6, W − 6, 3)`` in the camera frame (x right, y down, z forward).
+    Scale-free: any depth scale gives the same normals.
 
     A plane n·X = d seen through the pinhole ``kmat`` has 1/Z = (n_x x̄ + n_y ȳ + n_z) / d in the normalised image
     coordinates x̄ = (u − c_x) / f_x, ȳ = (v − c_y) / f_y, so the window's slopes give n ∝ (a f_x, b f_y,
@@ -277,16 +269,16 @@ def window_normals(log_depth_map: jax.Array, kmat, radius: int = 3) -> jax.Array
     Args:
         log_depth_map: ``(B, H, W)`` log depth (any offset: :func:`log_depth` or log metres).
         kmat: ``(3, 3)`` pinhole matrix of the images.
-        radius: window radius r.
     """
+    r = RADIUS_ANGLE
     k = np.asarray(kmat, np.float64)
     fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
     # Inverse depth up to scale, centred per image in log space so that exp stays in range for any offset.
     centred = log_depth_map - jnp.mean(log_depth_map, axis=(-2, -1), keepdims=True)
-    a, b, c = _window_planes(jnp.exp(-centred), radius)
+    a, b, c = _window_planes(jnp.exp(-centred))
     h, w = log_depth_map.shape[-2:]
-    xbar = ((jnp.arange(radius, w - radius) - cx) / fx).astype(a.dtype)[None, None, :]
-    ybar = ((jnp.arange(radius, h - radius) - cy) / fy).astype(a.dtype)[None, :, None]
+    xbar = ((jnp.arange(r, w - r) - cx) / fx).astype(a.dtype)[None, None, :]
+    ybar = ((jnp.arange(r, h - r) - cy) / fy).astype(a.dtype)[None, :, None]
     nx, ny = a * fx, b * fy
     nz = c - nx * xbar - ny * ybar
     n = jnp.stack([nx, ny, nz], axis=-1)
@@ -299,7 +291,6 @@ def normal_loss(
     surface: jax.Array,
     kmat,
     *,
-    radius: int = 3,
     weights: jax.Array | None = None,
 ) -> jax.Array:
     """Mean ``1 − cos`` between the window normals (:func:`window_normals`) of predicted and true log depth, over
@@ -310,12 +301,12 @@ def normal_loss(
         pred, target: ``(B, H, W)`` predicted and true log depth.
         surface: ``(B, H, W)`` 1 on real surfaces (the true depth is finite and within the far limit).
         kmat: ``(3, 3)`` pinhole matrix of the images.
-        radius: window radius (3: the HHA encoder's 7×7 normals).
         weights: ``(B, H, W)`` positive weights, taken at each window's centre.
     """
-    r = radius
-    full = _window_planes(surface.astype(pred.dtype), r)[2] > 1.0 - 1e-4  # window mean of the mask is 1
-    cos = jnp.sum(window_normals(pred, kmat, r) * window_normals(target, kmat, r), axis=-1)
+    r, n = RADIUS_ANGLE, 2 * RADIUS_ANGLE + 1
+    inside = _correlate(_correlate(surface.astype(pred.dtype), (0,), axis=-2)[0], (0,), axis=-1)[0]
+    full = inside > n * n - 0.5  # every pixel of the window is surface
+    cos = jnp.sum(window_normals(pred, kmat) * window_normals(target, kmat), axis=-1)
     w = full.astype(pred.dtype)
     if weights is not None:
         w = w * weights[..., r:-r, r:-r].astype(pred.dtype)
