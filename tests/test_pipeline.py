@@ -243,3 +243,44 @@ def test_datasets_pickle_for_worker_processes(cached):
         for a, b in zip(ds, clone, strict=True):
             for key in a:
                 np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_unpickled_memmaps_are_reopened_one_at_a_time(cached, monkeypatch):
+    """grain reads elements in several threads; the first reads of an unpickled source reopen its memmaps, whose
+    .npy headers numpy parses with ast.literal_eval — not thread-safe in CPython 3.11 (python/cpython#106905). Each
+    column must be reopened exactly once, and never two files at once, however many threads start together."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    _, c, labels = cached
+    source = FrameSource(c, labels, extras={"a": c, "b": c})  # three memmap columns of the same file
+    clone = pickle.loads(pickle.dumps(source))
+    load, lock = np.load, threading.Lock()
+    stats = {"calls": 0, "active": 0, "most": 0}
+
+    def slow_load(*args, **kwargs):  # widens the window in which a second reopen would overlap
+        with lock:
+            stats["calls"] += 1
+            stats["active"] += 1
+            stats["most"] = max(stats["most"], stats["active"])
+        try:
+            threading.Event().wait(0.02)
+            return load(*args, **kwargs)
+        finally:
+            with lock:
+                stats["active"] -= 1
+
+    monkeypatch.setattr(np, "load", slow_load)
+    n_threads = 8
+    start = threading.Barrier(n_threads)
+
+    def read(i):
+        start.wait()
+        return clone[i]
+
+    with ThreadPoolExecutor(n_threads) as pool:
+        got = list(pool.map(read, range(n_threads)))
+    assert stats == {"calls": 3, "active": 0, "most": 1}
+    for i, example in enumerate(got):
+        for key, value in source[i].items():
+            np.testing.assert_array_equal(example[key], value)

@@ -25,6 +25,7 @@ import dataclasses
 import functools
 import hashlib
 import math
+import threading
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -53,6 +54,14 @@ def _whole_npy_memmap(a) -> bool:
     except (OSError, ValueError):
         return False
     return whole.shape == a.shape and whole.dtype == a.dtype and a.flags.c_contiguous
+
+
+# grain reads a batch's elements in several threads, and each thread of a process that received a pickled source
+# may be the first to reopen a column's memmap. np.load parses the .npy header with ast.literal_eval, which
+# CPython 3.11 cannot run in two threads at once: the AST builder's recursion counter is shared between threads and
+# a thread switch inside it fails the other call with "SystemError: AST constructor recursion depth mismatch"
+# (python/cpython#106905; seen here once in CI). Reopening is therefore serialised per process, each column once.
+_REOPEN_LOCK = threading.Lock()
 
 
 class _Column:
@@ -91,7 +100,9 @@ class _Column:
         if self._session is not None:
             return np.asarray(self._session.image(i))
         if self._array is None:
-            self._array = np.load(self._path, mmap_mode="r")
+            with _REOPEN_LOCK:
+                if self._array is None:
+                    self._array = np.load(self._path, mmap_mode="r")
         return np.array(self._array[i])
 
     def zeros(self) -> np.ndarray:
