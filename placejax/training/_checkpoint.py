@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +23,9 @@ class Checkpointer:
     Saves ``{"params", "opt_state", "step"}`` and ``batch_stats`` when the state has them (the static
     ``apply_fn``/``tx`` are rebuilt by the caller). orbax
     writes each step to a temporary folder and renames it when complete, so a kill mid-save leaves the previous
-    step as the latest. Saving is synchronous: the next step may donate the state's buffers.
+    step as the latest. Saving is synchronous: the next step may donate the state's buffers. A Ctrl-C during a save
+    or restore takes effect once it is complete: orbax finishes a step in helper threads, and an interrupt in the middle
+    left them writing while the process shut down.
 
     Args:
         directory: checkpoint folder (created).
@@ -41,8 +47,9 @@ class Checkpointer:
         item = {"params": state.params, "opt_state": state.opt_state, "step": state.step}
         if state.batch_stats is not None:
             item["batch_stats"] = state.batch_stats
-        self._manager.save(step, args=ocp.args.StandardSave(item), force=True)
-        self._manager.wait_until_finished()
+        with _interrupt_after():
+            self._manager.save(step, args=ocp.args.StandardSave(item), force=True)
+            self._manager.wait_until_finished()
 
     def restore(self, template: TrainState, step: int | None = None) -> TrainState:
         """The checkpoint at ``step`` (default latest) in the structure, dtypes and shardings of ``template``."""
@@ -53,7 +60,8 @@ class Checkpointer:
         target = {"params": abstract.params, "opt_state": abstract.opt_state, "step": abstract.step}
         if template.batch_stats is not None:
             target["batch_stats"] = abstract.batch_stats
-        item = self._manager.restore(step, args=ocp.args.StandardRestore(target))
+        with _interrupt_after():
+            item = self._manager.restore(step, args=ocp.args.StandardRestore(target))
         return template.replace(
             params=item["params"],
             opt_state=item["opt_state"],
@@ -67,7 +75,8 @@ class Checkpointer:
         step = self._manager.latest_step()
         if step is None:
             raise FileNotFoundError(f"no checkpoint under {self.directory} (the run did not finish training it)")
-        item = self._manager.restore(step, args=ocp.args.StandardRestore())
+        with _interrupt_after():
+            item = self._manager.restore(step, args=ocp.args.StandardRestore())
         return jax.tree_util.tree_map(np.asarray, item["params"])
 
     def close(self) -> None:
@@ -78,3 +87,24 @@ class Checkpointer:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def _interrupt_after() -> Iterator[None]:
+    """Holds back SIGINT until the block is done, then delivers it to the handler it was meant for.
+
+    Only the main thread receives signals in Python, so elsewhere (and where SIGINT is ignored or not Python's to
+    handle) the block simply runs.
+    """
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or not callable(previous):
+        yield
+        return
+    received = []
+    signal.signal(signal.SIGINT, lambda signum, frame: received.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        previous(signal.SIGINT, received[0])
