@@ -13,7 +13,9 @@ resumes from its last checkpoint when the same command is run again.
 
 Writes ``depth_eval.json`` / ``depth_eval.md`` (AbsRel and δ<1.25 per season against a constant and a
 "farther toward the top" baseline, after per-image scale-and-shift alignment) and ``depth_eval.png`` (RGB /
-predicted / true depth per season) into the run's folder.
+predicted / true depth per season) into the run's folder. ``--export PATH`` also writes the network as a
+shippable file (``placejax.depth.save_shipped``: float16 weights, the config, the command and the evaluation), the
+way ``placejax/depth/weights/`` was made.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--preset", default="default", choices=presets)
     parser.add_argument("--workdir", type=Path, default=None, help="run folder (default: the cache, see above)")
+    parser.add_argument("--export", type=Path, default=None, help="also write the network as a shippable .npz")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     args = parser.parse_args(argv)
     try:
@@ -65,6 +68,14 @@ def main(argv: list[str] | None = None) -> int:
     payload = depth.write_report(trained, workdir)
     print(depth.report_markdown(payload["per_season"]))
     print(f"training {t_train:.0f} s, evaluation {payload['eval_seconds']:.0f} s; report in {workdir}")
+    if args.export:
+        command = " ".join(["python -m experiments.train_depth", f"--preset {args.preset}", *args.overrides])
+        evaluation = {
+            k: float(sum(r["model"][k] for r in payload["per_season"].values()) / len(payload["per_season"]))
+            for k in ("abs_rel", "delta1", "abs_rel_with_sky", "delta1_with_sky")
+        }
+        depth.save_shipped(trained, args.export, {"command": command, "preset": args.preset, "evaluation": evaluation})
+        print(f"exported to {args.export}")
     return 0
 
 

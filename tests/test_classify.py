@@ -286,6 +286,30 @@ def test_from_run_errors_name_the_problem(smoke_run, tmp_path, monkeypatch):
         PlaceClassifier.from_run(workdir, TRAIN)
 
 
+def test_from_run_reads_the_shipped_depth_network(smoke_run, monkeypatch):
+    """A run whose depth stage got the network shipped with placejax (``"shipped": preset`` in its index) builds a
+    classifier on that network, predicting depth as the shipped file does; an index whose depth config is not the
+    shipped file's is refused, naming both fingerprints."""
+    from placejax import depth
+
+    _, workdir, _ = smoke_run
+    shipped, meta = depth.load_shipped("default")
+    spec = {"source": "trained", "shipped": "default", "config": dataclasses.asdict(depth.PRESETS["default"])}
+    real = _run_layout.locate_run
+    monkeypatch.setattr(_run_layout, "locate_run", lambda w, s: dataclasses.replace(real(w, s), depth=spec))
+    clf = PlaceClassifier.from_run(workdir, TRAIN)
+    assert clf.meta["depth"]["size"] == 96
+    assert clf.meta["depth"]["source"] == {"shipped": "default", "fingerprint": meta["fingerprint"]}
+    for a, b in zip(jax.tree.leaves(clf.params["depth"]), jax.tree.leaves(shipped.variables), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), b)
+    images = np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
+    assert clf.predict(images).label.shape == (2,)
+
+    spec["config"] = dataclasses.asdict(depth.PRESETS["smoke"])
+    with pytest.raises(ValueError, match=rf"{depth.PRESETS['smoke'].fingerprint()}.*ships {meta['fingerprint']}"):
+        PlaceClassifier.from_run(workdir, TRAIN)
+
+
 # ---------------------------------------------------------------------------------------------------- bad images
 
 

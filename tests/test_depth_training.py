@@ -599,3 +599,61 @@ def test_normal_weight_adds_the_window_normal_term_and_reaches_the_fingerprint()
     assert train_depth.parse_overrides(cfg, ["normal_weight=1.0"]).fingerprint() != cfg.fingerprint()
     with pytest.raises(ValueError, match="normal_weight"):
         dataclasses.replace(cfg, target="inverse", object_weight=1.0, normal_weight=1.0)
+
+
+# ------------------------------------------------------------------------------------------- the shipped network
+
+
+def test_shipped_default_network_is_the_presets_and_reaches_its_recorded_quick_check(tmp_path):
+    """The file in ``placejax/depth/weights`` was trained with the default preset's current config, loads into
+    its architecture, reproduces the AbsRel / δ1 recorded at export on the evaluation campus, beats both trivial
+    baselines there, and is what ``ensure_trained("default")`` returns: nothing is trained or cached."""
+    net, meta = depth.load_shipped("default")
+    assert meta["fingerprint"] == depth.PRESETS["default"].fingerprint() == net.fingerprint
+    assert net.config == depth.PRESETS["default"] and net.metric
+    got = depth.quick_check(net)
+    for k in ("abs_rel", "delta1"):
+        assert got[k] == pytest.approx(meta["quick_check"][k], abs=2e-3), k
+    frames = depth.evaluation_frames(96, 4, world_seed=0, max_depth_m=80.0)
+    report = depth.evaluate(net.predict, frames)
+    for season in report.values():
+        assert season["model"]["abs_rel"] < min(season[b]["abs_rel"] for b in ("constant", "farther_toward_top"))
+    again = depth.ensure_trained("default", tmp_path, progress=False)
+    assert not any(tmp_path.iterdir())
+    for a, b in zip(jax.tree.leaves(again.variables), jax.tree.leaves(net.variables), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_shipped_file_round_trips_in_float16_and_a_stale_one_is_not_used(uninterrupted, tmp_path, monkeypatch, capsys):
+    """``save_shipped`` → ``read_shipped`` keeps the config, BatchNorm statistics exactly and the parameters to
+    float16 (predictions within 1 % in metres); a shipped file trained with another config than its preset now
+    has is refused with a message (the preset then trains); a file of something else is named in the error."""
+    path = tmp_path / "net.npz"
+    depth.save_shipped(uninterrupted, path, {"command": "test"})
+    back, meta = depth.read_shipped(path)
+    assert back.config == CFG and meta["command"] == "test" and meta["fingerprint"] == CFG.fingerprint()
+    assert set(meta["quick_check"]) == {"abs_rel", "delta1"}
+    with np.load(path) as z:
+        kinds = {k.split("/")[0]: z[k].dtype for k in z.files if k != "meta"}
+    assert kinds == {"params": np.float16, "batch_stats": np.float32}
+    for a, b in zip(
+        jax.tree.leaves(back.variables["batch_stats"]),
+        jax.tree.leaves(uninterrupted.variables["batch_stats"]),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(a, np.asarray(b))
+    x = np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
+    np.testing.assert_allclose(back.predict_metric(x), uninterrupted.predict_metric(x), rtol=1e-2)
+
+    from placejax.depth import _lifecycle
+
+    monkeypatch.setattr(_lifecycle, "SHIPPED", {"smoke": _lifecycle.SHIPPED["default"]})
+    assert depth.shipped_network("smoke") is None
+    assert "another config" in capsys.readouterr().err
+    assert depth.shipped_network("full") is None
+    with pytest.raises(FileNotFoundError, match="'full'"):
+        depth.load_shipped("full")
+    other = tmp_path / "other.npz"
+    np.savez(other, w=np.zeros(3))
+    with pytest.raises(ValueError, match=r"other\.npz.*not a placejax depth-network file"):
+        depth.read_shipped(other)

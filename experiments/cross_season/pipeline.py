@@ -211,7 +211,8 @@ def _depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionDat
         key = {"source": "midas", "weights": ident, "model": [c.midas_features, c.midas_encoder_width], **metric}
         return key, midas
     if source == "trained":
-        # The placejax-trained depth network: trained once per machine into the cache, then reused.
+        # The placejax-trained depth network: shipped with the package (default preset), or trained once per
+        # machine into the cache, then reused.
         from placejax import depth as _depth
 
         trained = _depth.ensure_trained(
@@ -977,11 +978,15 @@ def _write_classifier_index(ctx: Context, sessions, nets, mlp_dirs: dict, grid: 
 
     c = ctx.config.depth
     if c.source == "trained":
-        from placejax.depth import PRESETS, run_dir
+        from placejax.depth import PRESETS, run_dir, shipped_network
 
         cfg = PRESETS[c.trained_preset]
-        folder = run_dir(cfg, c.trained_preset, Path(c.trained_cache) if c.trained_cache else None)
-        depth_spec = {"source": "trained", "dir": str(folder.absolute()), "config": dataclasses.asdict(cfg)}
+        depth_spec = {"source": "trained", "config": dataclasses.asdict(cfg)}
+        if shipped_network(c.trained_preset) is not None:  # what ensure_trained gave the depth stage
+            depth_spec["shipped"] = c.trained_preset
+        else:
+            folder = run_dir(cfg, c.trained_preset, Path(c.trained_cache) if c.trained_cache else None)
+            depth_spec["dir"] = str(folder.absolute())
     elif c.source == "midas":
         weights = str(Path(c.midas_weights).resolve()) if c.midas_weights else "registry:midas_v21_small_256"
         depth_spec = {

@@ -284,10 +284,18 @@ class PlaceClassifier:
         cfg = files.config
         d = files.depth
         if d["source"] == "trained":
-            from placejax.depth import DepthTrainConfig, load_trained
+            from placejax.depth import DepthTrainConfig, load_shipped, load_trained
 
             dcfg = DepthTrainConfig(**d["config"])
-            trained = load_trained(d["dir"], dcfg)
+            if "shipped" in d:  # the network that ships with placejax (placejax.depth.SHIPPED)
+                trained, meta = load_shipped(d["shipped"])
+                if meta["fingerprint"] != dcfg.fingerprint():
+                    raise ValueError(
+                        f"{files.workdir}: the run used depth network {dcfg.fingerprint()}, but this placejax "
+                        f"ships {meta['fingerprint']} for preset {d['shipped']!r}"
+                    )
+            else:
+                trained = load_trained(d["dir"], dcfg)
             depth_vars = trained.variables
             depth_meta = {
                 "kind": "trained",
@@ -298,7 +306,10 @@ class PlaceClassifier:
                 "far_as_sky_m": float(cfg["depth"].get("far_as_sky_m", 0.0)) if dcfg.metric else 0.0,
                 "flip_average": bool(cfg["depth"].get("flip_average", False)) and dcfg.metric,
                 "shifts": [int(k) for k in cfg["depth"].get("shift_px", ())] if dcfg.metric else [],
-                "source": {"dir": d["dir"], "fingerprint": dcfg.fingerprint()},
+                "source": {
+                    **({"shipped": d["shipped"]} if "shipped" in d else {"dir": d["dir"]}),
+                    "fingerprint": dcfg.fingerprint(),
+                },
             }
         elif d["source"] == "midas":
             from placejax.weights import convert_midas_small, load, read_torch_checkpoint

@@ -1,10 +1,22 @@
 """Monocular depth: MiDaS preprocessing and inference, the scale- and shift-invariant training objective,
 training of MidasSmall on the depth-training worlds (on ``placejax.training``'s engine), its train-once-and-cache
-lifecycle (:func:`ensure_trained`), and depth-quality metrics."""
+lifecycle (:func:`ensure_trained`; the default preset's network ships with the package, :func:`load_shipped`),
+and depth-quality metrics."""
 
 from placejax.depth._evaluate import baseline_predictions, evaluate, evaluation_frames
 from placejax.depth._inference import network_size, predict, preprocess
-from placejax.depth._lifecycle import ensure_trained, report_markdown, run_dir, write_report
+from placejax.depth._lifecycle import (
+    SHIPPED,
+    ensure_trained,
+    load_shipped,
+    quick_check,
+    read_shipped,
+    report_markdown,
+    run_dir,
+    save_shipped,
+    shipped_network,
+    write_report,
+)
 from placejax.depth._losses import (
     LOG_DEPTH_UNIT_M,
     align_least_squares,
@@ -35,6 +47,7 @@ from placejax.depth._views import average_views, shift_columns, validate_shifts
 __all__ = [
     "LOG_DEPTH_UNIT_M",
     "PRESETS",
+    "SHIPPED",
     "DepthObjective",
     "DepthTrainConfig",
     "TrainedDepth",
@@ -49,6 +62,7 @@ __all__ = [
     "evaluation_frames",
     "far_to_sky",
     "gradient_matching",
+    "load_shipped",
     "load_trained",
     "log_depth",
     "log_metric_loss",
@@ -59,9 +73,13 @@ __all__ = [
     "permute_channels",
     "predict",
     "preprocess",
+    "quick_check",
+    "read_shipped",
     "report_markdown",
     "run_dir",
+    "save_shipped",
     "shift_columns",
+    "shipped_network",
     "ssi_mse",
     "ssi_trimmed_mae",
     "train",

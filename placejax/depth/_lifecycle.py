@@ -8,19 +8,29 @@ interrupted training, and writing the evaluation report beside the checkpoints.
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
+import io as _io
+import json
 import sys
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
+from flax import traverse_util
 
 from placejax import io
 from placejax.depth import _evaluate
 from placejax.depth._train import PRESETS, DepthTrainConfig, TrainedDepth, load_trained, train
 
 # Measured on an idle 2-core x86 CPU (README, depth-network section): shown to the user before a first training.
-_EXPECTED_MINUTES = {"smoke": 1, "default": 11}
+_EXPECTED_MINUTES = {"smoke": 1, "default": 17}
+
+# Presets whose trained network ships inside the package (``placejax/depth/weights/<name>.npz``, its recipe and
+# metrics in the README there): a fresh machine loads it instead of training for a quarter of an hour.
+SHIPPED = {"default": "simcampus_depth_default_96"}
+# Frames per season of the evaluation campus in a shipped file's ``quick_check`` (what the tests reproduce).
+QUICK_CHECK_FRAMES = 4
 
 
 def run_dir(cfg: DepthTrainConfig, preset: str, root: str | Path | None = None) -> Path:
@@ -33,12 +43,75 @@ def run_dir(cfg: DepthTrainConfig, preset: str, root: str | Path | None = None) 
     return (cache_dir() if root is None else Path(root)) / "depth" / f"{preset}-{cfg.fingerprint()}"
 
 
-def _finished(workdir: Path, cfg: DepthTrainConfig) -> bool:
-    try:
-        load_trained(workdir, cfg)
-    except FileNotFoundError:
-        return False
-    return True
+def save_shipped(trained: TrainedDepth, path: str | Path, meta: dict) -> None:
+    """Writes ``trained`` as a compressed npz: parameters in float16 (half the size; predictions move by about
+    1e-3 in log depth), BatchNorm statistics in float32, flat ``"params/encoder/..."`` keys, plus ``meta`` (JSON
+    under ``"meta"``) completed with the config, its fingerprint and :func:`quick_check` of the stored weights."""
+    flat = traverse_util.flatten_dict(jax.device_get(trained.variables), sep="/")
+    arrays = {k: np.asarray(v, np.float16 if k.startswith("params/") else np.float32) for k, v in flat.items()}
+    stored = TrainedDepth(trained.config, _unflatten(arrays))
+    meta = {
+        **meta,
+        "config": dataclasses.asdict(trained.config),
+        "fingerprint": trained.fingerprint,
+        "quick_check": quick_check(stored),
+    }
+    arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
+    buf = _io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    io.write_bytes(path, buf.getvalue())
+
+
+def _unflatten(arrays: dict[str, np.ndarray]) -> dict:
+    return traverse_util.unflatten_dict({k: np.asarray(v, np.float32) for k, v in arrays.items()}, sep="/")
+
+
+def read_shipped(source) -> tuple[TrainedDepth, dict]:
+    """``(network, meta)`` of a file written by :func:`save_shipped` (a path or a binary file object)."""
+    with np.load(source) as z:
+        if "meta" not in z.files:
+            raise ValueError(f"{source}: not a placejax depth-network file (no 'meta' entry)")
+        meta = json.loads(bytes(z["meta"]).decode())
+        arrays = {k: z[k] for k in z.files if k != "meta"}
+    return TrainedDepth(DepthTrainConfig(**meta["config"]), _unflatten(arrays)), meta
+
+
+def load_shipped(preset: str = "default") -> tuple[TrainedDepth, dict]:
+    """The network of ``preset`` shipped in ``placejax/depth/weights`` and its record (command, seed, training
+    time, metrics). Raises ``FileNotFoundError`` for a preset without one."""
+    if preset not in SHIPPED:
+        raise FileNotFoundError(f"no shipped depth network for preset {preset!r} (shipped: {sorted(SHIPPED)})")
+    res = importlib.resources.files("placejax.depth") / "weights" / f"{SHIPPED[preset]}.npz"
+    if not res.is_file():
+        raise FileNotFoundError(f"{SHIPPED[preset]}.npz is missing from placejax/depth/weights (a broken install?)")
+    with res.open("rb") as f:
+        return read_shipped(_io.BytesIO(f.read()))
+
+
+def quick_check(trained: TrainedDepth, n_frames: int = QUICK_CHECK_FRAMES) -> dict[str, float]:
+    """Mean AbsRel and δ<1.25 (objects and ground, after alignment) over the four seasons on ``n_frames`` frames
+    per season of the evaluation campus: a few seconds, the figure a shipped file records and the tests check."""
+    cfg = trained.config
+    frames = _evaluate.evaluation_frames(
+        cfg.image_size, n_frames, world_seed=cfg.world_seed, max_depth_m=cfg.max_depth_m
+    )
+    report = _evaluate.evaluate(trained.predict, frames)
+    return {k: float(np.mean([r["model"][k] for r in report.values()])) for k in ("abs_rel", "delta1")}
+
+
+def shipped_network(preset: str) -> TrainedDepth | None:
+    """The shipped network of ``preset`` when there is one trained with the preset's current config, else None."""
+    if preset not in SHIPPED:
+        return None
+    trained, meta = load_shipped(preset)
+    if meta["fingerprint"] != PRESETS[preset].fingerprint():
+        print(
+            f"placejax: the shipped depth network {SHIPPED[preset]} was trained with another config than preset "
+            f"{preset!r} now has ({meta['fingerprint']} != {PRESETS[preset].fingerprint()}): training instead",
+            file=sys.stderr,
+        )
+        return None
+    return trained
 
 
 def ensure_trained(
@@ -48,7 +121,9 @@ def ensure_trained(
     config: DepthTrainConfig | None = None,
     progress: bool = True,
 ) -> TrainedDepth:
-    """The trained depth network of ``preset`` (or of ``config``): loaded from the cache, or trained there first.
+    """The trained depth network of ``preset`` (or of ``config``): the one shipped with the package for a preset
+    that has one (:data:`SHIPPED`, when trained with the preset's current config), else loaded from the cache, or
+    trained there first.
 
     Training resumes from the last checkpoint if an earlier run was interrupted; the evaluation report
     (``depth_eval.{json,md,png}``) is written beside the checkpoints the first time.
@@ -62,6 +137,9 @@ def ensure_trained(
     if config is None:
         if preset not in PRESETS:
             raise ValueError(f"unknown depth preset {preset!r}; choose one of {sorted(PRESETS)}")
+        shipped = shipped_network(preset)
+        if shipped is not None:
+            return shipped
         config = PRESETS[preset]
     workdir = run_dir(config, preset, cache_root)
     primary = jax.process_index() == 0  # several processes train together; one of them speaks and writes
