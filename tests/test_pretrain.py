@@ -199,6 +199,9 @@ def test_hha_depth_field_keeps_the_shipped_hha_trunks_hash_and_is_validated():
         assert dataclasses.replace(cfg, hha_depth="trained:default").fingerprint() != network
     _, meta = pretrain.load_shipped(pretrain.SHIPPED_HHA_PREDICTED)
     assert pretrain.PretrainConfig(**meta["config"]).fingerprint() == meta["fingerprint"]
+    # ... and it was pretrained on the depth network the experiment's default depth stage uses (the shipped one).
+    assert meta["hha_depth_network"] == f"default-{depth.PRESETS['default'].fingerprint()}"
+    assert depth.load_shipped("default")[1]["fingerprint"] == depth.PRESETS["default"].fingerprint()
     with pytest.raises(ValueError, match="hha_depth must be"):
         dataclasses.replace(cfg, hha_depth="trained:nonsense")
     with pytest.raises(ValueError, match="needs modality='hha'"):
