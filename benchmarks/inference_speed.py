@@ -3,9 +3,9 @@
     python -m benchmarks.inference_speed [--repeats 3] [--batch 8] [--no-torch] [--only builtin|paper]
 
 Two model sizes, both with random weights of the exact architectures (speed does not depend on the values):
-    builtin: the default SimCampus preset — 64×64 images, the placejax metric depth network (MidasSmall
-        features 16, encoder ×0.35, run at 64×64) over the preset's views (the image, its mirror and copies
-        shifted by ±2 and ±4 px: ten passes), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
+    builtin: the default SimCampus preset — 64×64 images, the placejax metric depth network (the default depth
+        preset's: MidasSmall features 16, encoder ×0.35, run at 96×96) over the preset's views (the image, its
+        mirror and copies shifted by ±2 and ±4 px: ten passes), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
     paper: the paper's setting — 256×256 images, MiDaS v2.1 small (official size, run at 256×256), ImageNet
         VGG16 at full width (conv features rounded to float16 as the experiment caches them), MLP 8192 → 1024 → 100.
 
@@ -33,10 +33,19 @@ from benchmarks import _report
 from placejax.classify import PlaceClassifier
 from placejax.classify import _classifier as C
 from placejax.data import PlaceGrid
+from placejax.depth import PRESETS
 
-# Everything ``PlaceClassifier`` reads from a run, per size (values as the experiment's presets set them).
+# Everything ``PlaceClassifier`` reads from a run, per size (values as the experiment's presets set them; the
+# built-in depth network's architecture and input size are the default depth preset's).
+_DEPTH = PRESETS["default"]
 _SIZES = {
-    "builtin": dict(image=64, depth=("trained", 16, 0.35, 64), vgg=(0.125, True), far_m=80.0, metric=True),
+    "builtin": dict(
+        image=64,
+        depth=("trained", _DEPTH.features, _DEPTH.encoder_width, _DEPTH.image_size),
+        vgg=(0.125, True),
+        far_m=80.0,
+        metric=True,
+    ),
     "paper": dict(image=256, depth=("midas", 64, 1.0, 256), vgg=(1.0, True), far_m=80.0, metric=False),
 }
 
