@@ -82,10 +82,32 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
     write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
-def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> None:
-    """Atomically writes ``arrays`` as an uncompressed ``.npz``."""
+# The entry of an ``.npz`` that holds its record (JSON as uint8 bytes) in files written with ``meta=``.
+NPZ_META_KEY = "meta"
+
+
+def write_npz(
+    path: str | os.PathLike,
+    arrays: Mapping[str, np.ndarray],
+    *,
+    compressed: bool = False,
+    meta: Mapping[str, Any] | None = None,
+) -> None:
+    """Atomically writes ``arrays`` as an ``.npz`` (uncompressed unless ``compressed``), with ``meta`` as key-sorted
+    JSON under :data:`NPZ_META_KEY` when given (what :func:`read_npz` returns)."""
+    arrays = dict(arrays)
+    if meta is not None:
+        arrays[NPZ_META_KEY] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
     with atomic_write(path) as f:
-        np.savez(f, **arrays)
+        (np.savez_compressed if compressed else np.savez)(f, **arrays)
+
+
+def read_npz(source: str | os.PathLike | IO[bytes]) -> tuple[dict[str, np.ndarray], dict[str, Any] | None]:
+    """``(arrays, meta)`` of an ``.npz`` (a path or a binary file object); ``meta`` is None when it has none."""
+    with np.load(source) as z:
+        meta = json.loads(bytes(z[NPZ_META_KEY]).decode()) if NPZ_META_KEY in z.files else None
+        arrays = {k: np.asarray(z[k]) for k in z.files if k != NPZ_META_KEY}
+    return arrays, meta
 
 
 def save_figure(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> None:

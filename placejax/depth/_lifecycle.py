@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import importlib.resources
 import io as _io
-import json
 import sys
 import time
 from pathlib import Path
@@ -57,10 +56,7 @@ def save_shipped(trained: TrainedDepth, path: str | Path, meta: dict) -> None:
         "fingerprint": trained.fingerprint,
         "quick_check": quick_check(stored),
     }
-    arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
-    buf = _io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    io.write_bytes(path, buf.getvalue())
+    io.write_npz(path, arrays, compressed=True, meta=meta)
 
 
 def _unflatten(arrays: dict[str, np.ndarray]) -> dict:
@@ -69,11 +65,9 @@ def _unflatten(arrays: dict[str, np.ndarray]) -> dict:
 
 def read_shipped(source) -> tuple[TrainedDepth, dict]:
     """``(network, meta)`` of a file written by :func:`save_shipped` (a path or a binary file object)."""
-    with np.load(source) as z:
-        if "meta" not in z.files:
-            raise ValueError(f"{source}: not a placejax depth-network file (no 'meta' entry)")
-        meta = json.loads(bytes(z["meta"]).decode())
-        arrays = {k: z[k] for k in z.files if k != "meta"}
+    arrays, meta = io.read_npz(source)
+    if meta is None:
+        raise ValueError(f"{source}: not a placejax depth-network file (no 'meta' entry)")
     return TrainedDepth(DepthTrainConfig(**meta["config"]), _unflatten(arrays)), meta
 
 

@@ -56,19 +56,15 @@ def export_params(params: dict[str, Any], heads: tuple[str, ...] = ()) -> dict[s
 
 def save_npz(params: dict[str, Any], path: str | Path, meta: dict, heads: tuple[str, ...] = ()) -> None:
     """Writes :func:`export_params` plus ``meta`` (JSON under the key ``"meta"``) as a compressed npz."""
-    arrays = export_params(params, heads)
-    arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
-    buf = _io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    io.write_bytes(path, buf.getvalue())
+    io.write_npz(path, export_params(params, heads), compressed=True, meta=meta)
 
 
 def read_npz(source) -> tuple[dict[str, Any], dict]:
     """``(params, meta)`` of a file written by :func:`save_npz`: ``params`` ``{"trunk": ...[, "classifier":
     {...}]}`` ready to drop into ``VGG16(width=meta["config"]["width"])``'s parameter tree."""
-    with np.load(source) as z:
-        meta = json.loads(bytes(z["meta"]).decode())
-        flat = {k: np.asarray(z[k]) for k in z.files if k != "meta"}
+    flat, meta = io.read_npz(source)
+    if meta is None:
+        raise ValueError(f"{source}: not a placejax pretrained-trunk file (no 'meta' entry)")
     return traverse_util.unflatten_dict(flat, sep="/"), meta
 
 
