@@ -4,7 +4,7 @@
 
 Two model sizes, both with random weights of the exact architectures (speed does not depend on the values):
     builtin: the default SimCampus preset — 64×64 images, the placejax metric depth network (the default depth
-        preset's: MidasSmall features 16, encoder ×0.35, run at 96×96) over the preset's views (the image, its
+        preset's: MidasSmall features 16, encoder ×0.35, run at 128×128) over the preset's views (the image, its
         mirror and copies shifted by ±2 and ±4 px: ten passes), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
     paper: the paper's setting — 256×256 images, MiDaS v2.1 small (official size, run at 256×256), ImageNet
         VGG16 at full width (conv features rounded to float16 as the experiment caches them), MLP 8192 → 1024 → 100.

@@ -298,7 +298,7 @@ def test_from_run_reads_the_shipped_depth_network(smoke_run, monkeypatch):
     real = _run_layout.locate_run
     monkeypatch.setattr(_run_layout, "locate_run", lambda w, s: dataclasses.replace(real(w, s), depth=spec))
     clf = PlaceClassifier.from_run(workdir, TRAIN)
-    assert clf.meta["depth"]["size"] == 96
+    assert clf.meta["depth"]["size"] == depth.PRESETS["default"].image_size == shipped.config.image_size
     assert clf.meta["depth"]["source"] == {"shipped": "default", "fingerprint": meta["fingerprint"]}
     for a, b in zip(jax.tree.leaves(clf.params["depth"]), jax.tree.leaves(shipped.variables), strict=True):
         np.testing.assert_array_equal(np.asarray(a), b)

@@ -614,7 +614,7 @@ def test_shipped_default_network_is_the_presets_and_reaches_its_recorded_quick_c
     got = depth.quick_check(net)
     for k in ("abs_rel", "delta1"):
         assert got[k] == pytest.approx(meta["quick_check"][k], abs=2e-3), k
-    frames = depth.evaluation_frames(96, 4, world_seed=0, max_depth_m=80.0)
+    frames = depth.evaluation_frames(net.config.image_size, 4, world_seed=0, max_depth_m=80.0)
     report = depth.evaluate(net.predict, frames)
     for season in report.values():
         assert season["model"]["abs_rel"] < min(season[b]["abs_rel"] for b in ("constant", "farther_toward_top"))

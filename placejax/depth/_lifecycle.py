@@ -23,11 +23,11 @@ from placejax.depth import _evaluate
 from placejax.depth._train import PRESETS, DepthTrainConfig, TrainedDepth, load_trained, train
 
 # Measured on an idle 2-core x86 CPU (README, depth-network section): shown to the user before a first training.
-_EXPECTED_MINUTES = {"smoke": 1, "default": 17}
+_EXPECTED_MINUTES = {"smoke": 1, "default": 27}
 
 # Presets whose trained network ships inside the package (``placejax/depth/weights/<name>.npz``, its recipe and
 # metrics in the README there): a fresh machine loads it instead of training for a quarter of an hour.
-SHIPPED = {"default": "simcampus_depth_default_96"}
+SHIPPED = {"default": "simcampus_depth_default_128"}
 # Frames per season of the evaluation campus in a shipped file's ``quick_check`` (what the tests reproduce).
 QUICK_CHECK_FRAMES = 4
 
