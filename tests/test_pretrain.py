@@ -198,9 +198,15 @@ def test_hha_depth_field_keeps_the_shipped_hha_trunks_hash_and_is_validated():
         mp.setitem(depth.PRESETS, "default", other)
         assert dataclasses.replace(cfg, hha_depth="trained:default").fingerprint() != network
     _, meta = pretrain.load_shipped(pretrain.SHIPPED_HHA_PREDICTED)
-    assert pretrain.PretrainConfig(**meta["config"]).fingerprint() == meta["fingerprint"]
-    # ... and it was pretrained on the depth network the experiment's default depth stage uses (the shipped one).
-    assert meta["hha_depth_network"] == f"default-{depth.PRESETS['default'].fingerprint()}"
+    # The shipped trunk was pretrained on the depth network its module names (the default recipe at 96²): its
+    # record's fingerprints are that network's and those of its config with that network as the default.
+    preset, changes = pretrain.SHIPPED_HHA_PREDICTED_DEPTH
+    then = dataclasses.replace(depth.PRESETS[preset], **changes)
+    assert meta["hha_depth_network"] == f"{preset}-{then.fingerprint()}"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(depth.PRESETS, preset, then)
+        assert pretrain.PretrainConfig(**meta["config"]).fingerprint() == meta["fingerprint"]
+    assert pretrain.PretrainConfig(**meta["config"]).fingerprint() != meta["fingerprint"]  # not the 128² network
     assert depth.load_shipped("default")[1]["fingerprint"] == depth.PRESETS["default"].fingerprint()
     with pytest.raises(ValueError, match="hha_depth must be"):
         dataclasses.replace(cfg, hha_depth="trained:nonsense")
