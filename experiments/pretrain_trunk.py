@@ -86,11 +86,8 @@ def main(argv: list[str] | None = None) -> int:
             "preset": args.preset,
             "quick_check": pretrain.quick_check(params["trunk"], cfg),
         }
-        if cfg.hha_depth.startswith("trained:"):  # which depth network's predictions it learnt from
-            from placejax.depth import PRESETS as DEPTH_PRESETS
-
-            preset = cfg.hha_depth.removeprefix("trained:")
-            meta["hha_depth_network"] = f"{preset}-{DEPTH_PRESETS[preset].fingerprint()}"
+        if cfg.hha_depth_network() is not None:  # which depth network's predictions it learnt from
+            meta["hha_depth_network"] = cfg.hha_depth_network()
         heads = tuple(h for h in args.export_heads.split(",") if h)
         pretrain.save_npz(params, args.export, meta, heads)
         print(f"exported {args.export}")

@@ -124,6 +124,16 @@ class PretrainConfig:
         if self.eval_seed == self.seed:
             raise ValueError("eval_seed must differ from seed: validation worlds must be held out")
 
+    def hha_depth_network(self) -> str | None:
+        """``"<depth preset>-<its config fingerprint>"`` of the network whose predictions the HHA views are made of
+        (``hha_depth="trained:<preset>"``), None on perturbed depth: what an exported trunk records."""
+        if self.hha_depth == HHA_DEPTH_PERTURBED:
+            return None
+        from placejax.depth import PRESETS as DEPTH_PRESETS
+
+        preset = self.hha_depth.removeprefix(HHA_DEPTH_TRAINED)
+        return f"{preset}-{DEPTH_PRESETS[preset].fingerprint()}"
+
     def fingerprint(self) -> str:
         """Short hash of every field that changes the trained weights."""
         fields = dataclasses.asdict(self)
