@@ -235,18 +235,19 @@ PRESETS = {
         checkpoint_every=2,
         eval_frames=4,
     ),
-    # CPU-sized: 2400 steps at 128², about 27 minutes on two cores, so its network ships with the package
+    # CPU-sized: 4800 steps at 128², about 55 minutes on two cores, so its network ships with the package
     # (placejax/depth/weights); the default depth source of the experiment. Metric log depth: the inverse-depth
     # objective at 64² learnt a ground ramp under a flat sky, with no objects. Trained at the height of SimCampus's
     # robot camera (its trajectories' 1.2-1.5 m), with object pixels weighted 4x, on season-structured looks with
     # the colour channels in shuffled orders. Chosen on world 1 by experiments.hha_diagnose (README, depth-network
-    # section; 64² without the two look levers until 2026-12-04, then 96² until 2026-12-04's 128² run).
+    # section; 64² without the two look levers until 2026-12-04, then 96² until 2026-12-04's 128² run, 2400 steps
+    # until 2026-12-05).
     "default": DepthTrainConfig(
         target="log_metric",
         image_size=128,
         camera_height_m=(1.2, 1.5),
         object_weight=4.0,
-        steps=2400,
+        steps=4800,
         structured_share=1.0,
         colour_augment=1.0,
     ),

@@ -41,8 +41,10 @@ PERTURB_FIELD_PX = 0.125  # its correlation length, as a share of the image widt
 PERTURB_BLUR_PX = (0.0, 1.5)  # log-depth blur sigma, pixels at 64 x 64 (scaled with the width)
 PERTURB_SKY_FROM_M = (40.0, 70.0)
 
-# network_depth: the experiment's default depth views and sky step (its depth.flip_average, depth.shift_px and
-# depth.far_as_sky_m), so a trunk pretrained on the network's depth sees HHA made as the experiment makes it.
+# network_depth: the experiment's default depth views (its depth.flip_average and depth.shift_px), so a trunk
+# pretrained on the network's depth sees HHA made as the experiment makes it, and the sky step the shipped HHA trunk
+# was pretrained with (50 m, the experiment's depth.far_as_sky_m until 2026-12-05; the experiment's 60 m came with
+# the 4800-step depth network): kept so that the shipped trunk's recipe still makes that trunk.
 NETWORK_FLIP = True
 NETWORK_SHIFTS = (2, 4)
 NETWORK_SKY_FROM_M = 50.0

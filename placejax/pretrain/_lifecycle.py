@@ -32,10 +32,11 @@ SHIPPED_HHA = "simcampus_places_hha_w0125_s64"
 # experiment's HHA net reads this one.
 SHIPPED_HHA_PREDICTED = "simcampus_places_hha_predicted_w0125_s64"
 # The depth network whose predictions it was pretrained on (its ``meta["hha_depth_network"]``): the default preset
-# at 96², shipped before the 128² network that is the default now. A trunk pretrained on the 128² network's
+# at 96² and 2400 steps, shipped before the 128² networks. A trunk pretrained on the 128² 2400-step network's
 # predictions scored lower on world 1 (HHA-Net 20.4 against 20.7 %, README of placejax/pretrain/weights), so
-# this one stayed. ``image_size`` is the only setting in which that network's recipe differs from the preset's.
-SHIPPED_HHA_PREDICTED_DEPTH = ("default", {"image_size": 96})
+# this one stayed. ``image_size`` and ``steps`` are the settings in which that network's recipe differs from the
+# preset's.
+SHIPPED_HHA_PREDICTED_DEPTH = ("default", {"image_size": 96, "steps": 2400})
 _EXPECTED_MINUTES = {"smoke": 1, "default": 45}
 
 
