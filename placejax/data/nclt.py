@@ -665,3 +665,15 @@ def load_session(
         report=report,
         paths=paths,
     )
+
+
+if __name__ == "__main__":
+    # python -m placejax.data.nclt export ROOT DIR [...]: NCLT sessions as session folders (placejax.data.export).
+    import sys
+
+    from placejax.data.export import nclt_main
+
+    if sys.argv[1:2] != ["export"]:
+        print("usage: python -m placejax.data.nclt export ROOT DIR [--dates ...] (see --help)", file=sys.stderr)
+        raise SystemExit(2)
+    raise SystemExit(nclt_main(sys.argv[2:]))

@@ -1,11 +1,14 @@
-"""Writes the README picture: one place of the campus in all four seasons, RGB over metric depth.
+"""Writes the README picture: one place of the campus in all four seasons, RGB over metric depth; or exports the
+seasons as session folders (``placejax.data.export``, ``docs/own-data.md``).
 
 python -m placejax.data.simcampus docs/simcampus_seasons.png [--world-seed 0] [--size 160]
+python -m placejax.data.simcampus export DIR --preset smoke [--seasons WI SP] [--no-depth] [--kitti]
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -34,13 +37,19 @@ def pick_place(session: simcampus.SimCampusSession, stride: int = 25) -> int:
     return int(idx[np.argmax(score)])
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
+    """The command line (module docstring); returns the exit status."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["export"]:
+        from placejax.data.export import simcampus_main
+
+        return simcampus_main(argv[1:])
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", type=Path, help="PNG path, e.g. docs/simcampus_seasons.png")
     ap.add_argument("--world-seed", type=int, default=0)
     ap.add_argument("--size", type=int, default=160, help="rendered image height and width (pixels)")
     ap.add_argument("--frame", type=int, default=None, help="frame of the SU session (default: picked)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     ref = simcampus.load_session("SU", world_seed=args.world_seed, image_size=(32, 32))
     i = pick_place(ref) if args.frame is None else args.frame
@@ -67,7 +76,8 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     io.save_figure(fig, args.out)
     print(f"wrote {args.out} (SU frame {i})")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

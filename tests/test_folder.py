@@ -1,0 +1,481 @@
+"""Session folders (``placejax.data.folder``): parsers, matching, bad input, the check command, the exporters and
+``docs/own-data.md``'s example."""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from placejax.data import Session, cache_session, folder, session_identity
+from placejax.data.__main__ import main as data_main
+from placejax.data.export import SIMCAMPUS_RENDER_PRESETS, export_nclt, simcampus_world_from_camera
+
+REPO = Path(__file__).resolve().parents[1]
+T0 = 1_700_000_000_000_000  # µs
+
+
+def _rot_z(theta: float) -> np.ndarray:
+    """Camera-to-world rotation of a level camera (z up) looking along heading ``theta``."""
+    return simcampus_world_from_camera(np.array([theta]), np.zeros(1), np.zeros(1))[0]
+
+
+def _session(tmp: Path, n: int = 6, hw=(12, 16), *, seed: int = 0, pose_format: str = "tum", depth: bool = False):
+    """A small session folder on a circle, a frame every 0.5 s; returns (folder, images, positions, quats, utimes)."""
+    rng = np.random.default_rng(seed)
+    utimes = T0 + 500_000 * np.arange(n, dtype=np.int64)
+    theta = np.linspace(0.0, 1.5, n)
+    positions = np.stack([10 * np.cos(theta), 10 * np.sin(theta), np.full(n, 1.3)], -1)
+    quats = folder.matrix_to_quaternion(np.stack([_rot_z(t + np.pi / 2) for t in theta]))
+    images = rng.integers(0, 256, size=(n, *hw, 3), dtype=np.uint8)
+    k = np.array([[10.0, 0, (hw[1] - 1) / 2], [0, 10.0, (hw[0] - 1) / 2], [0, 0, 1]])
+    cam = folder.CameraSpec(width=hw[1], height=hw[0], intrinsics=k, camera_height_m=1.3)
+    depths = rng.uniform(0.5, 20, size=(n, *hw)).astype(np.float32) if depth else None
+    folder.write_session(tmp, cam, utimes, positions, quats, images, depths=depths, pose_format=pose_format)
+    return tmp, images, positions, quats, utimes
+
+
+# --------------------------------------------------------------------------------------------------- parsers
+
+
+@given(st.integers(0, 2**53))
+def test_timestamp_text_round_trips_exactly(us):
+    assert folder.parse_timestamp(folder.format_timestamp(us)) == us
+    assert folder.parse_timestamp(str(us), "us") == us
+    assert folder.parse_timestamp(str(us * 1000), "ns") == us
+
+
+@given(st.text(max_size=12).filter(lambda s: any(c not in "0123456789.eE+" and not c.isspace() for c in s)))
+def test_timestamp_garbage_is_refused(text):
+    with pytest.raises(ValueError):
+        folder.parse_timestamp(text)
+
+
+def _unit_quats(draw, n):
+    q = np.array(draw(st.lists(st.tuples(*[st.floats(-1, 1)] * 4), min_size=n, max_size=n)), np.float64)
+    q = q[np.linalg.norm(q, axis=1) > 0.1]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+@st.composite
+def trajectories(draw):
+    n = draw(st.integers(1, 12))
+    steps = draw(st.lists(st.integers(1, 10**7), min_size=n, max_size=n))
+    utimes = draw(st.integers(0, 2**52)) + np.cumsum(steps).astype(np.int64)
+    pos = np.array(draw(st.lists(st.tuples(*[st.floats(-1e6, 1e6)] * 3), min_size=n, max_size=n)), np.float64)
+    q = _unit_quats(draw, n)
+    k = min(len(q), n)
+    return utimes[:k], pos[:k], q[:k]
+
+
+@settings(max_examples=40, deadline=None)
+@given(trajectories(), st.sampled_from(["tum", "kitti"]))
+def test_pose_files_round_trip(tmp_path_factory, traj, fmt):
+    utimes, pos, q = traj
+    if len(q) == 0:
+        return
+    d = tmp_path_factory.mktemp("poses")
+    path = folder.write_poses(d, utimes, pos, q, fmt)
+    t = folder.read_tum(path) if fmt == "tum" else folder.read_kitti_poses(path)
+    assert len(t) == len(q)
+    if fmt == "tum":  # text in round-trip precision: bit for bit
+        np.testing.assert_array_equal(t.utimes, utimes)
+        np.testing.assert_array_equal(t.positions, pos)
+        np.testing.assert_allclose(t.quaternions, q, rtol=0, atol=1e-15)
+    else:  # through the rotation matrix: the same rotation, up to the quaternion's sign
+        np.testing.assert_array_equal(t.positions, pos)
+        np.testing.assert_allclose(
+            folder.quaternion_to_matrix(t.quaternions), folder.quaternion_to_matrix(q), atol=1e-12
+        )
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(0, 50), min_size=2, max_size=10))
+def test_image_table_names_first_unsorted_line(tmp_path_factory, stamps):
+    d = tmp_path_factory.mktemp("table")
+    rows = ["file,timestamp", *(f"images/{k}.png,{t}.5" for k, t in enumerate(stamps))]
+    (d / "images.csv").write_text("\n".join(rows) + "\n")
+    bad = next((k for k in range(1, len(stamps)) if stamps[k] <= stamps[k - 1]), None)
+    if bad is None:
+        files, utimes, lines = folder.read_image_table(d / "images.csv")
+        assert files == [f"images/{k}.png" for k in range(len(stamps))] and lines.tolist()[0] == 2
+        np.testing.assert_array_equal(utimes, np.array(stamps) * 1_000_000 + 500_000)
+    else:
+        kind = "duplicate" if stamps[bad] == stamps[bad - 1] else "unsorted"
+        with pytest.raises(folder.FolderFormatError, match=rf"images\.csv:{bad + 2}: {kind} image timestamp"):
+            folder.read_image_table(d / "images.csv")
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), min_size=4, max_size=4))
+def test_tum_quaternion_checked(tmp_path_factory, q):
+    d = tmp_path_factory.mktemp("tum")
+    path = d / "poses_tum.txt"
+    path.write_text("# header\n1.0 0 0 0 0 0 0 1\n2.0 1 2 3 " + " ".join(repr(v) for v in q) + "\n")
+    norm = math.sqrt(sum(v * v for v in q)) if all(math.isfinite(v) for v in q) else math.nan
+    if math.isfinite(norm) and abs(norm - 1) <= folder.QUATERNION_NORM_TOLERANCE:
+        t = folder.read_tum(path)
+        np.testing.assert_allclose(np.linalg.norm(t.quaternions, axis=1), 1.0, atol=1e-15)
+    else:
+        with pytest.raises(folder.FolderFormatError, match=r"poses_tum\.txt:3: quaternion .* (not finite|has norm)"):
+            folder.read_tum(path)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.data())
+def test_quaternion_matrix_round_trip(data):
+    q = _unit_quats(data.draw, 5)
+    r = folder.quaternion_to_matrix(q)
+    np.testing.assert_allclose(r @ np.swapaxes(r, 1, 2), np.broadcast_to(np.eye(3), r.shape), atol=1e-12)
+    q2 = folder.matrix_to_quaternion(r)
+    np.testing.assert_allclose(np.abs(np.sum(q * q2, axis=1)), 1.0, atol=1e-12)  # the same rotation, ±q
+
+
+def test_interpolation_analytic_and_exact_at_samples():
+    q = folder.matrix_to_quaternion(np.stack([_rot_z(0.0), _rot_z(np.pi / 2)]))
+    traj = folder.Trajectory(
+        np.array([0, 1_000_000]), np.array([[0.0, 0, 0], [2.0, 4, 6]]), q, np.array([1, 2]), Path("x")
+    )
+    f = np.array([-1, 0, 250_000, 500_000, 1_000_000, 1_000_001])
+    pos, quat, outside, too_far = folder.interpolate_poses(f, traj, tolerance_us=300_000)
+    np.testing.assert_allclose(pos[2], [0.5, 1, 1.5])
+    yaw = folder.planar_poses(pos, folder.quaternion_to_matrix(quat))[:, 2]
+    np.testing.assert_allclose(yaw[1:5], [0, np.pi / 8, np.pi / 4, np.pi / 2], atol=1e-12)  # slerp: uniform turn
+    np.testing.assert_array_equal(quat[[1, 4]], q)  # exact sample times: the samples, bit for bit
+    np.testing.assert_array_equal(outside, [1, 0, 0, 0, 0, 1])
+    np.testing.assert_array_equal(too_far, [0, 0, 0, 1, 0, 0])  # 500 ms from both samples
+
+
+# --------------------------------------------------------------------------------------------------- sessions
+
+
+def test_session_reads_back_what_was_written(tmp_path):
+    d, images, pos, _, utimes = _session(tmp_path / "a", depth=True)
+    s = folder.load_session(d, verify_images=True)
+    assert isinstance(s, Session) and s.name == "a" and len(s) == len(images) and s.image_shape == (12, 16)
+    np.testing.assert_array_equal(s.utimes, utimes)
+    np.testing.assert_array_equal(s.positions, pos)
+    np.testing.assert_array_equal(np.stack([s.image(i) for i in range(len(s))]), images)
+    theta = np.linspace(0.0, 1.5, len(s))
+    np.testing.assert_allclose(s.poses, np.stack([pos[:, 0], pos[:, 1], theta + np.pi / 2], -1), atol=1e-12)
+    assert s.camera_height_m == 1.3 and s.has_depth and s.depths([0, 1]).shape == (2, 12, 16)
+    assert s.report.n_kept == s.report.n_images == len(images)
+    small = folder.load_session(d, image_size=(6, 8), stride=2)
+    assert len(small) == 3 and small.image(0).shape == (6, 8, 3) and small.depth(0).shape == (6, 8)
+    np.testing.assert_array_equal(small.utimes, utimes[::2])
+
+
+def test_kitti_copy_reads_back_the_same_poses(tmp_path):
+    d, *_ = _session(tmp_path / "tum")
+    kitti = tmp_path / "kitti"
+    shutil.copytree(d, kitti)
+    tum = folder.load_session(d)
+    folder.write_poses(kitti, tum.utimes, tum.positions, tum.quaternions, "kitti")
+    assert not (kitti / folder.TUM_FILE).exists()
+    k = folder.load_session(kitti)
+    np.testing.assert_array_equal(k.utimes, tum.utimes)
+    np.testing.assert_array_equal(k.positions, tum.positions)
+    np.testing.assert_allclose(k.rotations, tum.rotations, atol=1e-14)
+    np.testing.assert_allclose(k.poses, tum.poses, atol=1e-13)
+
+
+def test_timestamps_in_names_and_pose_gaps_counted(tmp_path):
+    d, images, pos, _, utimes = _session(tmp_path / "s", n=8)
+    (d / folder.IMAGE_TABLE).unlink()
+    for k, p in enumerate(sorted((d / "images").iterdir())):  # integer µs names, and one in seconds
+        name = f"{folder.format_timestamp(utimes[k])}.png" if k == 3 else f"{utimes[k]}.png"
+        p.rename(p.with_name(name))
+    # Poses only from frame 1 on, with frame 5's pose removed (a 1 s hole: frames 5 is 0.5 s from any pose).
+    lines = (d / folder.TUM_FILE).read_text().splitlines()
+    (d / folder.TUM_FILE).write_text("\n".join([lines[0], *lines[2:6], *lines[7:]]) + "\n")
+    s = folder.load_session(d, tolerance_s=0.1)
+    assert (s.report.n_outside_poses, s.report.n_no_pose, s.report.n_kept) == (1, 1, 6)
+    np.testing.assert_array_equal(s.utimes, utimes[[1, 2, 3, 4, 6, 7]])
+    np.testing.assert_array_equal(s.positions, pos[[1, 2, 3, 4, 6, 7]])
+    assert s.report.max_pose_gap_s == 1.0
+    np.testing.assert_array_equal(s.image(2), images[3])
+    assert len(folder.load_session(d, tolerance_s=0.5)) == 7  # the frame in the hole, interpolated
+
+
+def test_distortion_undistorts_like_opencv(tmp_path):
+    d, images, *_ = _session(tmp_path / "s")
+    cam = folder.read_camera(d / folder.CAMERA_FILE)
+    spec = cam.to_dict() | {"distortion": [-0.2, 0.05, 0.001, -0.002]}
+    (d / folder.CAMERA_FILE).write_text(__import__("json").dumps(spec))
+    s = folder.load_session(d)
+    k = cam.intrinsics
+    mapx, mapy = cv2.initUndistortRectifyMap(k, np.array(spec["distortion"]), None, k, (16, 12), cv2.CV_32FC1)
+    np.testing.assert_array_equal(s.image(1), cv2.remap(images[1], mapx, mapy, cv2.INTER_LINEAR))
+    assert not np.array_equal(s.image(1), images[1])
+
+
+def test_depth_png_millimetres_and_yaml_camera(tmp_path):
+    d, *_ = _session(tmp_path / "s", n=3)
+    (d / "depth").mkdir()
+    mm = np.array([[0, 1000, 2500, 65535]], np.uint16).repeat(12, 0)[:, [0, 1, 2, 3] * 4]
+    for k in range(3):
+        cv2.imwrite(str(d / "depth" / f"{k:06d}.png"), mm)
+    cam = folder.read_camera(d / folder.CAMERA_FILE).to_dict()
+    (d / folder.CAMERA_FILE).unlink()
+    (d / "camera.yaml").write_text(
+        "\n".join(f"{k}: {v!r}" if not isinstance(v, list) else f"{k}: []" for k, v in cam.items())
+    )
+    s = folder.load_session(d)
+    np.testing.assert_array_equal(s.depth(0)[0, :4], np.float32([0, 1, 2.5, 65.535]))
+    assert s.camera_height_m == 1.3
+
+
+def test_odometry_interpolated(tmp_path):
+    d, _, _, _, utimes = _session(tmp_path / "s", n=4)
+    t = [folder.format_timestamp(u) for u in (utimes[0], utimes[2])]
+    (d / "odometry.csv").write_text(f"timestamp,x,y,yaw\n{t[0]},0,0,3.0\n{t[1]},2,4,-3.0\n")
+    s = folder.load_session(d)
+    # yaw 3.0 → −3.0 is a turn of 2π − 6 through ±π, not −6 rad: halfway is π − 0.28… wrapped.
+    np.testing.assert_allclose(s.odometry[1], [1, 2, np.angle(np.exp(1j * (3.0 + (2 * np.pi - 6) / 2)))])
+    assert np.isnan(s.odometry[3]).all() and s.report.n_no_odometry == 1
+
+
+def test_cache_identity_survives_a_move_not_an_edit(tmp_path):
+    d, images, *_ = _session(tmp_path / "a")
+    ident = session_identity(folder.load_session(d))
+    moved = tmp_path / "elsewhere" / "a"
+    shutil.copytree(d, moved)
+    assert session_identity(folder.load_session(moved)) == ident
+    img = images[0].copy()
+    img[0, 0] ^= 1
+    cv2.imwrite(str(moved / "images" / "000000.png"), img[:, :, ::-1])
+    assert session_identity(folder.load_session(moved)) != ident
+    cached = cache_session(folder.load_session(d), tmp_path / "cache", image_size=(12, 16), progress=False)
+    np.testing.assert_array_equal(np.asarray(cached.images), images)
+
+
+# --------------------------------------------------------------------------------------------------- bad input
+
+
+def _edit_line(path: Path, lineno: int, new: str) -> None:
+    lines = path.read_text().splitlines()
+    lines[lineno - 1] = new
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _break(d: Path, how: str) -> str:
+    """Damages a good session folder; returns the regex its error must match."""
+    tum, table = d / folder.TUM_FILE, d / folder.IMAGE_TABLE
+    if how == "unsorted pose":
+        lines = tum.read_text().splitlines()
+        lines[2], lines[3] = lines[3], lines[2]
+        tum.write_text("\n".join(lines) + "\n")
+        return r"poses_tum\.txt:4: unsorted pose timestamp"
+    if how == "duplicate image time":
+        t = table.read_text().splitlines()[2].split(",")[1]
+        _edit_line(table, 4, f"images/000002.png,{t}")
+        return r"images\.csv:4: duplicate image timestamp"
+    if how == "nan quaternion":
+        f = tum.read_text().splitlines()[3].split()
+        _edit_line(tum, 4, " ".join([*f[:4], "nan", *f[5:]]))
+        return r"poses_tum\.txt:4: quaternion .* not finite"
+    if how == "non-unit quaternion":
+        f = tum.read_text().splitlines()[2].split()
+        _edit_line(tum, 3, " ".join([*f[:4], *(str(2 * float(v)) for v in f[4:])]))
+        return r"poses_tum\.txt:3: quaternion .* has norm 2"
+    if how == "short pose line":
+        _edit_line(tum, 5, "1.0 2.0 3.0")
+        return r"poses_tum\.txt:5: expected 8 values"
+    if how == "missing image":
+        (d / "images" / "000003.png").unlink()
+        return r"images\.csv:5: image file images/000003\.png missing"
+    if how == "unreadable image":
+        (d / "images" / "000002.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+        return r"images/000002\.png: unreadable or truncated image"
+    if how == "image of another size":
+        cv2.imwrite(str(d / "images" / "000004.png"), np.zeros((12, 15, 3), np.uint8))
+        return r"images/000004\.png: image is 15 x 12 \(W x H\), camera\.json says 16 x 12"
+    if how == "missing camera field":
+        (d / "camera.json").write_text('{"width": 16, "height": 12, "fx": 10, "fy": 10, "cx": 7.5, "cy": 5.5}')
+        return r"camera\.json: missing camera field\(s\) \['camera_height_m'\]"
+    if how == "empty session":
+        table.write_text("file,timestamp\n")
+        return r"images\.csv: no image listed \(empty session\)"
+    if how == "no pose file":
+        tum.unlink()
+        return r"expected exactly one pose file"
+    if how == "kitti count":
+        folder.write_poses(d, *_kitti_args(d))
+        _edit_line(d / folder.KITTI_FILE, 6, "")
+        return r"poses_kitti\.txt: 5 poses for 6 images"
+    raise AssertionError(how)
+
+
+def _kitti_args(d):
+    t = folder.read_tum(d / folder.TUM_FILE)
+    return t.utimes, t.positions, t.quaternions, "kitti"
+
+
+BREAKS = [
+    "unsorted pose",
+    "duplicate image time",
+    "nan quaternion",
+    "non-unit quaternion",
+    "short pose line",
+    "missing image",
+    "unreadable image",
+    "image of another size",
+    "missing camera field",
+    "empty session",
+    "no pose file",
+    "kitti count",
+]
+
+
+@pytest.mark.parametrize("how", BREAKS)
+def test_bad_input_named_by_file_and_line(tmp_path, how):
+    d, *_ = _session(tmp_path / "s")
+    match = _break(d, how)
+    with pytest.raises(folder.FolderFormatError, match=match) as e:
+        folder.load_session(d, verify_images=True)
+    assert str(e.value).startswith(str(d))
+
+
+# --------------------------------------------------------------------------------------------------- check command
+
+
+def test_check_command_good_and_broken(tmp_path, capsys):
+    _session(tmp_path / "data" / "a", seed=0)
+    _session(tmp_path / "data" / "b", seed=1)
+    png = tmp_path / "map.png"
+    assert data_main(["check", str(tmp_path / "data"), "--map", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"^a\s+6\s+0\s+2\.5\s+14\.9\s+0\.500\s+16x12", out, re.M), out
+    assert re.search(r"^b\s+6\s", out, re.M) and f"map -> {png}" in out
+    assert cv2.imread(str(png)) is not None
+    _break(tmp_path / "data" / "b", "nan quaternion")
+    assert data_main(["check", str(tmp_path / "data" / "a"), str(tmp_path / "data" / "b"), "--map", str(png)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.fullmatch(rf"error: {re.escape(str(tmp_path))}/data/b/poses_tum\.txt:4: .*", err[0])
+
+
+def test_check_warns_about_a_session_elsewhere(tmp_path, capsys):
+    _session(tmp_path / "a")
+    d, _, pos, q, utimes = _session(tmp_path / "b")
+    folder.write_poses(d, utimes, pos + np.array([1000.0, 0, 0]), q, "tum")
+    assert data_main(["check", str(tmp_path / "a"), str(tmp_path / "b"), "--map", str(tmp_path / "m.png")]) == 0
+    assert "warning: b shares no place cell with the other sessions" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------------------------------- exporters
+
+
+def test_render_presets_match_the_experiment():
+    from experiments.cross_season.config import get_config
+
+    for preset, settings_ in SIMCAMPUS_RENDER_PRESETS.items():
+        c = get_config(preset).data
+        assert c.source == "simcampus"
+        got = {"world_seed": c.world_seed, "image_size": tuple(c.image_size), "frame_spacing": c.frame_spacing}
+        assert got | {"max_frames": c.max_frames} == settings_, preset
+
+
+def test_simcampus_export_equals_direct(tmp_path, capsys):
+    from placejax.data import simcampus
+    from placejax.data.simcampus.__main__ import main as sc_main
+
+    argv = [
+        "export",
+        str(tmp_path),
+        "--preset",
+        "smoke",
+        "--seasons",
+        "WI",
+        "--max-frames",
+        "6",
+        "--image-size",
+        "16",
+        "24",
+    ]
+    assert sc_main(argv) == 0
+    assert f"{tmp_path}/WI: 6 frames" in capsys.readouterr().out
+    direct = simcampus.load_session("WI", image_size=(16, 24), frame_spacing=40.0, max_frames=6)
+    s = folder.load_session(tmp_path / "WI")
+    np.testing.assert_array_equal(s.utimes, direct.utimes)
+    np.testing.assert_array_equal(s.poses[:, :2], direct.poses[:, :2])
+    np.testing.assert_allclose(s.poses[:, 2], direct.poses[:, 2], rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(s.intrinsics, direct.intrinsics)
+    np.testing.assert_array_equal(s.images(range(6)), direct.images(range(6)))
+    np.testing.assert_array_equal(s.depths(range(6)), direct.depths(range(6)))
+    # The camera axes agree with the renderer's (float32) rotation.
+    from placejax.data.simcampus._render import world_from_camera
+
+    p6 = direct.poses6[2]
+    np.testing.assert_allclose(s.rotations[2], np.asarray(world_from_camera(*p6[3:])), atol=1e-6)
+
+
+def test_nclt_export_reads_back_the_nclt_session(tmp_path):
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fake_nclt import make_fake_nclt
+
+    from placejax.data import nclt
+
+    fake = make_fake_nclt(tmp_path / "nclt", ["2012-01-22"], n_frames=8)
+    export_nclt(fake.root, tmp_path / "out", ["2012-01-22"], progress=False)
+    ref = nclt.load_session(fake.root, "2012-01-22")
+    s = folder.load_session(tmp_path / "out" / "2012-01-22")
+    np.testing.assert_array_equal(s.utimes, ref.utimes)
+    np.testing.assert_allclose(s.poses, ref.poses, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(s.intrinsics, ref.intrinsics)
+    np.testing.assert_array_equal(s.images(range(len(s))), np.stack([ref.image(i) for i in range(len(ref))]))
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    done = subprocess.run(
+        [sys.executable, "-m", "placejax.data.nclt", "export", str(fake.root), str(tmp_path / "cli"), "--dates",
+         "2012-01-22", "--undistort"],
+        env=env, capture_output=True, text=True,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    np.testing.assert_array_equal(folder.load_session(tmp_path / "cli" / "2012-01-22").image(0), s.image(0))
+
+
+# --------------------------------------------------------------------------------------------------- docs
+
+
+OWN_DATA = REPO / "docs" / "own-data.md"
+_FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.MULTILINE | re.DOTALL)
+
+
+def test_own_data_doc_example_runs(tmp_path):
+    blocks = [body for kind, body in _FENCE.findall(OWN_DATA.read_text()) if kind == "python"]
+    assert blocks
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.pop("XLA_FLAGS", None)
+    for code in blocks:
+        done = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True)
+        assert done.returncode == 0, f"docs/own-data.md block failed:\n{code}\n--- stderr ---\n{done.stderr[-4000:]}"
+
+
+def test_own_data_doc_commands_exist():
+    """Every ``python -m MODULE`` of docs/own-data.md's bash blocks is a module, and its options parse."""
+    import importlib.util
+    import shlex
+
+    commands = [
+        shlex.split(line.split("#")[0])
+        for kind, body in _FENCE.findall(OWN_DATA.read_text())
+        if kind == "bash"
+        for line in body.splitlines()
+        if line.startswith("python -m ")
+    ]
+    assert len(commands) >= 3
+    for words in commands:
+        assert importlib.util.find_spec(words[2]) is not None, words
+        done = subprocess.run([sys.executable, "-m", *words[2:4], "--help"], capture_output=True, text=True)
+        assert done.returncode == 0, (words, done.stderr)
+        for option in (w for w in words if w.startswith("--")):
+            assert option in done.stdout, (option, words)
