@@ -173,6 +173,9 @@ def test_session_reads_back_what_was_written(tmp_path):
     small = folder.load_session(d, image_size=(6, 8), stride=2)
     assert len(small) == 3 and small.image(0).shape == (6, 8, 3) and small.depth(0).shape == (6, 8)
     np.testing.assert_array_equal(small.utimes, utimes[::2])
+    first = folder.load_session(d, max_frames=4)
+    assert (len(first), first.report.n_images, first.report.n_over_max_frames) == (4, 6, 2)
+    np.testing.assert_array_equal(first.depths(range(4)), s.depths(range(4)))
 
 
 def test_kitti_copy_reads_back_the_same_poses(tmp_path):

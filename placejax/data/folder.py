@@ -648,6 +648,7 @@ class FolderReport:
         n_pose_rows: poses in the trajectory file.
         max_pose_gap_s: the largest time between consecutive poses, seconds (0 for KITTI files).
         n_no_odometry: kept frames outside the odometry table (their ``odometry`` rows are NaN); 0 without one.
+        n_over_max_frames: dropped: matched, but beyond ``max_frames``.
     """
 
     name: str
@@ -658,6 +659,7 @@ class FolderReport:
     n_pose_rows: int
     max_pose_gap_s: float
     n_no_odometry: int = 0
+    n_over_max_frames: int = 0
 
     @property
     def n_dropped(self) -> int:
@@ -901,6 +903,7 @@ def load_session(
     image_size: tuple[int, int] | None = None,
     tolerance_s: float = 0.1,
     stride: int = 1,
+    max_frames: int | None = None,
     verify_images: bool = False,
 ) -> FolderSession:
     """Loads one session folder: reads camera, image list and poses, matches them and checks the files.
@@ -911,6 +914,8 @@ def load_session(
         image_size: ``(H, W)`` to resize the images to (default: ``camera.json``'s size).
         tolerance_s: largest accepted gap between an image and its nearest pose, seconds (finite, ≥ 0).
         stride: keep every ``stride``-th image of the list (1: every image).
+        max_frames: keep at most this many frames (the first ones, after ``stride`` and the pose matching;
+            None: all).
         verify_images: decode every image now (size and readability); otherwise only the first kept image is
             decoded and every file's existence is checked.
 
@@ -927,6 +932,8 @@ def load_session(
         raise ValueError(f"tolerance_s must be a finite number of seconds >= 0, got {tolerance_s!r}")
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
         raise ValueError(f"stride must be a positive int, got {stride!r}")
+    if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1):
+        raise ValueError(f"max_frames must be a positive int or None, got {max_frames!r}")
     if image_size is not None:
         size = tuple(image_size)
         if len(size) != 2 or not all(
@@ -961,6 +968,9 @@ def load_session(
     outside, too_far = outside[sel], too_far[sel]
     files = [folder / n for n in names]
     keep = ~outside & ~too_far
+    n_matched = int(keep.sum())
+    if max_frames is not None:
+        keep &= np.cumsum(keep) <= max_frames
     for k in np.flatnonzero(keep):
         if not files[k].is_file():
             where = (table, int(lines[k])) if lines[k] >= 0 else (files[k], None)
@@ -973,6 +983,7 @@ def load_session(
         n_no_pose=int(too_far.sum()),
         n_pose_rows=len(traj),
         max_pose_gap_s=gap,
+        n_over_max_frames=n_matched - int(keep.sum()),
     )
     if report.n_kept == 0:
         raise _err(folder, None, f"no frame left after matching the images to {pose_path.name} ({report})")
