@@ -1,15 +1,64 @@
 """placejax: pseudo multi-modal (RGB + monocular-depth HHA) visual place classification in JAX/Flax.
 
 Iwasaki, Tanaka & Tsukahara, "A Multi-modal Approach to Single-modal Visual Place Classification".
+
+Public surface (every subpackage is imported on first attribute access, so ``import placejax`` stays light: no
+JAX, Flax or OpenCV until a subpackage is used):
+
+- `placejax.hha`: depth in metres + intrinsics → uint8 HHA images, jitted and batched.
+- `placejax.depth`: MiDaS preprocessing and inference (`placejax.depth.apply`, jittable), the depth losses,
+  the depth-network trainer and its train-once-and-cache lifecycle.
+- `placejax.models`: Flax Linen MiDaS v2.1 small, VGG16 and the fusion MLP.
+- `placejax.weights`: named weights (`placejax.weights.resolve` for ``registry:NAME``, ``shipped:NAME`` or a
+  path), the safe ``torch.save`` reader and the converters.
+- `placejax.pretrain`: the VGG16 trunk pretrained on domain-randomised SimCampus worlds.
+- `placejax.data`: sessions (NCLT, SimCampus, in-memory arrays), the place grid, caches and grain pipelines.
+- `placejax.training`: the one training engine every network uses.
+- `placejax.classify`: `PlaceClassifier`, the pure end-to-end `placejax.classify.forward` and unseen-place
+  scores.
+- `placejax.io`: atomic file writes and the npz-record reader.
+- `PlaceClassifier`, `Prediction`: shortcuts for `placejax.classify.PlaceClassifier` and
+  `placejax.classify.Prediction`.
 """
+
+import importlib as _importlib
+from typing import TYPE_CHECKING as _TYPE_CHECKING
 
 __version__ = "0.1.0"
 
+_SUBMODULES = ("classify", "data", "depth", "hha", "io", "models", "pretrain", "training", "weights")
+_FROM_CLASSIFY = ("PlaceClassifier", "Prediction")
+
+__all__ = [
+    "PlaceClassifier",
+    "Prediction",
+    "classify",
+    "data",
+    "depth",
+    "hha",
+    "io",
+    "models",
+    "pretrain",
+    "training",
+    "weights",
+]
+
+if _TYPE_CHECKING:  # what IDEs and type checkers see; at run time the same names load lazily (__getattr__)
+    from placejax import classify, data, depth, hha, io, models, pretrain, training, weights
+    from placejax.classify import PlaceClassifier, Prediction
+
 
 def __getattr__(name: str):
-    # PlaceClassifier is imported on first use, so ``import placejax`` stays light (no JAX/Flax at import).
-    if name in ("PlaceClassifier", "Prediction"):
-        from placejax import classify
+    # PEP 562: subpackages and the classifier are imported on first use, so ``import placejax`` stays light.
+    if name in _SUBMODULES:
+        value = _importlib.import_module(f"placejax.{name}")
+    elif name in _FROM_CLASSIFY:
+        value = getattr(_importlib.import_module("placejax.classify"), name)
+    else:
+        raise AttributeError(f"module 'placejax' has no attribute {name!r}")
+    globals()[name] = value  # later look-ups are plain attribute reads (and tools that read __dict__ see it)
+    return value
 
-        return getattr(classify, name)
-    raise AttributeError(f"module 'placejax' has no attribute {name!r}")
+
+def __dir__() -> list[str]:
+    return sorted({*__all__, *(k for k in globals() if k.startswith("__"))})

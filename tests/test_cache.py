@@ -14,7 +14,7 @@ import pytest
 from fake_nclt import make_fake_nclt
 
 import placejax
-from placejax.data import Session, nclt
+from placejax.data import ArraySession, Session, nclt
 from placejax.data.cache import (
     CachedSession,
     CacheError,
@@ -28,25 +28,24 @@ from placejax.data.camera import resize_image, resize_intrinsics
 REPO = Path(placejax.__file__).resolve().parents[1]
 
 
-class ToySession:
+class ToySession(ArraySession):
     """A deterministic in-memory Session that counts how often its images are read."""
 
     def __init__(self, n=11, hw=(9, 7), seed=0, name="toy"):
         rng = np.random.default_rng(seed)
-        self.name = name
-        self.utimes = 1_000_000 + 200_000 * np.arange(n, dtype=np.int64)
-        self.poses = rng.normal(size=(n, 3))
-        self.intrinsics = np.array([[5.0, 0.0, 3.0], [0.0, 5.0, 4.0], [0.0, 0.0, 1.0]])
-        self.image_shape = hw
-        self._images = rng.integers(0, 256, size=(n, *hw, 3), dtype=np.uint8)
+        poses = rng.normal(size=(n, 3))
+        super().__init__(
+            rng.integers(0, 256, size=(n, *hw, 3), dtype=np.uint8),
+            poses,
+            np.array([[5.0, 0.0, 3.0], [0.0, 5.0, 4.0], [0.0, 0.0, 1.0]]),
+            name=name,
+            utimes=1_000_000 + 200_000 * np.arange(n, dtype=np.int64),
+        )
         self.reads = 0
-
-    def __len__(self):
-        return len(self.utimes)
 
     def image(self, i):
         self.reads += 1
-        return self._images[i].copy()
+        return super().image(i)
 
 
 def _tree_bytes(folder: Path) -> dict[str, bytes]:
@@ -64,7 +63,7 @@ def test_session_cache_contents(tmp_path):
     assert isinstance(c.images, np.memmap) and not c.images.flags.writeable
     assert c.name == "toy" and len(c) == 11 and c.image_shape == (6, 4)
     for i in range(len(s)):
-        np.testing.assert_array_equal(c.image(i), resize_image(s._images[i], (6, 4)))
+        np.testing.assert_array_equal(c.image(i), resize_image(s.images[i], (6, 4)))
     np.testing.assert_array_equal(c.utimes, s.utimes)
     np.testing.assert_array_equal(c.poses, s.poses)
     np.testing.assert_allclose(c.intrinsics, resize_intrinsics(s.intrinsics, (9, 7), (6, 4)))

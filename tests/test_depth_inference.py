@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import jax
 import jax.numpy as jnp
@@ -9,6 +11,7 @@ import numpy as np
 import pytest
 from midas_recipe import recipe_io, recipe_state_dict
 
+from placejax import depth
 from placejax.depth import network_size, predict, preprocess
 from placejax.depth._inference import _forward
 from placejax.models import MidasSmall
@@ -107,3 +110,27 @@ def test_predict_bad_input(small):
     model, variables = small
     with pytest.raises(ValueError, match=r"\(N, H, W, 3\)"):
         predict(variables, np.zeros((2, 32, 32), np.uint8), model=model)
+
+
+def test_apply_matches_the_host_path_and_jit_equals_eager(small):
+    """``depth.apply`` (the MiDaS transform in JAX) against ``depth.predict`` (OpenCV resize on the host): the
+    same numbers to float rounding, resized (45×70 → 64×…) and at the network size; jitted == eager."""
+    model, variables = small
+    rng = np.random.default_rng(2)
+    for hw, square in (((45, 70), False), ((64, 64), True), ((40, 52), True)):
+        images = rng.integers(0, 256, (2, *hw, 3), dtype=np.uint8)
+        host = predict(variables, images, model=model, size=64, square=square)
+        fn = functools.partial(depth.apply, model=model, size=64, square=square)
+        eager = fn(variables, images)
+        jitted = jax.jit(fn)(variables, jnp.asarray(images))
+        assert isinstance(eager, jax.Array) and eager.shape == (2, *hw) and eager.dtype == jnp.float32
+        np.testing.assert_allclose(np.asarray(eager), host, rtol=0, atol=2e-5 * float(np.ptp(host)))
+        np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=0, atol=1e-5 * float(np.ptp(host)))
+
+
+def test_apply_bad_input(small):
+    model, variables = small
+    with pytest.raises(ValueError, match=r"\(N, H, W, 3\)"):
+        depth.apply(variables, np.zeros((32, 32, 3), np.uint8), model=model)
+    with pytest.raises(ValueError, match="dtype"):
+        depth.apply(variables, np.zeros((1, 32, 32, 3), np.int32), model=model)

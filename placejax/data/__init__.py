@@ -1,8 +1,12 @@
-"""Data layer: sessions (NCLT, SimCampus), the place grid, caches and grain pipelines.
+"""Data layer: sessions (NCLT, SimCampus, in-memory arrays), the place grid, caches and grain pipelines.
 
 Public surface:
-    Session: the interface every data source satisfies (``placejax.data.session``).
+    Session: the interface every data source satisfies.
+    ArraySession: a session held in memory (uint8 ``(N, H, W, 3)`` frames, ``(N, 3)`` poses, ``(3, 3)``
+        intrinsics).
     nclt: the NCLT reader, ``nclt.load_session(root, date, camera=5, ...)``.
+    simcampus: the built-in seasonal campus rendered in JAX, ``simcampus.load_session("WI", ...)`` (imported on
+        first use: it brings JAX).
     PlaceGrid: the n × n place classes over all sessions' viewpoints.
     cache_session, build_array_cache, ...: atomic, resumable on-disk caches.
     train_dataset, eval_dataset, Augment: grain pipelines, sharded by JAX process.
@@ -18,14 +22,31 @@ from placejax.data.cache import (
     cache_session,
     open_array_cache,
     open_session_cache,
-    session_identity,
 )
 from placejax.data.grid import PlaceGrid
 from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dataset
-from placejax.data.session import Session, truncated
+from placejax.data.session import ArraySession, Session, session_identity, truncated
+
+# Imported on first attribute access (PEP 562): SimCampus renders with JAX, which the rest of the data layer
+# does not need.
+_LAZY_SUBMODULES = ("simcampus",)
+
+
+def __getattr__(name: str):
+    if name in _LAZY_SUBMODULES:
+        import importlib
+
+        return importlib.import_module(f"placejax.data.{name}")  # importing sets it as an attribute here
+    raise AttributeError(f"module 'placejax.data' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})
+
 
 __all__ = [
     "ArrayCache",
+    "ArraySession",
     "Augment",
     "CacheError",
     "CachedSession",
@@ -40,6 +61,7 @@ __all__ = [
     "open_array_cache",
     "open_session_cache",
     "session_identity",
+    "simcampus",
     "train_dataset",
     "truncated",
 ]

@@ -46,7 +46,7 @@ from tqdm import tqdm
 
 from placejax import io
 from placejax.data import camera as _camera
-from placejax.data.session import Session
+from placejax.data.session import Session, session_identity
 
 __all__ = [
     "ArrayCache",
@@ -328,31 +328,6 @@ def build_array_cache(
         os.replace(partial, final)
         _fsync_dir(root)
     return open_array_cache(final, full_key)
-
-
-def session_identity(session: Session) -> dict:
-    """What identifies a session's images, for cache keys.
-
-    A session may define ``fingerprint() -> dict`` (JSON-serialisable: its source, settings and a content
-    hash); NCLT sessions do. Otherwise the identity is a hash of its name, type, metadata and the first, middle
-    and last images, which catches regenerated or re-rendered sessions without reading every frame.
-    """
-    fp = getattr(session, "fingerprint", None)
-    if callable(fp):
-        return {"fingerprint": fp()}
-    digest = hashlib.sha256()
-    for a in (session.utimes, session.poses, session.intrinsics):
-        digest.update(np.ascontiguousarray(a).tobytes())
-    n = len(session)
-    for i in sorted({0, n // 2, n - 1} if n else set()):
-        digest.update(np.ascontiguousarray(session.image(i)).tobytes())
-    return {
-        "type": f"{type(session).__module__}.{type(session).__qualname__}",
-        "name": session.name,
-        "n": n,
-        "image_shape": [int(s) for s in session.image_shape],
-        "content_sha256": digest.hexdigest(),
-    }
 
 
 class CachedSession:

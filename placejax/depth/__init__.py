@@ -4,7 +4,7 @@ lifecycle (:func:`ensure_trained`; the default preset's network ships with the p
 and depth-quality metrics."""
 
 from placejax.depth._evaluate import baseline_predictions, evaluate, evaluation_frames
-from placejax.depth._inference import network_size, predict, preprocess
+from placejax.depth._inference import apply, network_size, predict, preprocess
 from placejax.depth._lifecycle import (
     SHIPPED,
     ensure_trained,
@@ -53,6 +53,7 @@ __all__ = [
     "TrainedDepth",
     "align_least_squares",
     "aligned_depth",
+    "apply",
     "average_views",
     "baseline_predictions",
     "depth_from_log",

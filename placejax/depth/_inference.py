@@ -1,9 +1,11 @@
-"""MiDaS inference: the original input transform and a jitted, batched ``predict``.
+"""MiDaS inference: the original input transform, the pure jittable ``apply`` and the batched ``predict``.
 
 Follows isl-org/MiDaS ``midas/transforms.py`` (``Resize`` with ``keep_aspect_ratio=True``,
 ``ensure_multiple_of=32``, ``resize_method="upper_bound"``, ``cv2.INTER_CUBIC``; ``NormalizeImage`` with
 ImageNet statistics) and ``run.py``'s bicubic upsampling of the prediction back to the image size;
-``docs/models.md``.
+``docs/models.md``. ``apply`` does the whole transform in JAX (PyTorch's bicubic, a = -0.75, as OpenCV's
+``INTER_CUBIC``; the two agree to float rounding), so it composes with a caller's ``jit`` / ``vmap``;
+``predict`` keeps the original host-side OpenCV resize, the path the experiment's depth caches were built with.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall, cpu_compiler_options, resize
 
-__all__ = ["network_size", "predict", "preprocess"]
+__all__ = ["apply", "network_size", "predict", "preprocess"]
 
 _MULTIPLE = 32
 
@@ -79,6 +81,67 @@ def preprocess(image: np.ndarray, *, size: int = 256, square: bool = False) -> n
     return (x - IMAGENET_MEAN) / IMAGENET_STD
 
 
+def network_on_images(model: MidasSmall, variables: Any, x: jax.Array, net_hw: tuple[int, int]) -> jax.Array:
+    """The MiDaS transform and network on float images in [0, 1], in JAX: ``(N, H, W, 3)`` → ``(N, H, W)``.
+
+    Bicubic resize (PyTorch's, ``align_corners=False``) to ``net_hw``, ImageNet normalisation, the network, and
+    the bicubic resize of its output back to ``(H, W)``. Shared by :func:`apply` and
+    ``placejax.classify.forward``, so both compute the same numbers.
+    """
+    mean = jnp.asarray(IMAGENET_MEAN).reshape(1, 1, 1, 3)
+    std = jnp.asarray(IMAGENET_STD).reshape(1, 1, 1, 3)
+    if tuple(x.shape[1:3]) != tuple(net_hw):
+        x_net = resize(x, tuple(net_hw), "bicubic", align_corners=False)
+    else:
+        x_net = x
+    out = model.apply(variables, (x_net - mean) / std, train=False)
+    # run.py: F.interpolate(prediction[:, None], size=image size, mode="bicubic", align_corners=False).
+    return resize(out[..., None], tuple(x.shape[1:3]), "bicubic", align_corners=False)[..., 0]
+
+
+def apply(
+    params: Any,
+    rgb_uint8: jax.Array | np.ndarray,
+    *,
+    model: MidasSmall | None = None,
+    size: int = 256,
+    square: bool = False,
+) -> jax.Array:
+    """Relative inverse depth of a batch of images: a pure function of arrays, jittable and differentiable.
+
+    The whole MiDaS transform runs in JAX (``jax.jit(placejax.depth.apply)`` works as it is; pass ``model``,
+    ``size`` and ``square`` with ``functools.partial`` before ``jit``, as they fix shapes). It computes what
+    :func:`predict` computes, whose input resize runs on the host in OpenCV: the two agree within float32
+    rounding of the resize (about 1e-5 of the output's range).
+
+    Args:
+        params: ``MidasSmall`` variables (``{"params": ..., "batch_stats": ...}``), e.g.
+            ``placejax.weights.load("midas_v21_small_256")`` or ``placejax.weights.resolve(spec).variables``.
+        rgb_uint8: uint8 ``(N, H, W, 3)`` RGB in [0, 255] (floating point images in [0, 1] are accepted too).
+        model: the network (default ``MidasSmall()``, the official architecture).
+        size: the longer network side (256 for MiDaS v2.1 small); see :func:`network_size`.
+        square: resize to ``size × size`` ignoring the aspect ratio (placejax's trained depth networks).
+
+    Returns:
+        float32 ``jax.Array`` ``(N, H, W)`` relative inverse depth (bigger is closer; unknown scale and shift).
+
+    Raises:
+        ValueError: not a batch of RGB images (wrong rank or channel count, an empty batch) or an integer dtype
+            other than uint8.
+    """
+    x = jnp.asarray(rgb_uint8)
+    if x.ndim != 4 or x.shape[-1] != 3 or 0 in x.shape:
+        raise ValueError(f"apply expects a batch of RGB images (N, H, W, 3), got shape {x.shape}")
+    if x.dtype == jnp.uint8:
+        x = x.astype(jnp.float32) / 255.0
+    elif jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.float32)
+    else:
+        raise ValueError(f"apply expects uint8 (or float in [0, 1]) images, got dtype {x.dtype}")
+    model = MidasSmall() if model is None else model
+    return network_on_images(model, params, x, network_size(x.shape[1:3], size, square))
+
+
 def _forward_impl(model: MidasSmall, variables: Any, x: jax.Array, out_hw: tuple[int, int]) -> jax.Array:
     depth = model.apply(variables, x, train=False)
     # run.py: F.interpolate(prediction[:, None], size=image size, mode="bicubic", align_corners=False).
@@ -107,7 +170,7 @@ def predict(
 
     Preprocessing runs in NumPy/OpenCV (as the original does); the network and the bicubic upsampling back to
     ``(H, W)`` run in one function jitted per (model, image size): repeated calls with same-sized batches do
-    not recompile.
+    not recompile. :func:`apply` is the same computation as a pure JAX function (to float rounding).
 
     Args:
         variables: ``MidasSmall`` variables, e.g. ``placejax.weights.load("midas_v21_small_256")``, or
@@ -117,7 +180,7 @@ def predict(
         size, square: see ``preprocess``.
 
     Returns:
-        float32 ``(N, H, W)`` (or ``(H, W)``) relative inverse depth: bigger is closer, unknown scale and
+        float32 NumPy ``(N, H, W)`` (or ``(H, W)``) relative inverse depth: bigger is closer, unknown scale and
         shift. The network output is ≥ 0; bicubic upsampling may undershoot slightly near edges, as in MiDaS.
     """
     images = np.asarray(images)

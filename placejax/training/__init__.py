@@ -14,9 +14,11 @@ Public surface:
     Checkpointer: orbax ``CheckpointManager`` around a TrainState (save every k steps, resume the latest).
     train / fit: the training loop over random-access batches (``placejax.data.train_dataset``), resumable.
     predict, map_batches: batched inference over a session / fixed-size batched mapping of any function.
+    launch: ``python -m placejax.training.launch``, the command that starts N cooperating processes.
     release_free_memory: hands the C heap's freed memory back to the OS between the stages of a long pipeline.
 """
 
+from placejax.training import launch
 from placejax.training._checkpoint import Checkpointer
 from placejax.training._loop import fit, map_batches, predict, train
 from placejax.training._memory import release_free_memory
@@ -42,6 +44,7 @@ __all__ = [
     "data_mesh",
     "fit",
     "initialize_distributed",
+    "launch",
     "local_copy",
     "make_optimizer",
     "map_batches",

@@ -27,8 +27,8 @@ from placejax.data.simcampus._depth_worlds import (
     scene_roles,
     structured_look,
 )
-from placejax.data.simcampus._render import SKY_DEPTH, render_batch
-from placejax.data.simcampus._seasons import SEASONS, STYLES, SeasonStyle, path_frames
+from placejax.data.simcampus._render import SKY_DEPTH, Geometry, Look, Rendered, render_batch
+from placejax.data.simcampus._seasons import SEASONS, STYLES, SceneTables, SeasonStyle, path_frames
 from placejax.data.simcampus._session import (
     SimCampusSession,
     intrinsics,
@@ -38,14 +38,19 @@ from placejax.data.simcampus._session import (
     season_scene,
 )
 from placejax.data.simcampus._trajectory import RouteConfig
-from placejax.data.simcampus._world import World
+from placejax.data.simcampus._world import Prims, World
 
 __all__ = [
     "CAMERA_TILTS",
     "SEASONS",
     "SKY_DEPTH",
     "STYLES",
+    "Geometry",
+    "Look",
+    "Prims",
+    "Rendered",
     "RouteConfig",
+    "SceneTables",
     "SeasonStyle",
     "SimCampusSession",
     "World",
