@@ -46,12 +46,15 @@ __all__ = [
     "NcltPaths",
     "NcltReport",
     "NcltSession",
+    "Odometry",
     "find_paths",
     "load_session",
     "match_nearest",
     "read_ground_truth",
     "read_intrinsics",
+    "read_odometry",
     "read_u2d_map",
+    "travelled_at",
 ]
 
 # K_cam5.csv of ladybug3_calib/cam_params.zip (docs/nclt.md): intrinsics of the undistorted, *unrotated*
@@ -208,6 +211,76 @@ def read_ground_truth(path: str | os.PathLike) -> GroundTruth:
         if len(table) == 0:
             raise NcltFormatError(f"{path}: every ground-truth utime has conflicting poses")
     return GroundTruth(utimes, table[:, 1:], n_rows, n_rows - int(finite.sum()), n_conflicting)
+
+
+class Odometry(NamedTuple):
+    """A parsed wheel-odometry CSV (see :func:`read_odometry`)."""
+
+    utimes: np.ndarray  # int64 (M,), sorted, unique
+    xyzrpy: np.ndarray  # float64 (M, 6): x, y, z (m), roll, pitch, yaw (rad) of the odometry frame
+
+
+def read_odometry(path: str | os.PathLike) -> Odometry:
+    """Reads ``sensor_data/<date>/odometry_mu_100hz.csv`` (or ``odometry_mu.csv``): wheel odometry.
+
+    Headerless ``utime, x, y, z, roll, pitch, yaw`` (µs, m, rad): the robot's dead-reckoned pose in the frame of
+    its start, which drifts; only distances along it are meaningful (:func:`travelled_at`). The route filter
+    reads nothing else of it (``placejax.route``).
+
+    Returns:
+        :class:`Odometry`: NaN rows dropped, sorted by utime, rows with a repeated utime reduced to the first.
+
+    Raises:
+        NcltFormatError: missing, empty or malformed file (wrong column count, non-numbers, utimes that are not
+            non-negative integers below 2**53, no row without NaN).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise NcltFormatError(f"{path}: odometry CSV not found")
+    if path.stat().st_size == 0:
+        raise NcltFormatError(f"{path}: odometry CSV is empty")
+    try:
+        table = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2)
+    except ValueError as e:
+        raise NcltFormatError(f"{path}: malformed odometry CSV ({e})") from None
+    if table.shape[1] != 7:
+        raise NcltFormatError(f"{path}: expected 7 columns (utime, x, y, z, roll, pitch, yaw), got {table.shape[1]}")
+    table = table[np.isfinite(table).all(axis=1)]
+    if len(table) == 0:
+        raise NcltFormatError(f"{path}: no odometry row without NaN")
+    t = table[:, 0]
+    bad = (t < 0) | (t >= 2.0**53) | (t != np.rint(t))
+    if bad.any():
+        raise NcltFormatError(f"{path}: utime {t[bad][0]:.6g} is not a non-negative integer below 2**53 µs")
+    utimes, first = np.unique(t.astype(np.int64), return_index=True)  # sorted; first row of each utime
+    return Odometry(utimes, table[first, 1:])
+
+
+def travelled_at(odometry: Odometry, frame_utimes) -> np.ndarray:
+    """Odometer reading at each frame time: metres travelled in the plane since the odometry's first row.
+
+    The cumulative length of the odometry's ``(x, y)`` polyline, linearly interpolated at the frame times (frames
+    before the first or after the last row read the first or last value: no motion is invented there, and a
+    warning counts them). ``placejax.route.moved_from_travelled`` turns it into per-frame distances.
+
+    Args:
+        odometry: from :func:`read_odometry`.
+        frame_utimes: int ``(N,)`` frame times (µs), e.g. ``NcltSession.utimes``.
+
+    Returns:
+        float64 ``(N,)`` metres.
+    """
+    f = np.asarray(frame_utimes, np.int64)
+    if f.ndim != 1:
+        raise ValueError(f"frame_utimes must have shape (N,), got {f.shape}")
+    t = odometry.utimes
+    step = np.linalg.norm(np.diff(odometry.xyzrpy[:, :2], axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(step)])
+    outside = int(((f < t[0]) | (f > t[-1])).sum())
+    if outside:
+        log.warning("odometry covers utimes %d…%d; %d frames outside it get no motion", t[0], t[-1], outside)
+    # Relative to the first row: float64 keeps µs exactly up to 2**53, and the offsets are small.
+    return np.interp((f - t[0]).astype(np.float64), (t - t[0]).astype(np.float64), cum)
 
 
 def _check_intrinsics(k: np.ndarray, source: str) -> np.ndarray:

@@ -119,6 +119,9 @@ class SimCampusSession:
         intrinsics: ``float64 (3, 3)`` 0-based.
         image_shape: ``(H, W)``.
         world: the campus.
+        travelled_m: ``float64 (N,)`` simulated wheel odometry: metres travelled since frame 0, with the
+            documented noise of ``_trajectory.simulated_odometry`` (the only pose-derived input a route filter
+            may read; ``placejax.route.moved_from_travelled`` turns it into per-frame distances).
     """
 
     def __init__(
@@ -152,6 +155,10 @@ class SimCampusSession:
 
     def __len__(self) -> int:
         return len(self.poses6)
+
+    @functools.cached_property
+    def travelled_m(self) -> np.ndarray:
+        return _trajectory.simulated_odometry(self.world.seed, self.name, self.poses6[:, :2])
 
     def __getstate__(self):
         # Picklable for multi-process loaders: drop the lock and the rendered-batch cache.

@@ -152,6 +152,38 @@ def terrain_tilt(
     return pitch, roll
 
 
+# Simulated wheel odometry (docs/route.md): every step between frames is measured with a multiplicative error
+# 1 + ODOMETRY_SCALE_SD · a (one draw per session: tyre radius, calibration) + ODOMETRY_STEP_SD · b_i (one draw
+# per step: slip, uneven ground), a and b_i standard normal. A few per cent is what wheel odometers of
+# campus robots drift by; NCLT's own odometry accumulates metres of error over a kilometre.
+ODOMETRY_SCALE_SD = 0.01
+ODOMETRY_STEP_SD = 0.05
+
+
+def simulated_odometry(world_seed: int, season: str, xy: np.ndarray) -> np.ndarray:
+    """Odometer reading at every frame, float64 ``(N,)`` metres from the first frame (``[0] = 0``).
+
+    The true distance between consecutive frames (the chord between their ``xy``, metres; frames are about
+    1 m apart, so the chord is the path length) times ``1 + ODOMETRY_SCALE_SD · a + ODOMETRY_STEP_SD · b_i``,
+    clipped at 0, accumulated. The noise is seeded by the world and the season only, drawn step by step, so a
+    session truncated to its first frames reads the same values as the full session.
+
+    Args:
+        world_seed: the campus.
+        season: one of ``SEASONS``.
+        xy: float ``(N, 2)`` the frames' true positions (m).
+    """
+    xy = np.asarray(xy, np.float64)
+    rng = np.random.default_rng([int(world_seed), 0x0D0, season_index(season)])
+    scale = 1.0 + ODOMETRY_SCALE_SD * rng.normal()
+    step = np.linalg.norm(np.diff(xy[:, :2], axis=0), axis=1)
+    noise = np.empty(len(step))
+    for i in range(len(step)):  # one draw per step, in order: a prefix of the session has a prefix of the noise
+        noise[i] = rng.normal()
+    measured = np.maximum(0.0, step * (scale + ODOMETRY_STEP_SD * noise))
+    return np.concatenate([[0.0], np.cumsum(measured)])
+
+
 def session_poses(world: W.World, season: str, cfg: RouteConfig) -> tuple[np.ndarray, np.ndarray]:
     """Camera poses ``(N, 6)`` (x, y, z m; yaw, pitch, roll rad) and timestamps ``int64 (N,)`` (µs)."""
     season_id = season_index(season)

@@ -1,0 +1,58 @@
+"""Along a route: a discrete Bayes filter over the place cells, fed by the classifier and the distance travelled.
+
+A robot does not see one photograph: consecutive frames are metres apart, so the place of frame ``t`` is near
+the place of frame ``t − 1``. The filter (an HMM forward pass, ``docs/route.md``) predicts the belief over the
+``n × n`` cells of a `placejax.data.PlaceGrid` with the distance travelled since the last frame (odometry; no
+heading, no position), updates it with the classifier's temperature-calibrated softmax, and keeps one extra
+state, "none of the known places", whose probability is an unseen-place score along the route.
+
+Public surface:
+    FilterConfig: the motion model, the unknown state and the emission settings.
+    forward: filtered beliefs of a whole session (one jitted ``lax.scan``).
+    smooth: fixed-lag smoothed beliefs.
+    RouteFilter: the streaming filter (``step(probabilities, moved_m) → belief``, ``reset()``).
+    place_belief: beliefs → (belief over cells, unknown-state probability).
+    initial_belief, num_states: the default prior and the state count.
+    fit_temperature, calibrated_probabilities: temperature scaling on held-out frames.
+    moved_from_travelled, moved_from_timestamps: per-frame distances from an odometer or from time × speed.
+    transition_matrix: the motion model's cell-to-cell matrix for one distance (for inspection and tests).
+
+Example:
+    >>> import numpy as np
+    >>> from placejax.data import PlaceGrid
+    >>> from placejax import route
+    >>> grid = PlaceGrid(0.0, 100.0, 0.0, 100.0, n=10)
+    >>> probs = np.full((5, 100), 0.5 / 99); probs[:, 42] = 0.5
+    >>> beliefs = route.forward(probs, np.ones(5), grid)          # (5, 101): 100 cells + unknown
+    >>> cells, unknown = route.place_belief(beliefs, 100)
+    >>> int(cells[-1].argmax()), bool(unknown[-1] < 0.01)
+    (42, True)
+"""
+
+from placejax.route._calibration import calibrated_probabilities, fit_temperature
+from placejax.route._filter import (
+    FilterConfig,
+    RouteFilter,
+    forward,
+    initial_belief,
+    num_states,
+    place_belief,
+    smooth,
+    transition_matrix,
+)
+from placejax.route._odometry import moved_from_timestamps, moved_from_travelled
+
+__all__ = [
+    "FilterConfig",
+    "RouteFilter",
+    "calibrated_probabilities",
+    "fit_temperature",
+    "forward",
+    "initial_belief",
+    "moved_from_timestamps",
+    "moved_from_travelled",
+    "num_states",
+    "place_belief",
+    "smooth",
+    "transition_matrix",
+]
