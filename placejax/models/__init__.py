@@ -1,7 +1,8 @@
-"""Flax Linen models: MiDaS v2.1 small, VGG16 (torchvision layout) and the fusion MLP, plus exact resizes,
-CPU inference compiler options, from-scratch initialisation and the ImageNet input normalisation."""
+"""Flax Linen models: MiDaS v2.1 small, Depth Anything V2, VGG16 (torchvision layout) and the fusion MLP, plus
+exact resizes, CPU inference compiler options, from-scratch initialisation and the ImageNet input normalisation."""
 
 from placejax.models._cpu import cpu_compiler_options
+from placejax.models._dav2 import DAV2_CONFIGS, DepthAnythingV2, DinoV2Encoder, DPTHead, dav2_input_size
 from placejax.models._fusion import FusionMLP
 from placejax.models._init import (
     IMAGENET_MEAN,
@@ -22,11 +23,15 @@ from placejax.models._vgg import (
 )
 
 __all__ = [
+    "DAV2_CONFIGS",
     "IMAGENET_MEAN",
     "IMAGENET_MEAN_255",
     "IMAGENET_STD",
     "IMAGENET_STD_255",
     "VGG16",
+    "DPTHead",
+    "DepthAnythingV2",
+    "DinoV2Encoder",
     "EfficientNetLite3Encoder",
     "FusionMLP",
     "MidasSmall",
@@ -34,6 +39,7 @@ __all__ = [
     "VGG16Trunk",
     "adaptive_avg_pool",
     "cpu_compiler_options",
+    "dav2_input_size",
     "fold_adaptive_pool",
     "fold_batch_norm",
     "he_init",

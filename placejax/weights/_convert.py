@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax.models import VGG16, MidasSmall
+from placejax.models import DAV2_CONFIGS, VGG16, DepthAnythingV2, MidasSmall
 from placejax.models._vgg import CONV_NAMES
 
 Variables = dict[str, Any]
@@ -237,6 +237,96 @@ def convert_vgg16(state_dict: Mapping[str, np.ndarray], model: VGG16 | None = No
         model = VGG16(num_classes=int(np.shape(fc8)[0]))
     expected = _expected_tree(model, jax.ShapeDtypeStruct((1, 32, 32, 3), jnp.float32))
     return _apply_rules(state_dict, expected, _vgg_rule(CONV_NAMES), "convert_vgg16")
+
+
+def _dense(w: np.ndarray) -> np.ndarray:
+    if w.ndim != 2:
+        raise ValueError(f"expected a 2-D (out, in) linear weight, got shape {w.shape}")
+    return np.ascontiguousarray(w.T)
+
+
+def _dav2_rule(key: str, value: np.ndarray):
+    """Official Depth Anything V2 key (``pretrained.*`` DINOv2, ``depth_head.*`` DPT) → our tree."""
+    if key == "pretrained.mask_token":
+        return None  # DINOv2's masked-image-modelling token: training only, never used at inference
+    if key.startswith("depth_head.scratch.refinenet4.resConfUnit1."):
+        return None  # in the checkpoint but never called (the coarsest fusion block has one input)
+    parts = key.split(".")
+    if parts[0] == "pretrained":
+        if key in ("pretrained.cls_token", "pretrained.pos_embed"):
+            return "params", ("pretrained", parts[1]), value
+        if parts[1:3] == ["patch_embed", "proj"]:
+            return _leaf(("pretrained", "patch_embed"), parts[3], value, is_bn=False)
+        if parts[1] == "norm" and len(parts) == 3:
+            return "params", ("pretrained", "norm", {"weight": "scale", "bias": "bias"}[parts[2]]), value
+        if parts[1] == "blocks" and len(parts) >= 5:
+            block, sub, leaf = f"blocks_{int(parts[2])}", parts[3:-1], parts[-1]
+            if sub in (["norm1"], ["norm2"]):
+                return "params", ("pretrained", block, sub[0], {"weight": "scale", "bias": "bias"}[leaf]), value
+            if sub in (["ls1"], ["ls2"]) and leaf == "gamma":
+                return "params", ("pretrained", block, sub[0], "gamma"), value
+            dense = {("attn", "qkv"): ("attn", "qkv"), ("attn", "proj"): ("attn", "proj"),
+                     ("mlp", "fc1"): ("fc1",), ("mlp", "fc2"): ("fc2",)}[tuple(sub)]
+            if leaf == "weight":
+                return "params", ("pretrained", block, *dense, "kernel"), _dense(value)
+            return "params", ("pretrained", block, *dense, {"bias": "bias"}[leaf]), value
+        raise KeyError(key)
+    if parts[0] == "depth_head":
+        module, leaf = parts[1:-1], parts[-1]
+        if module[0] == "resize_layers" and module[1] in ("0", "1"):
+            # ConvTranspose2d weight (C_in, C_out, k, k) → _PatchUnfold's (C_in, k, k, C_out).
+            name = ("depth_head", f"resize_layers_{module[1]}")
+            if leaf == "weight":
+                if value.ndim != 4:
+                    raise ValueError(f"{key}: expected a 4-D transposed-conv weight, got shape {value.shape}")
+                return "params", (*name, "kernel"), np.ascontiguousarray(value.transpose(0, 2, 3, 1))
+            return "params", (*name, {"bias": "bias"}[leaf]), value
+        if module[0] in ("projects", "resize_layers") and len(module) == 2:
+            return _leaf(("depth_head", f"{module[0]}_{module[1]}"), leaf, value, is_bn=False)
+        if module[0] == "scratch":
+            if module[1].startswith("refinenet") and len(module) in (3, 4):
+                return _leaf(("depth_head", f"scratch_{module[1]}", *module[2:]), leaf, value, is_bn=False)
+            if len(module) in (2, 3):  # layerN_rn, output_conv1, output_conv2.{0,2}
+                return _leaf(("depth_head", "scratch_" + "_".join(module[1:])), leaf, value, is_bn=False)
+    raise KeyError(key)
+
+
+def convert_depth_anything_v2(
+    state_dict: Mapping[str, np.ndarray], model: DepthAnythingV2 | None = None
+) -> Variables:
+    """Official Depth Anything V2 state dict (``depth_anything_v2_*.pth`` keys) → Flax ``{"params": ...}``.
+
+    Args:
+        state_dict: ``{key: array}`` as ``read_torch_checkpoint`` returns it: ``pretrained.*`` (DINOv2) and
+            ``depth_head.*`` (DPT) keys, 2-D linear weights ``(out, in)``, OIHW convs, the two transposed convs
+            ``(C_in, C_out, k, k)``. A ``"module."`` prefix (DataParallel) is stripped.
+        model: the ``DepthAnythingV2`` to fill; default: the released architecture whose widths match the
+            checkpoint (Small, Base or Large by ``pretrained.cls_token``'s width), relative head. The head
+            kind and ``max_depth`` have no weights: pass ``model`` for a metric checkpoint to get the matching
+            model object, the variables are the same.
+
+    Returns:
+        ``{"params": ...}`` float32 NumPy arrays in the model's layout.
+
+    Raises:
+        ValueError: listing every unmapped, missing or mis-shaped entry. ``pretrained.mask_token`` (training
+            only) and the never-called ``depth_head.scratch.refinenet4.resConfUnit1.*`` are dropped on purpose.
+    """
+    state_dict = _strip_module(state_dict)
+    if model is None:
+        cls = state_dict.get("pretrained.cls_token")
+        if cls is None:
+            raise ValueError(
+                "convert_depth_anything_v2: the state dict has no 'pretrained.cls_token'; is it a Depth Anything V2 "
+                f"checkpoint? (first keys: {sorted(state_dict)[:5]})"
+            )
+        by_width = {cfg["embed_dim"]: name for name, cfg in DAV2_CONFIGS.items()}
+        width = int(np.shape(cls)[-1])
+        if width not in by_width:
+            raise ValueError(f"convert_depth_anything_v2: no released encoder has width {width}; pass model=")
+        model = DepthAnythingV2.from_encoder(by_width[width])
+    sample = jax.ShapeDtypeStruct((1, 2 * 14, 2 * 14, 3), jnp.float32)
+    return _apply_rules(state_dict, _expected_tree(model, sample), _dav2_rule, "convert_depth_anything_v2")
 
 
 def _strip_module(state_dict: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -26,7 +26,7 @@ from flax import traverse_util
 from placejax import io
 from placejax.models import IMAGENET_MEAN as _IMAGENET_MEAN
 from placejax.models import IMAGENET_STD as _IMAGENET_STD
-from placejax.weights._convert import convert_midas_small, convert_vgg16
+from placejax.weights._convert import convert_depth_anything_v2, convert_midas_small, convert_vgg16
 from placejax.weights._torch_checkpoint import read_torch_checkpoint
 
 __all__ = [
@@ -94,6 +94,8 @@ class PretrainedWeights:
         sha256_prefix: leading hex digits of the SHA-256 when only those are published (torch hub file names
             carry the first 8).
         size_bytes: approximate file size, for messages.
+        model_kwargs: keyword arguments of the placejax model the converted variables fit, where one class
+            serves several heads (``DepthAnythingV2.from_encoder(**model_kwargs)``); ``None`` for the default.
         converter: state dict → Flax variables.
         preprocessing: the input the weights expect.
         description: one line on what the weights are.
@@ -108,6 +110,7 @@ class PretrainedWeights:
     sha256: str | None = None
     sha256_prefix: str | None = None
     size_bytes: int | None = None
+    model_kwargs: Mapping[str, Any] | None = None
 
     def check_hash(self, digest: str, source: str) -> None:
         """Raises ``WeightsUnavailableError`` unless ``digest`` (hex SHA-256 of ``source``) is expected."""
@@ -157,6 +160,54 @@ REGISTRY: dict[str, PretrainedWeights] = {
         size_bytes=553_433_881,
     ),
 }
+
+# Depth Anything V2 (DepthAnything/Depth-Anything-V2, README.md and metric_depth/README.md): the official
+# preprocessing of depth_anything_v2/dpt.py's image2tensor, the same for the relative and metric models.
+_DAV2_PREPROCESSING = Preprocessing(
+    "RGB",
+    1 / 255,
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    (518, 518),
+    "keep aspect, short side 518, sides rounded to multiples of 14 (up where rounding would go below 518), "
+    "bicubic (cv2.INTER_CUBIC); placejax.models.dav2_input_size gives the size",
+)
+# The publisher gives no checksum for these files: a truncated or altered download is refused by the safe
+# reader's structural checks (zip directory, pickle opcodes, storage sizes) and the converter's key-by-key and
+# shape-by-shape check, not by a hash. Sizes: 24.8 M float32 parameters (README), ~99.2 MB as torch.save writes
+# them (a file of this layout written here measured 99,216,810 bytes).
+_DAV2_SMALL_BYTES = 99_200_000
+_HF = "https://huggingface.co/depth-anything"
+for _name, _repo, _head, _max_depth, _what in (
+    ("depth_anything_v2_vits", "Depth-Anything-V2-Small", "relative", None, "relative inverse depth"),
+    (
+        "depth_anything_v2_metric_vkitti_vits",
+        "Depth-Anything-V2-Metric-VKITTI-Small",
+        "metric",
+        80.0,
+        "metric depth in metres up to 80 m, fine-tuned on Virtual KITTI 2 (outdoor, driving)",
+    ),
+    (
+        "depth_anything_v2_metric_hypersim_vits",
+        "Depth-Anything-V2-Metric-Hypersim-Small",
+        "metric",
+        20.0,
+        "metric depth in metres up to 20 m, fine-tuned on Hypersim (indoor)",
+    ),
+):
+    _kwargs = {"encoder": "vits", "head": _head, **({"max_depth": _max_depth} if _max_depth else {})}
+    REGISTRY[_name] = PretrainedWeights(
+        name=_name,
+        url=f"{_HF}/{_repo}/resolve/main/{_name}.pth",
+        filename=f"{_name}.pth",
+        converter=convert_depth_anything_v2,
+        preprocessing=_DAV2_PREPROCESSING,
+        description=f"Depth Anything V2 Small (DINOv2 ViT-S/14 + DPT, Apache-2.0), {_what}; "
+        f"DepthAnythingV2.from_encoder(**model_kwargs)",
+        size_bytes=_DAV2_SMALL_BYTES,
+        model_kwargs=_kwargs,
+    )
+del _name, _repo, _head, _max_depth, _what, _kwargs
 
 
 def cache_dir() -> Path:

@@ -1,0 +1,200 @@
+"""Depth Anything V2: parity with the PyTorch model (transformers' port with the official position-embedding rule)
+on random weights written in the official file format, the converter's checks, the registry entries, invariants."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from placejax.models import DAV2_CONFIGS, DepthAnythingV2, dav2_input_size
+from placejax.models._dav2 import interpolate_pos_embed
+from placejax.weights import (
+    REGISTRY,
+    TorchCheckpointError,
+    convert_depth_anything_v2,
+    load,
+    read_torch_checkpoint,
+)
+
+# The reduced configurations of tests/torch_refs/make_dav2_reference.py (same names), as placejax models.
+TINY = dict(embed_dim=32, num_heads=2, features=8, out_channels=(4, 8, 16, 32), pos_grid=4)
+MODELS = {
+    "tiny_relative": DepthAnythingV2(depth=4, layers=(0, 1, 2, 3), **TINY),
+    "tiny_metric": DepthAnythingV2(depth=5, layers=(1, 2, 3, 4), head="metric", max_depth=80.0, **TINY),
+    "small_metric": DepthAnythingV2.from_encoder("vits", head="metric", max_depth=80.0),
+}
+
+
+@pytest.fixture(scope="module")
+def refs(tmp_path_factory) -> Path:
+    """Official-format ``.pth`` files and the PyTorch model's outputs, written by torch in a subprocess."""
+    out = tmp_path_factory.mktemp("dav2_refs")
+    script = Path(__file__).parent / "torch_refs" / "make_dav2_reference.py"
+    subprocess.run([sys.executable, str(script), str(out)], check=True)
+    return out
+
+
+def _load(refs: Path, case: str):
+    # The path the official files take: the safe reader (no torch), then the one converter.
+    variables = convert_depth_anything_v2(read_torch_checkpoint(refs / f"{case}.pth"), MODELS[case])
+    with np.load(refs / f"{case}.npz") as f:
+        arrays = {k: f[k] for k in f.files}
+    return variables, arrays
+
+
+def _rel(out, ref, scale=None) -> float:
+    ref = np.asarray(ref)
+    scale = float(np.ptp(ref)) if scale is None else scale
+    return float(np.abs(np.asarray(out) - ref).max() / scale)
+
+
+@pytest.mark.parametrize("case", ["tiny_relative", "tiny_metric"])
+def test_parity_two_sizes_layer_by_layer(refs, case):
+    variables, ref = _load(refs, case)
+    model = MODELS[case]
+    fn = jax.jit(lambda v, x: model.apply(v, x, mutable=["intermediates"]))
+    # 70×98: a 5×7 patch grid, the position embedding resized from 4×4; 56×56: the trained grid, used as is.
+    for h, w in ((70, 98), (56, 56)):
+        tag = f"{h}x{w}"
+        out, state = fn(variables, jnp.asarray(ref[f"input_{tag}"]))
+        want = ref[f"depth_{tag}"]
+        assert out.shape == want.shape == (2, h, w)
+        assert np.ptp(want) > 1e-2, "degenerate reference (saturated head)"
+        assert _rel(out, want) <= 1e-4, tag
+        inter = state["intermediates"]
+        for i in range(1, 5):
+            theirs = ref[f"features_{i}_{tag}"]
+            assert _rel(inter[f"features_{i}"][0], theirs, np.abs(theirs).max()) <= 1e-4, (tag, i)
+            theirs = ref[f"path_{i}_{tag}"]
+            assert _rel(inter["depth_head"][f"path_{i}"][0], theirs, np.abs(theirs).max()) <= 1e-4, (tag, i)
+        if model.head == "relative":
+            assert float(out.min()) >= 0.0
+        else:
+            assert 0.0 <= float(out.min()) and float(out.max()) <= model.max_depth
+
+
+def test_parity_released_small_architecture(refs):
+    """ViT-S/14 with the 37² position grid and the Small head, metric (80 m), at a 3×4 patch grid."""
+    sd = read_torch_checkpoint(refs / "small_metric.pth")
+    variables = convert_depth_anything_v2(sd)  # architecture found from the checkpoint's widths
+    with np.load(refs / "small_metric.npz") as f:
+        x, want = f["input_42x56"], f["depth_42x56"]
+    out = jax.jit(MODELS["small_metric"].apply)(variables, jnp.asarray(x))
+    assert out.shape == want.shape == (1, 42, 56) and np.ptp(want) > 1.0
+    assert _rel(out, want) <= 1e-4
+    # 24.8 M parameters (the official README), counting the two tensors the converter drops on purpose.
+    n = sum(int(np.prod(a.shape)) for a in jax.tree.leaves(variables))
+    dropped = sum(v.size for k, v in sd.items() if k == "pretrained.mask_token" or ".refinenet4.resConfUnit1." in k)
+    assert n + dropped == sum(v.size for v in sd.values()) == 24_785_089
+
+
+def test_registry_loads_official_format_and_refuses_truncated(refs, tmp_path, monkeypatch):
+    monkeypatch.setenv("PLACEJAX_CACHE", str(tmp_path / "cache"))
+    for name, repo, head, max_depth in (
+        ("depth_anything_v2_vits", "Depth-Anything-V2-Small", "relative", None),
+        ("depth_anything_v2_metric_vkitti_vits", "Depth-Anything-V2-Metric-VKITTI-Small", "metric", 80.0),
+        ("depth_anything_v2_metric_hypersim_vits", "Depth-Anything-V2-Metric-Hypersim-Small", "metric", 20.0),
+    ):
+        entry = REGISTRY[name]  # the addresses of the official READMEs' download links
+        assert entry.url == f"https://huggingface.co/depth-anything/{repo}/resolve/main/{name}.pth"
+        assert entry.filename == f"{name}.pth" and entry.size_bytes == 99_200_000
+        assert entry.preprocessing.input_size == (518, 518) and entry.preprocessing.mean == (0.485, 0.456, 0.406)
+        model = DepthAnythingV2.from_encoder(**entry.model_kwargs)
+        assert model.head == head and (max_depth is None or model.max_depth == max_depth)
+    # load() with an explicit file of the official layout: reader → converter → converted cache.
+    variables = load("depth_anything_v2_metric_vkitti_vits", refs / "small_metric.pth")
+    again = load("depth_anything_v2_metric_vkitti_vits", refs / "small_metric.pth")  # from the converted cache
+    a, b = variables["params"]["pretrained"]["blocks_11"]["fc2"], again["params"]["pretrained"]["blocks_11"]["fc2"]
+    np.testing.assert_array_equal(a["kernel"], b["kernel"])
+    # No published checksum: a truncated download is refused by the reader's structural checks.
+    cut = tmp_path / "cut.pth"
+    cut.write_bytes((refs / "small_metric.pth").read_bytes()[: 60_000_000])
+    with pytest.raises(TorchCheckpointError):
+        load("depth_anything_v2_vits", cut)
+
+
+def test_converter_fails_loudly(refs):
+    sd = read_torch_checkpoint(refs / "tiny_relative.pth")
+    sd = dict(sd)
+    del sd["pretrained.blocks.1.attn.qkv.weight"]
+    sd["depth_head.scratch.layer5_rn.weight"] = np.zeros((8, 32, 3, 3), np.float32)
+    sd["depth_head.projects.0.bias"] = np.zeros((5,), np.float32)
+    with pytest.raises(ValueError) as err:
+        convert_depth_anything_v2(sd, MODELS["tiny_relative"])
+    msg = str(err.value)
+    assert "pretrained/blocks_1/attn/qkv/kernel has no checkpoint entry" in msg
+    assert "depth_head.scratch.layer5_rn.weight" in msg
+    assert "depth_head.projects.0.bias" in msg and "(4,)" in msg
+    with pytest.raises(ValueError, match=r"pretrained\.cls_token"):
+        convert_depth_anything_v2({"a.weight": np.zeros((2, 2), np.float32)})
+
+
+def _random_variables(model, x, seed):
+    shapes = jax.eval_shape(model.init, jax.random.key(0), x)
+    rng = np.random.default_rng(seed)
+
+    def fill(path, s):
+        name = path[-1].key
+        if name in ("scale", "gamma"):
+            return jnp.asarray(1.0 + 0.2 * rng.normal(size=s.shape), s.dtype)
+        fan_in = max(1, int(np.prod(s.shape[:-1])))
+        return jnp.asarray(rng.normal(0.0, 1.0 / np.sqrt(fan_in), s.shape), s.dtype)
+
+    return jax.tree_util.tree_map_with_path(fill, shapes)
+
+
+def test_batch_equals_loop_and_jit_equals_eager():
+    model = MODELS["tiny_metric"]
+    x = jax.random.normal(jax.random.key(3), (3, 42, 70, 3))
+    variables = _random_variables(model, x, seed=4)
+    batched = jax.jit(model.apply)(variables, x)
+    assert batched.shape == (3, 42, 70)
+    for i in range(3):
+        single = model.apply(variables, x[i : i + 1])  # eager, one image
+        np.testing.assert_allclose(single[0], batched[i], rtol=0, atol=1e-5 * float(np.ptp(batched)))
+
+
+def test_pos_embed_keeps_constants_and_trained_grid():
+    g, d = 37, 5
+    const = jnp.concatenate([jnp.full((1, 1, d), 7.0), jnp.full((1, g * g, d), 3.0)], axis=1)
+    for hw in ((4, 5), (37, 40), (60, 37)):
+        out = interpolate_pos_embed(const, hw)
+        assert out.shape == (1, 1 + hw[0] * hw[1], d)
+        np.testing.assert_allclose(out[0, 0], 7.0)
+        np.testing.assert_allclose(out[0, 1:], 3.0, rtol=1e-6)  # bicubic weights sum to 1
+    ramp = jnp.arange((1 + g * g) * d, dtype=jnp.float32).reshape(1, 1 + g * g, d)
+    assert interpolate_pos_embed(ramp, (g, g)) is ramp  # the trained square grid: no resize at all
+    # The official offset: even at the trained size along one axis the other axis' resize is not the identity.
+    assert not np.allclose(interpolate_pos_embed(ramp, (g, g + 1))[0, 1 : g + 1], ramp[0, 1 : g + 1])
+
+
+def test_input_size_follows_official_resize():
+    # 640×480 COCO image → 518×686 (transformers' conversion script expects this output shape for it).
+    assert dav2_input_size(480, 640) == (518, 686)
+    assert dav2_input_size(518, 518) == (518, 518)
+    assert dav2_input_size(64, 64) == (518, 518)
+    h, w = dav2_input_size(1000, 333)  # short side 333 → 518; long side 1555.6 rounds to 1554
+    assert (h, w) == (1554, 518) and h % 14 == 0
+
+
+@pytest.mark.parametrize("shape", [(1, 56, 56), (1, 56, 57, 3), (1, 14, 56, 3)])
+def test_bad_input_shape(shape):
+    with pytest.raises(ValueError, match="DepthAnythingV2"):
+        jax.eval_shape(MODELS["tiny_relative"].init, jax.random.key(0), jnp.zeros(shape))
+
+
+def test_configs_and_unknown_encoder():
+    assert json.dumps(sorted(DAV2_CONFIGS)) == '["vitb", "vitl", "vits"]'
+    base = DepthAnythingV2.from_encoder("vitb")
+    shapes = jax.eval_shape(base.init, jax.random.key(0), jnp.zeros((1, 28, 28, 3)))
+    assert shapes["params"]["pretrained"]["pos_embed"].shape == (1, 1 + 37 * 37, 768)
+    assert shapes["params"]["depth_head"]["scratch_output_conv1"]["kernel"].shape == (3, 3, 128, 64)
+    with pytest.raises(ValueError, match="vitg"):
+        DepthAnythingV2.from_encoder("vitg")
