@@ -1,6 +1,9 @@
-"""README.md as a test: every ```python block runs as written, every bash block names real modules and options.
+"""README.md and docs/*.md as a test: every ```python block runs as written, every bash block names real modules
+and options, every relative link resolves.
 
-Each Python block runs in its own interpreter (a fresh namespace, the working directory a temporary folder) with
+A Python block whose first line is a ``# not run: <why>`` comment is a fragment (it needs a finished run folder or
+the real dataset) and is only compiled; every other block runs. Each Python block runs in its own interpreter (a
+fresh namespace, the working directory a temporary folder) with
 ``PLACEJAX_CACHE`` pointing at a temporary cache that holds a MiDaS v2.1 small file in the official format (random
 values, written by ``torch_refs/make_random_official_weights.py``), so nothing is downloaded. Blocks that read
 ``NCLT_ROOT`` run twice: on a tiny fake NCLT tree in the official layout and without it (the SimCampus branch).
@@ -22,14 +25,21 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
+PAGES = [README, *sorted((REPO / "docs").glob("*.md"))]
+WEIGHTS_READMES = sorted(REPO.glob("placejax/*/weights/README.md"))
 _FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.MULTILINE | re.DOTALL)
+_NOT_RUN = "# not run:"
 
 
-def _blocks(lang: str) -> list[str]:
-    return [body for kind, body in _FENCE.findall(README.read_text()) if kind == lang]
+def _blocks(lang: str, pages: list[Path] = PAGES) -> list[str]:
+    return [body for page in pages for kind, body in _FENCE.findall(page.read_text()) if kind == lang]
 
 
-PYTHON_BLOCKS = _blocks("python")
+# Pages whose Python blocks are one worked example, run in order by their own test (which names the page).
+RUN_ELSEWHERE = {"own-data.md": "test_folder.py"}
+_HERE = [p for p in PAGES if p.name not in RUN_ELSEWHERE]
+PYTHON_BLOCKS = [b for b in _blocks("python", _HERE) if not b.startswith(_NOT_RUN)]
+FRAGMENTS = [b for b in _blocks("python", _HERE) if b.startswith(_NOT_RUN)]
 BASH_BLOCKS = _blocks("bash")
 
 
@@ -73,7 +83,14 @@ def _run(code: str, env: dict[str, str], cwd: Path) -> None:
 
 
 def test_readme_has_python_blocks():
-    assert len(PYTHON_BLOCKS) >= 3 and BASH_BLOCKS
+    assert len(_blocks("python", [README])) >= 1 and len(PYTHON_BLOCKS) >= 3 and BASH_BLOCKS
+    # A fragment must say why it is not run, and still be valid Python.
+    for code in FRAGMENTS:
+        assert len(code.splitlines()[0]) > len(_NOT_RUN) + 3, code
+        compile(code, "<fragment>", "exec")
+    # A page left to another test is run there: that test reads the page.
+    for page, test in RUN_ELSEWHERE.items():
+        assert f"docs/{page}" in (Path(__file__).parent / test).read_text() or not (REPO / "docs" / page).exists()
 
 
 @pytest.mark.parametrize("code", PYTHON_BLOCKS, ids=[_first_line(c)[:40] for c in PYTHON_BLOCKS])
@@ -116,17 +133,32 @@ def test_bash_blocks_name_existing_modules_and_options():
                 assert arg.split("=", 1)[0] in known, f"README passes unknown config key {arg!r}"
 
 
+_LINK = re.compile(r"\]\(([^)#\s]+)(?:#([^)\s]*))?\)")
+
+
+def _anchors(page: Path) -> set[str]:
+    """GitHub's anchors of a Markdown page's headings: lower case, punctuation dropped, spaces as hyphens."""
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+            for h in re.findall(r"^#+ (.+)$", page.read_text(), re.MULTILINE)}
+
+
 def test_readme_links_exist():
-    """Every relative link or image of the README (docs pages, figures) is in the repository."""
-    for target in re.findall(r"\]\(([^)#\s]+)\)", README.read_text()):
-        if "://" not in target:
-            assert (REPO / target).exists(), f"README links to missing {target}"
+    """Every relative link or image of the README, the docs pages and the weights READMEs is in the repository,
+    every ``docs/*.md`` the README names exists, and the README and the docs index link every docs page."""
+    for page in [*PAGES, *WEIGHTS_READMES]:
+        for target, anchor in _LINK.findall(page.read_text()):
+            if "://" not in target:
+                assert (page.parent / target).exists(), f"{page.relative_to(REPO)} links to missing {target}"
+                if anchor and target.endswith(".md"):
+                    where = page.relative_to(REPO)
+                    assert anchor in _anchors(page.parent / target), f"{where}: no #{anchor} in {target}"
     for page in re.findall(r"`(docs/[\w/.-]+\.md)`", README.read_text()):
         assert (REPO / page).is_file(), f"README names missing {page}"
+    index = (REPO / "docs" / "index.md").read_text()
     for page in sorted((REPO / "docs").glob("*.md")):
-        for target in re.findall(r"\]\(([^)#\s]+)\)", page.read_text()):
-            if "://" not in target:
-                assert (page.parent / target).exists(), f"{page.name} links to missing {target}"
+        assert f"](docs/{page.name})" in README.read_text(), f"README does not link docs/{page.name}"
+        if page.name != "index.md":
+            assert f"]({page.name})" in index, f"docs/index.md does not link {page.name}"
 
 
 def test_help_shows_every_presets_values():
