@@ -332,3 +332,36 @@ def test_nclt_odometry_reader_on_a_generated_csv(tmp_path):
         nclt.read_odometry(bad)
     with pytest.raises(nclt.NcltFormatError, match=r"missing\.csv: odometry CSV not found"):
         nclt.read_odometry(tmp_path / "missing.csv")
+
+
+class _FakeClassifier:
+    """What Tracker reads of a PlaceClassifier: the grid and ``logits(batch)`` (here a fixed linear map)."""
+
+    def __init__(self, grid: PlaceGrid, seed: int = 0):
+        self.grid = grid
+        self.w = np.random.default_rng(seed).normal(0.0, 0.05, (4 * 4 * 3, grid.num_classes))
+
+    def logits(self, batch):
+        z = batch.reshape(len(batch), -1).astype(np.float64) @ self.w
+        return {"fusion": z, "rgb": 2 * z, "hha": -z}
+
+
+def test_tracker_is_classifier_then_calibration_then_filter():
+    from placejax.classify._track import Tracker
+
+    fake = _FakeClassifier(GRID)
+    images = np.random.default_rng(10).integers(0, 256, (6, 4, 4, 3), dtype=np.uint8)
+    moved = [0.0, 1.0, 2.5, 0.0, 1.0, 3.0]
+    tracker = Tracker(fake, temperature=3.0, branch="rgb")
+    steps = [tracker.step(im, d) for im, d in zip(images, moved, strict=True)]
+    probs = route.calibrated_probabilities(fake.logits(images)["rgb"], 3.0)
+    want = np.asarray(route.forward(probs, np.array(moved), GRID))
+    np.testing.assert_allclose(np.array([s.belief for s in steps]), want, atol=1e-6)
+    cells, unknown = route.place_belief(want, 25)
+    assert [s.label for s in steps] == cells.argmax(axis=1).tolist()
+    np.testing.assert_allclose([s.unknown for s in steps], unknown, atol=1e-6)
+    assert [s.frame_label for s in steps] == probs.argmax(axis=1).tolist()
+    tracker.reset()
+    np.testing.assert_allclose(tracker.step(images[0], 0.0).belief, want[0], atol=1e-6)
+    with pytest.raises(ValueError, match=r"one uint8 RGB image \(H, W, 3\)"):
+        tracker.step(images, 1.0)
