@@ -141,7 +141,7 @@ def assert_loads_w(path: Path) -> None:
 # --- reading in forked children with resource limits ----------------------------------------------------
 
 _RUNNER = r"""
-import json, os, resource, signal, sys, types
+import json, os, resource, signal, sys, time, types
 from pathlib import Path
 
 marker_dir = Path(sys.argv[1])
@@ -172,10 +172,12 @@ for path in sys.argv[2:]:
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
         resource.setrlimit(resource.RLIMIT_CPU, (15, 15))
         signal.alarm(15)
+        start = time.perf_counter()
         try:
             out = {"outcome": "loaded", "keys": len(read_torch_checkpoint(path))}
         except BaseException as err:
             out = {"outcome": type(err).__name__, "message": str(err)[:400]}
+        out["seconds"] = time.perf_counter() - start
         os.write(w, json.dumps(out).encode())
         os._exit(0)
     os.close(w)
@@ -248,7 +250,9 @@ def test_decompression_bomb_is_refused_before_inflating(tmp_path):
     pkl = p_pickle(p_odict(("w", p_tensor(p_storage("0", numel), (numel,), (1,)))))
     path = write_zip(tmp_path / "bomb.pt", pkl, {"0": bytes(4 * numel)}, compress=zipfile.ZIP_DEFLATED)
     assert path.stat().st_size < (1 << 20)
-    with pytest.raises(TorchCheckpointError, match=r"bomb\.pt: compressed record archive/data/0.*bomb"):
+    with pytest.raises(
+        TorchCheckpointError, match=r"bomb\.pt: .*compressed .*record.*\b6[45]\d+ to 67108864 bytes.*bomb"
+    ):
         read_torch_checkpoint(path)
 
 
@@ -340,6 +344,153 @@ def test_tiny_files_cost_little(tmp_path):
     assert "a dict already seen" in got["dict_laughs.pt"]["message"]
     assert got["size_lie.pt"]["outcome"] == "TorchCheckpointError"
     assert "declares 4294967280 bytes but stores 24" in got["size_lie.pt"]["message"]
+
+
+# --- round two (issue 42): cost per byte and hashing work ------------------------------------------------
+
+
+def _views_of_compressed_records(n: int) -> bytes:
+    """A state dict of ``n`` 1 MiB float storages, each also viewed from element 1 (a view that must be copied)."""
+    numel = 1 << 18
+    pairs = []
+    for i in range(n):
+        storage = p_storage(str(i), numel)
+        pairs.append((f"w{i}", p_tensor(storage, (numel,), (1,))))
+        pairs.append((f"v{i}", p_tensor(storage, (numel - 1,), (1,), offset=1)))
+    return p_pickle(p_odict(*pairs))
+
+
+def _memo_tuple_key(items: int, inserts: int) -> bytes:
+    """One tuple of ``items`` ints kept in the memo, then used as the key of ``inserts`` SETITEMs."""
+    key = pickle.MARK + (pickle.BININT1 + b"\x07") * items + pickle.TUPLE + pickle.BINPUT + b"\x01" + pickle.POP
+    sets = (pickle.BINGET + b"\x01" + pickle.NONE + pickle.SETITEM) * inserts
+    return key + pickle.EMPTY_DICT + sets + pickle.POP
+
+
+def _colliding_int_keys(n: int) -> bytes:
+    """A dict of ``n`` integer keys that all hash alike in CPython (multiples of 2**61 - 1)."""
+    return pickle.EMPTY_DICT + pickle.MARK + b"".join(p_int(k * ((1 << 61) - 1)) + pickle.NONE for k in range(1, n + 1))
+
+
+def test_cost_per_byte_and_key_hashing_are_bounded(tmp_path):
+    """The files of the issue, rebuilt small: each ends in a library error naming the file, in a child limited to
+    +768 MiB of address space and 15 s of CPU, within a few seconds."""
+    model = p_odict(("w", p_tensor(p_storage("0", 6), (2, 3), (3, 1))))
+    records = {str(i): bytes(4 << 18) for i in range(100)}
+    paths = [
+        # 100 deflated 1 MiB records (each within the per-record exemption) plus a copied view of each
+        write_zip(
+            tmp_path / "many_small_bombs.pt", _views_of_compressed_records(100), records, compress=zipfile.ZIP_DEFLATED
+        ),
+        # bzip2, which zipfile inflates in unbounded steps (torch.load does not read it at all)
+        write_zip(
+            tmp_path / "bzip2.pt", _views_of_compressed_records(1), {"0": bytes(4 << 18)}, compress=zipfile.ZIP_BZIP2
+        ),
+    ]
+    bodies = {
+        # a 100k-item tuple reused from the memo as the key of 2000 insertions (re-hashed at each)
+        "memo_tuple_key.pt": _memo_tuple_key(100_000, 2000) + p_dict(("model", model)),
+        # 40k integer keys that all collide: quadratic insertion
+        "colliding_ints.pt": _colliding_int_keys(40_000) + pickle.SETITEMS + pickle.POP + p_dict(("model", model)),
+        "colliding_ints_odict.pt": p_dict(
+            ("model", model),
+            (
+                "optimizer",
+                p_call(
+                    p_global("collections", "OrderedDict"),
+                    pickle.MARK
+                    + b"".join(p_tuple(p_int(k * ((1 << 61) - 1)), pickle.NONE) for k in range(1, 2001))
+                    + pickle.LIST,
+                ),
+            ),
+        ),
+        # 2000 float keys, whose hashes a file can choose
+        "float_keys.pt": pickle.EMPTY_DICT
+        + pickle.MARK
+        + b"".join(pickle.BINFLOAT + struct.pack(">d", k * 2.0**61) + pickle.NONE for k in range(2000))
+        + pickle.SETITEMS
+        + pickle.POP
+        + p_dict(("model", model)),
+    }
+    paths += [write_zip(tmp_path / name, p_pickle(body), {"0": W.tobytes()}) for name, body in bodies.items()]
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    got = read_in_children(paths, markers)
+    expected = {
+        "many_small_bombs.pt": r"would expand from \d+ to 104857600 bytes in total, more than 64×",
+        "bzip2.pt": r"uses zip compression method 12",
+        "memo_tuple_key.pt": r"tuple of 100000 items, more than 16",
+        "colliding_ints.pt": r"integer outside ±2\*\*60",
+        "colliding_ints_odict.pt": r"OrderedDict key .* outside ±2\*\*60",
+        "float_keys.pt": r"more than 1024 float or tuple dict keys",
+    }
+    for name, pattern in expected.items():
+        assert got[name]["outcome"] == "TorchCheckpointError", (name, got[name])
+        assert got[name]["message"].startswith(str(tmp_path / name)), got[name]
+        assert re.search(pattern, got[name]["message"]), (name, got[name]["message"])
+        assert got[name]["seconds"] < 5, (name, got[name])
+    assert not (markers / "tripped").exists()
+
+
+def test_budgets_hold_at_their_limits(tmp_path):
+    """Near-limit files in the real format: the materialisation budget counts copied views, the decompression
+    budget counts all compressed records together; exactly at a limit loads, one byte (record) over does not."""
+    numel = 1 << 16
+    storage = p_storage("0", numel)
+    pkl = p_pickle(p_odict(("w", p_tensor(storage, (numel,), (1,))), ("v", p_tensor(storage, (numel - 1,), (1,), 1))))
+    data = np.arange(numel, dtype="<f4")
+    path = write_zip(tmp_path / "view.pt", pkl, {"0": data.tobytes()})
+    need = 4 * numel + 4 * (numel - 1)  # the storage plus the copy of the view
+    got = read_torch_checkpoint(path, max_bytes=need)
+    np.testing.assert_array_equal(got["v"], data[1:])
+    np.testing.assert_array_equal(got["w"], data)
+    with pytest.raises(TorchCheckpointError, match=rf"view\.pt: tensor 'v' needs .*over max_bytes={need - 1}"):
+        read_torch_checkpoint(path, max_bytes=need - 1)
+
+    def zeros_records(n):  # n deflated records of 384 KiB of zeros (~400 bytes each)
+        pairs = [(f"w{i}", p_tensor(p_storage(str(i), 96 << 10), (96 << 10,), (1,))) for i in range(n)]
+        recs = {str(i): bytes(384 << 10) for i in range(n)}
+        return write_zip(tmp_path / f"zeros{n}.pt", p_pickle(p_odict(*pairs)), recs, compress=zipfile.ZIP_DEFLATED)
+
+    assert read_torch_checkpoint(zeros_records(2))["w1"].shape == (96 << 10,)  # 768 KiB in total: exempt
+    with pytest.raises(TorchCheckpointError, match=r"zeros3\.pt: .*1179648 bytes in total"):
+        read_torch_checkpoint(zeros_records(3))  # 1.125 MiB from ~1.2 KiB
+
+
+def test_key_limits_leave_ordinary_keys_alone(tmp_path):
+    """Optimizer-like integer keys, short tuple keys and strings load; the limits are on cost, not on kind."""
+    from placejax.weights._restricted_pickle import PickleLimits, PickleRejected, load
+
+    class NoHooks:
+        def find_class(self, module, name):
+            raise PickleRejected("no globals")
+
+        persistent_load = call = build = find_class
+
+    body = p_dict(
+        (
+            "state",
+            pickle.EMPTY_DICT + pickle.MARK + b"".join(p_int(k) + p_int(-k) for k in range(1000)) + pickle.SETITEMS,
+        ),
+        ("pairs", pickle.EMPTY_SET + pickle.MARK + p_tuple(p_str("a"), p_int(1 << 60)) + pickle.ADDITEMS),
+    )
+    got = load(io.BytesIO(p_pickle(body)), NoHooks())
+    assert got["state"] == {k: -k for k in range(1000)} and got["pairs"] == {("a", 1 << 60)}
+    small = PickleLimits(max_container=999)
+    with pytest.raises(PickleRejected, match="a container of more than 999 items"):
+        load(io.BytesIO(p_pickle(body)), NoHooks(), small)
+    with pytest.raises(PickleRejected, match=r"a str of 70000 characters, more than 65536"):
+        load(io.BytesIO(p_pickle(p_dict(("x" * 70000, pickle.NONE)))), NoHooks())
+    # the OrderedDict hook of the torch reader: integer keys within ±2**60 are fine
+    odict = p_call(
+        p_global("collections", "OrderedDict"),
+        pickle.MARK + b"".join(p_tuple(p_int(k), pickle.NONE) for k in (0, 1, 1 << 60)) + pickle.LIST,
+    )
+    model = p_odict(("w", p_tensor(p_storage("0", 6), (2, 3), (3, 1))))
+    path = write_zip(
+        tmp_path / "odict.pt", p_pickle(p_dict(("model", model), ("optimizer", odict))), {"0": W.tobytes()}
+    )
+    np.testing.assert_array_equal(read_torch_checkpoint(path)["w"], W)
 
 
 def _deep(n: int, open_op: bytes, close_op: bytes) -> bytes:

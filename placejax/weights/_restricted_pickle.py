@@ -10,9 +10,15 @@ and nothing bounds nesting, stack or memo size. This module interprets the opcod
     persistent ids are delegated to the hooks, which decide what is allowed;
   * opcodes that create instances of named classes (INST, OBJ, NEWOBJ, NEWOBJ_EX), the extension registry
     (EXT1/2/4) and out-of-band buffers are refused;
-  * dict keys and set items must be scalars or flat tuples of scalars, so hashing never recurses;
-  * the pickle's size, one text argument's length, the stack, the MARK nesting, the memo and the number of
-    objects and container slots created are bounded by ``PickleLimits``; none of this code recurses.
+  * dict keys and set items must be scalars or flat tuples of scalars, so hashing never recurses, and their cost
+    is bounded: a tuple key holds at most ``max_key_items`` items (Python re-hashes a tuple on every insertion,
+    so a big tuple reused from the memo would cost its length each time), key text at most ``max_key_chars``,
+    integer keys lie within ±2**60 (there ``hash(k) == k``, so no two collide; multiples of 2**61 − 1 all hash
+    alike and would make a dict quadratic) and keys whose hash the file can choose (floats, tuples) are at most
+    ``max_chosen_hash_keys`` per pickle;
+  * the pickle's size, one text argument's length, the stack, the MARK nesting, the memo, the number of
+    objects and container slots created and each container's length are bounded by ``PickleLimits``; none of
+    this code recurses.
 """
 
 from __future__ import annotations
@@ -22,7 +28,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, BinaryIO, Protocol
 
-__all__ = ["Hooks", "PickleLimits", "PickleRejected", "describe", "load"]
+__all__ = ["MAX_INT_KEY", "Hooks", "PickleLimits", "PickleRejected", "describe", "load"]
+
+MAX_INT_KEY = 1 << 60
+"""Integer dict keys and set items must lie in ``[-MAX_INT_KEY, MAX_INT_KEY]``: there ``hash(k) == k`` (except
+``hash(-1) == -2``), so a file cannot make many keys collide (CPython hashes ints modulo 2**61 − 1)."""
 
 
 class PickleRejected(Exception):
@@ -44,6 +54,11 @@ class PickleLimits:
         max_stack: entries on the stack, counting those below every open MARK.
         max_marks: MARKs open at once.
         max_memo: memo entries.
+        max_container: items in one list, tuple, dict or set.
+        max_key_items: items of one tuple used as a dict key or set item (each insertion hashes them all).
+        max_key_chars: characters (bytes) of one str (bytes) key, alone or in a tuple key.
+        max_chosen_hash_keys: insertions of float or tuple keys per pickle, whose hash a file can choose so that
+            they all collide (each costs up to the number of keys already there).
     """
 
     max_bytes: int = 64 << 20
@@ -52,6 +67,10 @@ class PickleLimits:
     max_stack: int = 1 << 20
     max_marks: int = 1 << 12
     max_memo: int = 1 << 20
+    max_container: int = 1 << 20
+    max_key_items: int = 16
+    max_key_chars: int = 1 << 16
+    max_chosen_hash_keys: int = 1 << 10
 
 
 class Hooks(Protocol):
@@ -82,10 +101,15 @@ def describe(obj: Any, limit: int = 60) -> str:
     return f"a {type(obj).__name__}"
 
 
-def _hashable(key: Any) -> bool:
-    if isinstance(key, _SCALARS):
-        return True
-    return type(key) is tuple and all(isinstance(k, _SCALARS) for k in key)
+def _key_scalar(value: Any, limits: PickleLimits) -> str | None:
+    """Why ``value`` cannot be (part of) a key, or None if it can."""
+    if type(value) is int and not -MAX_INT_KEY <= value <= MAX_INT_KEY:
+        return f"an integer outside ±2**60 ({describe(value)}), whose hash a file could make collide"
+    if isinstance(value, (str, bytes)) and len(value) > limits.max_key_chars:
+        return f"a {type(value).__name__} of {len(value)} characters, more than {limits.max_key_chars}"
+    if not isinstance(value, _SCALARS):
+        return f"{describe(value)}; only scalars and flat tuples of scalars are supported"
+    return None
 
 
 class _BoundedReader:
@@ -131,6 +155,7 @@ class _Machine:
         self.marks: list[list[Any]] = []
         self.memo: dict[int, Any] = {}
         self.created = 0
+        self.chosen_hash_keys = 0
         self.depth_total = 0  # entries on the stack plus those held below the open marks
 
     # -- bookkeeping -------------------------------------------------------------------------------------
@@ -166,9 +191,35 @@ class _Machine:
         return items
 
     def key(self, key: Any) -> Any:
-        if not _hashable(key):
-            raise PickleRejected(f"dict key or set item is {describe(key)}; only scalars are supported")
+        """``key`` if it may be a dict key or set item, with bounded hashing cost; else ``PickleRejected``."""
+        limits = self.limits
+        if type(key) is tuple:
+            if len(key) > limits.max_key_items:
+                raise PickleRejected(
+                    f"dict key or set item is a tuple of {len(key)} items, more than {limits.max_key_items} "
+                    "(a tuple is hashed again at every insertion)"
+                )
+            for item in key:
+                why = _key_scalar(item, limits)
+                if why is not None:
+                    raise PickleRejected(f"dict key or set item is a tuple holding {why}")
+        else:
+            why = _key_scalar(key, limits)
+            if why is not None:
+                raise PickleRejected(f"dict key or set item is {why}")
+        if type(key) in (tuple, float):
+            self.chosen_hash_keys += 1
+            if self.chosen_hash_keys > limits.max_chosen_hash_keys:
+                raise PickleRejected(
+                    f"more than {limits.max_chosen_hash_keys} float or tuple dict keys or set items, whose "
+                    "hashes a file can make collide"
+                )
         return key
+
+    def fits(self, container: Any, n: int) -> None:
+        """Refuses growing ``container`` (or making one) to more than ``max_container`` items."""
+        if len(container) + n > self.limits.max_container:
+            raise PickleRejected(f"a container of more than {self.limits.max_container} items")
 
     # -- opcodes -----------------------------------------------------------------------------------------
 
@@ -299,11 +350,13 @@ class _Machine:
 
     def op_TUPLE(self, arg: None) -> None:
         items = self.pop_mark()
+        self.fits(items, 0)
         self.count(1 + len(items))
         self.push(tuple(items))
 
     def op_LIST(self, arg: None) -> None:
         items = self.pop_mark()
+        self.fits(items, 0)
         self.count(1 + len(items))
         self.push(list(items))
 
@@ -311,11 +364,13 @@ class _Machine:
         items = self.pop_mark()
         if len(items) % 2:
             raise PickleRejected("odd number of items for DICT")
+        self.fits((), len(items) // 2)
         self.count(1 + len(items))
         self.push({self.key(items[i]): items[i + 1] for i in range(0, len(items), 2)})
 
     def op_FROZENSET(self, arg: None) -> None:
         items = self.pop_mark()
+        self.fits(items, 0)
         self.count(1 + len(items))
         self.push(frozenset(self.key(k) for k in items))
 
@@ -328,12 +383,16 @@ class _Machine:
     def op_APPEND(self, arg: None) -> None:
         value = self.pop()
         self.count()
-        self._list_target().append(value)
+        target = self._list_target()
+        self.fits(target, 1)
+        target.append(value)
 
     def op_APPENDS(self, arg: None) -> None:
         items = self.pop_mark()
         self.count(len(items))
-        self._list_target().extend(items)
+        target = self._list_target()
+        self.fits(target, len(items))
+        target.extend(items)
 
     def _dict_target(self) -> dict:
         target = self.top()
@@ -345,7 +404,9 @@ class _Machine:
         value = self.pop()
         key = self.key(self.pop())
         self.count()
-        self._dict_target()[key] = value
+        target = self._dict_target()
+        self.fits(target, 1)
+        target[key] = value
 
     def op_SETITEMS(self, arg: None) -> None:
         items = self.pop_mark()
@@ -353,6 +414,7 @@ class _Machine:
             raise PickleRejected("odd number of items for SETITEMS")
         self.count(len(items) // 2)
         target = self._dict_target()
+        self.fits(target, len(items) // 2)
         for i in range(0, len(items), 2):
             target[self.key(items[i])] = items[i + 1]
 
@@ -362,6 +424,7 @@ class _Machine:
         if type(target) is not set:
             raise PickleRejected(f"ADDITEMS to {describe(target)}, not a set", unsafe=True)
         self.count(len(items))
+        self.fits(target, len(items))
         target.update(self.key(k) for k in items)
 
     # memo

@@ -12,17 +12,21 @@ Promises, for any file whatsoever:
     one of those rebuilders, BUILD on anything but a freshly made ``OrderedDict``, INST/OBJ/NEWOBJ(_EX), the
     extension registry (EXT1/2/4), text persistent ids and out-of-band buffers stop the load with
     ``UnsafeCheckpointError``. A load leaves no state behind that could change a later load.
-  * **Bounded cost.** The tensor data held at once (storages read + arrays returned) never exceeds
-    ``max_bytes`` (``DEFAULT_MAX_BYTES`` = 4 GiB; a keyword argument of ``read_torch_checkpoint``). Before
-    anything is allocated, each storage's declared size (element count × item size) must equal its zip
-    record's size, the record's stored bytes must lie inside the file (uncompressed records: stored size ==
-    declared size), and a legacy storage must fit in the bytes left in the file. Compressed zip records
-    (``torch.save`` writes none) are inflated only up to their declared size and may expand at most 64×
-    (records up to 1 MiB excepted). Tensors are checked against their storage (offset, size, stride) and
-    tensors whose strides make elements overlap (stride 0 over a dimension longer than 1, ...) are refused
-    rather than expanded; identical views share one array, and the arrays returned hold at most twice the
-    bytes of the storages they come from. The pickle is bounded in size (64 MiB), text-argument length,
-    stack, MARK nesting, memo entries and objects created (``PickleLimits``); the state dict in depth (64),
+  * **Bounded cost.** The tensor data held at once (storages read + arrays returned, views copied included:
+    the materialisation budget) never exceeds ``max_bytes`` (``DEFAULT_MAX_BYTES`` = 4 GiB; a keyword
+    argument of ``read_torch_checkpoint``). Before anything is allocated, each storage's declared size
+    (element count × item size) must equal its zip record's size, the record's stored bytes must lie inside
+    the file (uncompressed records: stored size == declared size), and a legacy storage must fit in the bytes
+    left in the file. Compressed zip records (``torch.save`` writes none; deflate only, as ``torch.load``:
+    bzip2, LZMA and encrypted records are refused) are inflated in bounded steps, only up to their declared
+    size, and may expand at most 64×, each record and all storage records together (the decompression budget;
+    1 MiB of expansion is exempt once per file, so a thousand small bombs cost what one does). Tensors are
+    checked against their storage (offset, size, stride) and tensors whose strides make elements overlap
+    (stride 0 over a dimension longer than 1, ...) are refused rather than expanded; identical views share
+    one array, and the arrays returned hold at most twice the bytes of the storages they come from. The
+    pickle is bounded in size (64 MiB), text-argument length, stack, MARK nesting, memo entries, objects
+    created, container length and the hashing cost of dict keys (``PickleLimits``: tuple keys of at most 16
+    items, integer keys within ±2**60, at most 1024 float or tuple keys); the state dict in depth (64),
     entries (2**20), key text (64 Mi characters), and a sub-dict may appear in it only once. Nothing recurses
     on file content, so no limit relies on Python's recursion limit.
   * **One error contract.** Every problem with the file's content raises ``TorchCheckpointError`` (a
@@ -63,7 +67,7 @@ from typing import Any, BinaryIO
 import ml_dtypes
 import numpy as np
 
-from placejax.weights._restricted_pickle import PickleLimits, PickleRejected, describe
+from placejax.weights._restricted_pickle import MAX_INT_KEY, PickleLimits, PickleRejected, describe
 from placejax.weights._restricted_pickle import load as _load_pickle
 
 __all__ = ["DEFAULT_MAX_BYTES", "TorchCheckpointError", "UnsafeCheckpointError", "read_torch_checkpoint"]
@@ -320,6 +324,9 @@ def _ordered_dict(args: tuple) -> OrderedDict:
         for pair in args[0]:
             if type(pair) not in (tuple, list) or len(pair) != 2 or not isinstance(pair[0], (str, int)):
                 raise PickleRejected(f"OrderedDict built from {describe(pair)} instead of a (key, value) pair")
+            if isinstance(pair[0], int) and not -MAX_INT_KEY <= pair[0] <= MAX_INT_KEY:
+                # the rule of the pickle machine's own dicts: such ints can be made to collide (quadratic insertion)
+                raise PickleRejected(f"OrderedDict key {describe(pair[0])} is an integer outside ±2**60")
             out[pair[0]] = pair[1]
         return out
     raise PickleRejected(f"OrderedDict called with {describe(args)}")
@@ -427,7 +434,9 @@ class _ZipStorages(_Storages):
         self.root = root
 
     def check(self, refs: dict[str, _StorageRef]) -> None:
-        """Every announced storage must be a record of exactly its declared size (nothing is read here)."""
+        """Every announced storage must be a record of exactly its declared size (nothing is read here), and
+        the compressed ones together may expand at most ``_MAX_RATIO``× (``_MAX_RATIO_FREE`` bytes excepted)."""
+        inflated = stored = 0
         for ref in refs.values():
             info = _member(self.archive, f"{self.root}data/{ref.key}", self.source)
             declared = ref.numel * ref.dtype.itemsize
@@ -436,6 +445,17 @@ class _ZipStorages(_Storages):
                     f"{self.source}: storage {ref.key} is announced as {ref.numel} × {ref.dtype} "
                     f"({declared} bytes) but its record {info.filename} holds {info.file_size} bytes: corrupt file"
                 )
+            if info.compress_type != zipfile.ZIP_STORED:
+                inflated += info.file_size
+                stored += info.compress_size
+        # Per record the ratio exempts small records; over the whole file the exemption is counted once, so
+        # a thousand small bombs cost what one does.
+        if inflated > max(_MAX_RATIO_FREE, _MAX_RATIO * stored):
+            raise TorchCheckpointError(
+                f"{self.source}: its compressed storage records would expand from {stored} to {inflated} bytes "
+                f"in total, more than {_MAX_RATIO}× (the decompression budget): refused as a likely "
+                "decompression bomb (torch.save writes uncompressed records; re-save the file with torch)"
+            )
 
     def read_bytes(self, ref: _StorageRef, nbytes: int) -> bytearray:
         return _read_member(self.archive, f"{self.root}data/{ref.key}", nbytes, self.source)
@@ -477,6 +497,15 @@ def _read_member(archive: zipfile.ZipFile, name: str, limit: int, source: str) -
         raise TorchCheckpointError(
             f"{source}: record {_short(name)} extends past the end of the file: truncated or corrupt file"
         )
+    if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+        # torch.load (miniz) reads only these two; Python's zipfile would inflate bzip2 and LZMA in unbounded
+        # steps (a few KB can become GBs before it cuts the output to the declared size).
+        raise TorchCheckpointError(
+            f"{source}: record {_short(name)} uses zip compression method {info.compress_type}; torch.save files "
+            "hold stored or deflated records only (as torch.load reads them)"
+        )
+    if info.flag_bits & 0x1:
+        raise TorchCheckpointError(f"{source}: record {_short(name)} is encrypted; torch.save never encrypts")
     if info.compress_type == zipfile.ZIP_STORED and info.file_size != info.compress_size:
         raise TorchCheckpointError(
             f"{source}: uncompressed record {_short(name)} declares {info.file_size} bytes but stores "
