@@ -297,7 +297,8 @@ def test_from_run_reads_the_shipped_depth_network(smoke_run, monkeypatch):
     from placejax import depth
 
     _, workdir, _ = smoke_run
-    shipped, meta = depth.load_shipped("default")
+    shipped_record = depth.load_shipped("default")
+    shipped, meta = depth.TrainedDepth.from_record(shipped_record), shipped_record.meta
     spec = {"source": "trained", "shipped": "default", "config": dataclasses.asdict(depth.PRESETS["default"])}
     real = _run_layout.locate_run
     monkeypatch.setattr(_run_layout, "locate_run", lambda w, s: dataclasses.replace(real(w, s), depth=spec))

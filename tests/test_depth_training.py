@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from experiments import train_depth
-from placejax import depth
+from placejax import depth, weights
 from placejax.depth import _train as depth_train
 
 CFG = dataclasses.replace(depth.PRESETS["smoke"], steps=4, checkpoint_every=2)
@@ -606,7 +606,12 @@ def test_shipped_default_network_is_the_presets_and_reaches_its_recorded_quick_c
     """The file in ``placejax/depth/weights`` was trained with the default preset's current config, loads into
     its architecture, reproduces the AbsRel / δ1 recorded at export on the evaluation campus, beats both trivial
     baselines there, and is what ``ensure_trained("default")`` returns: nothing is trained or cached."""
-    net, meta = depth.load_shipped("default")
+    record = depth.load_shipped("default")
+    net, meta = depth.TrainedDepth.from_record(record), record.meta
+    resolved = weights.resolve("shipped:" + depth.SHIPPED["default"])  # the same record, named as everywhere
+    assert resolved.meta == meta
+    for a, b in zip(jax.tree.leaves(resolved.variables), jax.tree.leaves(net.variables), strict=True):
+        np.testing.assert_array_equal(a, b)
     assert meta["fingerprint"] == depth.PRESETS["default"].fingerprint() == net.fingerprint
     assert net.config == depth.PRESETS["default"] and net.metric
     got = depth.quick_check(net)
@@ -623,12 +628,14 @@ def test_shipped_default_network_is_the_presets_and_reaches_its_recorded_quick_c
 
 
 def test_shipped_file_round_trips_in_float16_and_a_stale_one_is_not_used(uninterrupted, tmp_path, monkeypatch, capsys):
-    """``save_shipped`` → ``read_shipped`` keeps the config, BatchNorm statistics exactly and the parameters to
-    float16 (predictions within 1 % in metres); a shipped file trained with another config than its preset now
-    has is refused with a message (the preset then trains); a file of something else is named in the error."""
+    """``save_shipped`` → ``placejax.weights.resolve`` keeps the config, BatchNorm statistics exactly and the
+    parameters to float16 (predictions within 1 % in metres); a shipped file trained with another config than its
+    preset now has is refused with a message (the preset then trains); a file of something else is named in
+    the error."""
     path = tmp_path / "net.npz"
     depth.save_shipped(uninterrupted, path, {"command": "test"})
-    back, meta = depth.read_shipped(path)
+    record = weights.resolve(path)  # a path ending in .npz: a weights record
+    back, meta = depth.TrainedDepth.from_record(record), record.meta
     assert back.config == CFG and meta["command"] == "test" and meta["fingerprint"] == CFG.fingerprint()
     assert set(meta["quick_check"]) == {"abs_rel", "delta1"}
     with np.load(path) as z:
@@ -653,5 +660,5 @@ def test_shipped_file_round_trips_in_float16_and_a_stale_one_is_not_used(uninter
         depth.load_shipped("full")
     other = tmp_path / "other.npz"
     np.savez(other, w=np.zeros(3))
-    with pytest.raises(ValueError, match=r"other\.npz.*not a placejax depth-network file"):
-        depth.read_shipped(other)
+    with pytest.raises(ValueError, match=r"other\.npz.*not a placejax weights record"):
+        weights.read_record(other)

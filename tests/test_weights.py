@@ -280,3 +280,60 @@ def test_offline_message_says_where_to_put_the_file(cache, monkeypatch):
     msg = str(err.value)
     assert f"put it at {cache / 'weights' / 'tiny.pt'}" in msg and "tiny.pt" in msg
     assert _cache_files(cache) == []
+
+
+# --- one resolver: registry:NAME, shipped:NAME, a path ------------------------------------------------------
+
+
+def test_resolve_names_every_kind_of_weights_one_way(samples, midas_recipe_npz, cache, tmp_path):
+    """``weights.resolve`` gives the variables each spec names (checked against the converter and the registry's
+    own ``load``), ``weights.identity`` what cache keys record (a file's content, not its path)."""
+    import shutil
+
+    from placejax import io
+    from placejax.weights import identity, resolve, shipped_file, shipped_names
+
+    with np.load(midas_recipe_npz) as f:
+        want = convert_midas_small({k: f[k] for k in f.files})
+    pt = samples / "midas_fixture.pt"
+    got = resolve(pt, convert=convert_midas_small)  # a torch.save file, converted by the caller's converter
+    _assert_trees_equal(got.variables, want)
+    assert got.meta == {"sha256": io.file_sha256(pt)}
+    moved = tmp_path / "moved.pt"
+    shutil.copy(pt, moved)
+    assert identity(moved) == identity(str(pt)) == {"sha256": io.file_sha256(pt)}
+
+    (cache / "weights").mkdir(parents=True)  # the registry's file, as a finished download leaves it
+    shutil.copy(pt, cache / "weights" / REGISTRY["midas_v21_small_256"].filename)
+    reg = resolve("registry:midas_v21_small_256")
+    _assert_trees_equal(reg.variables, load("midas_v21_small_256"))
+    _assert_trees_equal(reg.variables, want)
+    assert reg.meta == identity("registry:midas_v21_small_256") == {"registry": "midas_v21_small_256"}
+    assert identity("", default="registry:vgg16_imagenet") == {"registry": "vgg16_imagenet"}
+
+    record = tmp_path / "r.npz"  # a placejax record: flat keys → tree, float16 → float32, meta kept
+    io.write_npz(record, {"trunk/conv/kernel": np.full((2, 3), 0.5, np.float16)}, meta={"config": {"width": 1}})
+    variables, meta = resolve(record)
+    assert variables["trunk"]["conv"]["kernel"].dtype == np.float32 and meta == {"config": {"width": 1}}
+    np.testing.assert_array_equal(variables["trunk"]["conv"]["kernel"], np.full((2, 3), 0.5, np.float32))
+
+    names = shipped_names()
+    assert {"simcampus_depth_default_128", "simcampus_places_w0125_s64"} <= set(names)
+    for name in names:
+        shipped = resolve(f"shipped:{name}")
+        assert "config" in shipped.meta
+        assert identity(f"shipped:{name}")["sha256"] == hashlib.sha256(shipped_file(name).read_bytes()).hexdigest()
+
+    with pytest.raises(KeyError, match="registered"):
+        resolve("registry:resnet1000")
+    with pytest.raises(FileNotFoundError, match="ships"):
+        resolve("shipped:nope")
+    with pytest.raises(FileNotFoundError, match=r"missing\.pt"):
+        resolve(tmp_path / "missing.pt", convert=convert_midas_small)
+    with pytest.raises(ValueError, match="empty weights spec"):
+        resolve("")
+    with pytest.raises(ValueError, match="converter"):
+        resolve(pt)
+    np.savez(tmp_path / "plain.npz", w=np.zeros(3))
+    with pytest.raises(ValueError, match=r"plain\.npz: not a placejax weights record"):
+        resolve(tmp_path / "plain.npz")

@@ -288,15 +288,14 @@ class PlaceClassifier:
 
             dcfg = DepthTrainConfig(**d["config"])
             if "shipped" in d:  # the network that ships with placejax (placejax.depth.SHIPPED)
-                trained, meta = load_shipped(d["shipped"])
+                depth_vars, meta = load_shipped(d["shipped"])  # a placejax.weights.WeightsRecord
                 if meta["fingerprint"] != dcfg.fingerprint():
                     raise ValueError(
                         f"{files.workdir}: the run used depth network {dcfg.fingerprint()}, but this placejax "
                         f"ships {meta['fingerprint']} for preset {d['shipped']!r}"
                     )
             else:
-                trained = load_trained(d["dir"], dcfg)
-            depth_vars = trained.variables
+                depth_vars = load_trained(d["dir"], dcfg).variables
             depth_meta = {
                 "kind": "trained",
                 "features": dcfg.features,
@@ -312,13 +311,11 @@ class PlaceClassifier:
                 },
             }
         elif d["source"] == "midas":
-            from placejax.weights import convert_midas_small, load, read_torch_checkpoint
+            from placejax.weights import convert_midas_small, resolve
 
             model = MidasSmall(features=d["features"], encoder_width=d["encoder_width"])
-            if d["weights"].startswith("registry:"):
-                depth_vars = load(d["weights"].split(":", 1)[1])
-            else:
-                depth_vars = convert_midas_small(read_torch_checkpoint(d["weights"]), model)
+            # "registry:NAME" or a path (placejax.weights.resolve), as the experiment's depth stage named it.
+            depth_vars = resolve(d["weights"], convert=functools.partial(convert_midas_small, model=model)).variables
             depth_meta = {
                 "kind": "midas",
                 "features": d["features"],

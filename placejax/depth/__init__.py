@@ -1,7 +1,11 @@
 """Monocular depth: MiDaS preprocessing and inference, the scale- and shift-invariant training objective,
 training of MidasSmall on the depth-training worlds (on ``placejax.training``'s engine), its train-once-and-cache
 lifecycle (:func:`ensure_trained`; the default preset's network ships with the package, :func:`load_shipped`),
-and depth-quality metrics."""
+and depth-quality metrics.
+
+:func:`apply` is the pure, jittable MiDaS forward pass (uint8 ``(N, H, W, 3)`` → float32 ``(N, H, W)`` relative
+inverse depth, a ``jax.Array``); :func:`predict` computes the same on the host (OpenCV resize, NumPy out).
+"""
 
 from placejax.depth._evaluate import baseline_predictions, evaluate, evaluation_frames
 from placejax.depth._inference import apply, network_size, predict, preprocess
@@ -10,7 +14,6 @@ from placejax.depth._lifecycle import (
     ensure_trained,
     load_shipped,
     quick_check,
-    read_shipped,
     report_markdown,
     run_dir,
     save_shipped,
@@ -75,7 +78,6 @@ __all__ = [
     "predict",
     "preprocess",
     "quick_check",
-    "read_shipped",
     "report_markdown",
     "run_dir",
     "save_shipped",

@@ -8,8 +8,6 @@ interrupted training, and writing the evaluation report beside the checkpoints.
 from __future__ import annotations
 
 import dataclasses
-import importlib.resources
-import io as _io
 import sys
 import time
 from pathlib import Path
@@ -21,6 +19,7 @@ from flax import traverse_util
 from placejax import io
 from placejax.depth import _evaluate
 from placejax.depth._train import PRESETS, DepthTrainConfig, TrainedDepth, load_trained, train
+from placejax.weights import _shipped
 
 # Measured on an idle 2-core x86 CPU (README, depth-network section): shown to the user before a first training.
 _EXPECTED_MINUTES = {"smoke": 1, "default": 55}
@@ -37,9 +36,7 @@ def run_dir(cfg: DepthTrainConfig, preset: str, root: str | Path | None = None) 
 
     ``root`` defaults to ``placejax.weights.cache_dir()`` (``$PLACEJAX_CACHE`` or ``~/.cache/placejax``).
     """
-    from placejax.weights import cache_dir
-
-    return (cache_dir() if root is None else Path(root)) / "depth" / f"{preset}-{cfg.fingerprint()}"
+    return _shipped.run_dir("depth", preset, cfg.fingerprint(), root)
 
 
 def save_shipped(trained: TrainedDepth, path: str | Path, meta: dict) -> None:
@@ -63,25 +60,18 @@ def _unflatten(arrays: dict[str, np.ndarray]) -> dict:
     return traverse_util.unflatten_dict({k: np.asarray(v, np.float32) for k, v in arrays.items()}, sep="/")
 
 
-def read_shipped(source) -> tuple[TrainedDepth, dict]:
-    """``(network, meta)`` of a file written by :func:`save_shipped` (a path or a binary file object)."""
-    arrays, meta = io.read_npz(source)
-    if meta is None:
-        raise ValueError(f"{source}: not a placejax depth-network file (no 'meta' entry)")
-    return TrainedDepth(DepthTrainConfig(**meta["config"]), _unflatten(arrays)), meta
+def load_shipped(preset: str = "default") -> _shipped.WeightsRecord:
+    """The record of the network of ``preset`` shipped in ``placejax/depth/weights``:
+    ``(variables, meta)`` (a ``placejax.weights.WeightsRecord``, as ``placejax.pretrain.load_shipped`` returns),
+    ``meta`` with the config and its seed, fingerprint, command, evaluation and quick check (training time and the
+    rest in the README there). ``TrainedDepth.from_record(record)`` makes it a network.
 
-
-def load_shipped(preset: str = "default") -> tuple[TrainedDepth, dict]:
-    """The network of ``preset`` shipped in ``placejax/depth/weights`` and its record (config with its seed,
-    fingerprint, command, evaluation, quick check; training time and the rest in the README there). Raises
-    ``FileNotFoundError`` for a preset without one."""
+    Raises:
+        FileNotFoundError: a preset without a shipped network.
+    """
     if preset not in SHIPPED:
         raise FileNotFoundError(f"no shipped depth network for preset {preset!r} (shipped: {sorted(SHIPPED)})")
-    res = importlib.resources.files("placejax.depth") / "weights" / f"{SHIPPED[preset]}.npz"
-    if not res.is_file():
-        raise FileNotFoundError(f"{SHIPPED[preset]}.npz is missing from placejax/depth/weights (a broken install?)")
-    with res.open("rb") as f:
-        return read_shipped(_io.BytesIO(f.read()))
+    return _shipped.load_shipped(SHIPPED[preset])
 
 
 def quick_check(trained: TrainedDepth, n_frames: int = QUICK_CHECK_FRAMES) -> dict[str, float]:
@@ -99,7 +89,8 @@ def shipped_network(preset: str) -> TrainedDepth | None:
     """The shipped network of ``preset`` when there is one trained with the preset's current config, else None."""
     if preset not in SHIPPED:
         return None
-    trained, meta = load_shipped(preset)
+    record = load_shipped(preset)
+    meta = record.meta
     if meta["fingerprint"] != PRESETS[preset].fingerprint():
         print(
             f"placejax: the shipped depth network {SHIPPED[preset]} was trained with another config than preset "
@@ -107,7 +98,7 @@ def shipped_network(preset: str) -> TrainedDepth | None:
             file=sys.stderr,
         )
         return None
-    return trained
+    return TrainedDepth.from_record(record)
 
 
 def ensure_trained(
@@ -140,13 +131,13 @@ def ensure_trained(
     workdir = run_dir(config, preset, cache_root)
     primary = jax.process_index() == 0  # several processes train together; one of them speaks and writes
     if progress and primary and not (workdir / "depth_eval.json").exists():
-        minutes = _EXPECTED_MINUTES.get(preset)
-        took = f"about {minutes} min on 2 CPU cores" if minutes else "its length depends on the preset"
-        print(
-            f"placejax: training the depth network '{preset}' ({config.steps} steps at {config.image_size}², "
-            f"{took}) — it turns RGB into pseudo depth for the HHA images; done once per machine, cached in "
-            f"{workdir} (interrupt and rerun to resume)",
-            file=sys.stderr,
+        _shipped.announce_training(
+            "the depth network",
+            preset,
+            f"{config.steps} steps at {config.image_size}²; it turns RGB into pseudo depth for the HHA images, once "
+            "per machine",
+            _EXPECTED_MINUTES.get(preset),
+            workdir,
         )
     train(config, workdir, progress=progress)
     trained = load_trained(workdir, config)

@@ -537,8 +537,18 @@ class TrainedDepth:
     config: DepthTrainConfig
     variables: Any
 
+    @classmethod
+    def from_record(cls, record: tuple[Any, dict]) -> TrainedDepth:
+        """The network of a weights record ``(variables, meta)`` with ``meta["config"]`` (what
+        ``placejax.depth.load_shipped`` and ``placejax.weights.resolve("shipped:...")`` return)."""
+        variables, meta = record
+        if "config" not in meta:
+            raise ValueError("not a placejax depth-network record: its meta has no 'config'")
+        return cls(DepthTrainConfig(**meta["config"]), variables)
+
     @property
     def model(self) -> MidasSmall:
+        """The ``MidasSmall`` of :attr:`config`."""
         return self.config.model()
 
     @property

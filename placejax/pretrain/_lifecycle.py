@@ -2,17 +2,15 @@
 weights file shipped inside the package (``placejax/pretrain/weights/``).
 
 A fresh machine's default run cannot afford the pretraining (tens of CPU minutes), so its result is shipped:
-:func:`load_shipped` reads it with ``importlib.resources``; :func:`ensure_trained` reproduces it (or trains any
-other preset) into the placejax cache.
+:func:`load_shipped` reads it; :func:`ensure_trained` reproduces it (or trains any other preset) into the placejax
+cache. The lifecycle is the depth network's too (``placejax.weights``: ``run_dir``, ``read_record``,
+``load_shipped``); weights are named as everywhere in placejax (``placejax.weights.resolve``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib.resources
-import io as _io
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -23,6 +21,7 @@ from flax import traverse_util
 from placejax import io
 from placejax.pretrain import _evaluate
 from placejax.pretrain._train import PRESETS, PretrainConfig, load_trained, train
+from placejax.weights import _resolve, _shipped
 
 # The trunk shipped with the package (its README records command, seed, config and held-out metrics).
 SHIPPED = "simcampus_places_w0125_s64"
@@ -42,9 +41,7 @@ _EXPECTED_MINUTES = {"smoke": 1, "default": 45}
 
 def run_dir(cfg: PretrainConfig, preset: str, root: str | Path | None = None) -> Path:
     """``<root>/pretrain/<preset>-<config hash>``; ``root`` defaults to ``placejax.weights.cache_dir()``."""
-    from placejax.weights import cache_dir
-
-    return (cache_dir() if root is None else Path(root)) / "pretrain" / f"{preset}-{cfg.fingerprint()}"
+    return _shipped.run_dir("pretrain", preset, cfg.fingerprint(), root)
 
 
 def export_params(params: dict[str, Any], heads: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
@@ -65,26 +62,21 @@ def save_npz(params: dict[str, Any], path: str | Path, meta: dict, heads: tuple[
     io.write_npz(path, export_params(params, heads), compressed=True, meta=meta)
 
 
-def read_npz(source) -> tuple[dict[str, Any], dict]:
-    """``(params, meta)`` of a file written by :func:`save_npz`: ``params`` ``{"trunk": ...[, "classifier":
-    {...}]}`` ready to drop into ``VGG16(width=meta["config"]["width"])``'s parameter tree."""
-    flat, meta = io.read_npz(source)
-    if meta is None:
-        raise ValueError(f"{source}: not a placejax pretrained-trunk file (no 'meta' entry)")
-    return traverse_util.unflatten_dict(flat, sep="/"), meta
+def read_npz(source) -> _shipped.WeightsRecord:
+    """``(params, meta)`` of a file written by :func:`save_npz` (``placejax.weights.read_record``): ``params``
+    ``{"trunk": ...[, "classifier": {...}]}`` ready to drop into ``VGG16(width=meta["config"]["width"])``'s tree."""
+    return _shipped.read_record(source, what="placejax pretrained-trunk file")
 
 
 def shipped_file(name: str = SHIPPED):
-    """The packaged file of the shipped trunk ``name`` (an ``importlib.resources`` traversable)."""
-    res = importlib.resources.files("placejax.pretrain") / "weights" / f"{name}.npz"
-    if not res.is_file():
-        raise FileNotFoundError(f"no shipped pretrained trunk {name!r} in placejax/pretrain/weights")
-    return res
+    """The packaged file of the shipped trunk ``name`` (``placejax.weights.shipped_file``)."""
+    return _shipped.shipped_file(name)
 
 
-def load_shipped(name: str = SHIPPED) -> tuple[dict[str, Any], dict]:
+def load_shipped(name: str = SHIPPED) -> _shipped.WeightsRecord:
     """The trunk shipped in ``placejax/pretrain/weights/<name>.npz`` and its record (config, seed,
-    command, held-out metrics).
+    command, held-out metrics): ``(params, meta)``, a ``placejax.weights.WeightsRecord`` as
+    ``placejax.depth.load_shipped`` returns.
 
     Example::
 
@@ -92,44 +84,48 @@ def load_shipped(name: str = SHIPPED) -> tuple[dict[str, Any], dict]:
         model = VGG16(num_classes=100, width=meta["config"]["width"])
         pooled = model.apply({"params": {"trunk": params["trunk"]}}, x, method=VGG16.conv_features)
     """
-    with shipped_file(name).open("rb") as f:
-        return read_npz(_io.BytesIO(f.read()))
+    return _shipped.load_shipped(name)
 
 
-SHIPPED_PREFIX = "shipped:"
+SHIPPED_PREFIX = _resolve.SHIPPED_PREFIX
+_IMAGENET = "registry:vgg16_imagenet"
 
 
 def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
     """Pretrained VGG16 parameters at ``width``: the trunk, and fc6/fc7(/fc8) where the weights have them.
 
     Args:
-        weights: ``""`` for the registry's ImageNet weights (``placejax.weights.load("vgg16_imagenet")``, width
-            1.0), ``"shipped:<name>"`` for a trunk shipped with placejax (:func:`load_shipped`; trunk only), the
-            path of a ``.npz`` file written by :func:`save_npz` (``experiments.pretrain_trunk --export``; its
-            trunk only, as a shipped one), or the path of a torchvision-layout ``torch.save`` file (read by the
-            safe reader).
+        weights: a weights spec (``placejax.weights.resolve``): ``""`` or ``"registry:vgg16_imagenet"`` for the
+            registry's ImageNet weights (``placejax.weights.load("vgg16_imagenet")``, width 1.0),
+            ``"shipped:<name>"`` for a trunk shipped with placejax (:func:`load_shipped`; trunk only), the path
+            of a ``.npz`` file written by :func:`save_npz` (``experiments.pretrain_trunk --export``; its trunk
+            only, as a shipped one), or the path of a torchvision-layout ``torch.save`` file (read by the safe
+            reader).
         width: the VGG16 channel multiplier the weights must have.
 
     Returns:
         ``{"trunk": ..., "classifier": ...}`` (no ``"classifier"`` for a shipped or ``.npz`` trunk).
     """
     from placejax.models import VGG16
-    from placejax.weights import convert_vgg16, load, read_torch_checkpoint
+    from placejax.weights._convert import convert_vgg16
 
-    shipped = weights.startswith(SHIPPED_PREFIX)
-    if shipped or weights.endswith(".npz"):
-        params, meta = load_shipped(weights[len(SHIPPED_PREFIX) :]) if shipped else read_npz(weights)
-        if meta["config"]["width"] != width:
-            raise ValueError(f"{weights!r} is a width-{meta['config']['width']} trunk, not width {width}")
-        return {"trunk": params["trunk"]}
-    if weights:
-        sd = read_torch_checkpoint(weights)
+    spec = weights or _IMAGENET
+    if spec.startswith(_resolve.REGISTRY_PREFIX):
+        if width != 1.0:  # checked before anything is downloaded
+            raise ValueError(f"the registry's ImageNet VGG16 has width 1.0, not {width} (pass other weights' path)")
+        return _resolve.resolve(spec).variables["params"]
+
+    def convert(sd):
         fc8 = sd.get("classifier.6.weight")
         n_out = int(np.shape(fc8)[0]) if fc8 is not None else 1000
-        return convert_vgg16(sd, VGG16(num_classes=n_out, width=width))["params"]
-    if width != 1.0:
-        raise ValueError("the registry's ImageNet VGG16 has width 1.0 (pass the path of other weights)")
-    return load("vgg16_imagenet")["params"]
+        return convert_vgg16(sd, VGG16(num_classes=n_out, width=width))
+
+    variables, meta = _resolve.resolve(spec, convert=convert)
+    if "trunk" in variables:  # a placejax record (shipped or .npz): the trunk only
+        if meta.get("config", {}).get("width") != width:
+            raise ValueError(f"{weights!r} is a width-{meta.get('config', {}).get('width')} trunk, not width {width}")
+        return {"trunk": variables["trunk"]}
+    return variables["params"]
 
 
 def modality_weights(vgg: Any, modality: str) -> str:
@@ -194,12 +190,8 @@ def ensure_trained(
     workdir = run_dir(config, preset, cache_root)
     report_path = workdir / "pretrain_eval.json"
     if progress and not report_path.exists():
-        minutes = _EXPECTED_MINUTES.get(preset)
-        took = f"about {minutes} min on 2 CPU cores" if minutes else "its length depends on the preset"
-        print(
-            f"placejax: pretraining the VGG16 trunk '{preset}' ({config.steps} steps, {took}); cached in {workdir} "
-            "(interrupt and rerun to resume)",
-            file=sys.stderr,
+        _shipped.announce_training(
+            "the pretrained VGG16 trunk", preset, f"{config.steps} steps", _EXPECTED_MINUTES.get(preset), workdir
         )
     t0 = time.perf_counter()
     try:

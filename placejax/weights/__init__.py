@@ -1,4 +1,14 @@
-"""Pretrained weights: safe ``torch.save`` reading, PyTorch → Flax converters and a named registry."""
+"""Weights: one way to name them, the registry of official ones, the records of placejax-trained ones.
+
+Public surface:
+    resolve: ``registry:NAME``, ``shipped:NAME`` or a path → :class:`WeightsRecord` ``(variables, meta)``; every
+        network placejax loads goes through it. ``identity`` says what a spec names, for cache keys.
+    WeightsRecord, read_record, load_shipped, shipped_names, shipped_file, run_dir, announce_training: the one
+        lifecycle of the networks placejax trains itself (the depth network, the pretrained trunks): trained
+        once into the cache, recorded as an ``.npz`` with its ``meta``, shipped, verified, loaded.
+    REGISTRY, load, fetch, cache_dir: official pretrained weights (MiDaS, VGG16), downloaded once and converted.
+    read_torch_checkpoint and the converters: a torch-free safe reader of ``torch.save`` files → Flax variables.
+"""
 
 from placejax.weights._convert import convert_depth_anything_v2, convert_midas_small, convert_vgg16
 from placejax.weights._registry import (
@@ -10,6 +20,17 @@ from placejax.weights._registry import (
     fetch,
     load,
 )
+from placejax.weights._resolve import REGISTRY_PREFIX, SHIPPED_PREFIX, identity, resolve
+from placejax.weights._shipped import (
+    SHIPPED_PACKAGES,
+    WeightsRecord,
+    announce_training,
+    load_shipped,
+    read_record,
+    run_dir,
+    shipped_file,
+    shipped_names,
+)
 from placejax.weights._torch_checkpoint import (
     DEFAULT_MAX_BYTES,
     TorchCheckpointError,
@@ -20,16 +41,28 @@ from placejax.weights._torch_checkpoint import (
 __all__ = [
     "DEFAULT_MAX_BYTES",
     "REGISTRY",
+    "REGISTRY_PREFIX",
+    "SHIPPED_PACKAGES",
+    "SHIPPED_PREFIX",
     "Preprocessing",
     "PretrainedWeights",
     "TorchCheckpointError",
     "UnsafeCheckpointError",
+    "WeightsRecord",
     "WeightsUnavailableError",
+    "announce_training",
     "cache_dir",
     "convert_depth_anything_v2",
     "convert_midas_small",
     "convert_vgg16",
     "fetch",
+    "identity",
     "load",
+    "load_shipped",
+    "read_record",
     "read_torch_checkpoint",
+    "resolve",
+    "run_dir",
+    "shipped_file",
+    "shipped_names",
 ]
