@@ -63,8 +63,13 @@ def intrinsics_valid(intrinsics) -> jax.Array:
 
 
 def _check_options(dtype, depth_scale, min_depth_m, max_depth_m) -> None:
-    if not jnp.issubdtype(jnp.dtype(dtype), jnp.floating):
-        raise TypeError(f"dtype must be a floating dtype (float32 or float64), got {dtype!r}")
+    try:
+        dt = jnp.dtype(dtype)
+    except TypeError:
+        raise TypeError(f"dtype must be a floating dtype (float32 or float64), got {dtype!r}") from None
+    if dt not in (jnp.float32, jnp.float64):
+        # float16/bfloat16 pass a "floating" test but the encoder's fits and linear solves need float32 at least.
+        raise TypeError(f"dtype must be a floating dtype the encoder computes in (float32 or float64), got {dtype!r}")
     if depth_scale is not None:
         _check_scalar(depth_scale, "depth_scale")
     _check_scalar(min_depth_m, "min_depth_m")
@@ -73,24 +78,59 @@ def _check_options(dtype, depth_scale, min_depth_m, max_depth_m) -> None:
         raise ValueError(f"need min_depth_m < max_depth_m, got {min_depth_m!r} and {max_depth_m!r}")
 
 
-def _as_intrinsics(intrinsics) -> jax.Array:
+def _check_intrinsics_dtype(intrinsics) -> None:
     kdt = jnp.result_type(intrinsics)
     if kdt == jnp.bool_ or not jnp.issubdtype(kdt, jnp.number) or jnp.issubdtype(kdt, jnp.complexfloating):
         raise TypeError(f"intrinsics must be a real float array, got dtype {kdt}")
+
+
+def _as_intrinsics(intrinsics) -> jax.Array:
+    _check_intrinsics_dtype(intrinsics)
     return jnp.asarray(intrinsics)
 
 
-def _check_intrinsics(kn: np.ndarray) -> None:
+def _check_intrinsics(kn: np.ndarray, dtype=jnp.float32) -> None:
+    """Finite in float64 and in the compute dtype, with focal lengths that are positive normal numbers there."""
+    compute = jax.dtypes.canonicalize_dtype(dtype)
     if not np.all(np.isfinite(kn)):
         raise ValueError("intrinsics must be finite (fx, fy, cx, cy), got non-finite values")
     if np.any(kn[..., 0, 0] <= 0) or np.any(kn[..., 1, 1] <= 0):
         raise ValueError("intrinsics must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
+    with np.errstate(over="ignore"):
+        kc = kn.astype(compute)
+    tiny = np.finfo(compute).tiny
+    if not np.all(np.isfinite(kc)) or np.any(kc[..., 0, 0] < tiny) or np.any(kc[..., 1, 1] < tiny):
+        raise ValueError(
+            f"intrinsics must be finite in the compute dtype {compute} with focal lengths fx = K[0, 0] and "
+            f"fy = K[1, 1] normal numbers (at least {tiny:.3g}); got fx, fy = {float(kn[..., 0, 0].min())!r}, "
+            f"{float(kn[..., 1, 1].min())!r}"
+        )
+
+
+def _check_integer_depth(x, name: str, dtype) -> None:
+    """Concrete integer depth must convert to the compute dtype exactly (no wrap-around, no rounding)."""
+    if not _is_concrete(x) or not jnp.issubdtype(jnp.result_type(x), jnp.integer):
+        return
+    a = np.asarray(x)
+    if a.size == 0:
+        return
+    compute = jax.dtypes.canonicalize_dtype(dtype)
+    exact = 1 << (np.finfo(compute).nmant + 1)  # every integer up to 2**24 (float32) is a float32
+    if jnp.dtype(jax.dtypes.canonicalize_dtype(a.dtype)).itemsize < a.dtype.itemsize:
+        exact = min(exact, int(np.iinfo(jax.dtypes.canonicalize_dtype(a.dtype)).max))  # x64 off: int64 → int32
+    lo, hi = int(a.min()), int(a.max())
+    if max(-lo, hi) > exact:
+        raise ValueError(
+            f"{name} holds integer values up to {max(-lo, hi)} (dtype {a.dtype}), beyond {exact}, the largest that "
+            f"converts exactly to the compute dtype {compute}: scale it to metres as floating point first"
+        )
 
 
 def _prepare(depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, max_depth_m):
     """Checks shapes, dtypes and (when concrete) values; returns batched arrays and whether a batch axis was added."""
     _check_options(dtype, depth_scale, min_depth_m, max_depth_m)
     _check_depth_dtype(depth_m, "depth_m", depth_scale)
+    _check_integer_depth(depth_m, "depth_m", dtype)
     depth = jnp.asarray(depth_m)
     if depth.ndim not in (2, 3):
         raise ValueError(f"depth_m must have shape (H, W) or (B, H, W), got shape {tuple(depth.shape)}")
@@ -100,19 +140,21 @@ def _prepare(depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, 
     b, h, w = depth.shape
     if h < 1 or w < 1:
         raise ValueError(f"depth_m must be a non-empty image, got shape {tuple(depth.shape)}")
-    k = _as_intrinsics(intrinsics)
-    if k.shape == (3, 3):
-        k = jnp.broadcast_to(k, (b, 3, 3))
-    elif k.shape != (b, 3, 3):
+    _check_intrinsics_dtype(intrinsics)
+    kshape = tuple(np.shape(intrinsics))
+    if kshape not in ((3, 3), (b, 3, 3)):
         raise ValueError(
             f"intrinsics must have shape (3, 3) or ({b}, 3, 3) to match depth_m {tuple(jnp.shape(depth_m))}, "
-            f"got shape {tuple(k.shape)}"
+            f"got shape {kshape}"
         )
-    if _is_concrete(k):
-        _check_intrinsics(np.asarray(k, np.float64))
+    if _is_concrete(intrinsics):
+        # checked as given (float64), before jnp.asarray may cast it to float32 (where 1e39 is inf)
+        _check_intrinsics(np.asarray(intrinsics, np.float64), dtype)
+    k = jnp.broadcast_to(jnp.asarray(intrinsics), (b, 3, 3))
     raw = None
     if raw_depth_m is not None:
         _check_depth_dtype(raw_depth_m, "raw_depth_m", depth_scale)
+        _check_integer_depth(raw_depth_m, "raw_depth_m", dtype)
         raw = jnp.asarray(raw_depth_m)
         if raw.ndim == 2 and squeeze:
             raw = raw[None]
@@ -191,8 +233,9 @@ def encode(
             integer depth, optional for floating depth.
         min_depth_m, max_depth_m: the valid depth range in metres, inclusive, after ``depth_scale``; default
             0.1 m to 1000 m. ``0 < min_depth_m < max_depth_m``; ``max_depth_m`` may be ``inf``.
-        dtype: compute dtype, floating; float32 reproduces the reference (the normal fits are centred for that
-            reason).
+        dtype: compute dtype, float32 or float64 (float16/bfloat16 are refused: ``TypeError``); float32
+            reproduces the reference (the normal fits are centred for that reason). Concrete integer depth must
+            convert to it exactly (at most 2**24 units for float32), otherwise ``ValueError``.
 
     Returns:
         ``uint8 (..., H, W, 3)`` channels in the order (disparity, height, angle): 31000 / max(Z_cm, 100),
@@ -200,10 +243,11 @@ def encode(
         the normal is undefined), each rounded half to even and capped at 255; (0, 0, 0) at missing pixels.
 
     Raises:
-        TypeError: a bool, complex or non-numeric depth, integer depth without ``depth_scale``, a non-floating
-            ``dtype``, or a non-numeric scalar argument.
+        TypeError: a bool, complex or non-numeric depth, integer depth without ``depth_scale``, a ``dtype``
+            other than float32/float64, or a non-numeric scalar argument.
         ValueError: wrong shapes, non-positive or non-finite ``depth_scale``/``min_depth_m``, an empty depth
-            range, or (concrete) intrinsics that are not finite with positive focal lengths.
+            range, concrete integer depth that the compute dtype cannot hold exactly, or (concrete) intrinsics
+            that are not finite with focal lengths that are positive normal numbers in the compute dtype.
 
     Example:
         >>> import numpy as np
@@ -256,10 +300,11 @@ def encode_stream(
         raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
     # Every argument is checked now, not when the first batch is full.
     _check_options(dtype, depth_scale, min_depth_m, max_depth_m)
+    _check_intrinsics_dtype(intrinsics)
+    if np.shape(intrinsics) != (3, 3):
+        raise ValueError(f"intrinsics must have shape (3, 3) for encode_stream, got shape {np.shape(intrinsics)}")
+    _check_intrinsics(np.asarray(intrinsics, np.float64), dtype)  # as given, before any cast to float32
     k = np.asarray(_as_intrinsics(intrinsics))
-    if k.shape != (3, 3):
-        raise ValueError(f"intrinsics must have shape (3, 3) for encode_stream, got shape {k.shape}")
-    _check_intrinsics(k.astype(np.float64))
     kwargs = dict(depth_scale=depth_scale, min_depth_m=min_depth_m, max_depth_m=max_depth_m, dtype=dtype)
     return _stream(iter(depths), k, int(batch_size), kwargs)
 
