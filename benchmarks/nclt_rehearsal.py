@@ -130,15 +130,16 @@ def project(sizes: list[dict], target: int, quadratic: dict[str, float] | None =
 def _child(spec_path: Path) -> None:
     """Runs the experiment described by ``spec`` in this process and writes its measurements."""
     spec = json.loads(spec_path.read_text())
-    from experiments.cross_season import apply_overrides, get_config, pipeline, run
+    from experiments.cross_season import apply_overrides, get_config, run
+    from experiments.cross_season.context import Context
 
     peak = {"anon": 0.0, "rss": 0.0}
     by_stage: dict[str, dict[str, float]] = {}  # stage -> peak {"anon", "rss"} sampled while it ran
     current = [None]
     stop = threading.Event()
 
-    # Which stage is running: the pipeline's own stage timer, wrapped (stages do not nest).
-    timed = pipeline.Context.timed
+    # Which stage is running: the experiment's own stage timer, wrapped (stages do not nest).
+    timed = Context.timed
 
     def tracked(self, stage: str):
         timer = timed(self, stage)
@@ -154,7 +155,7 @@ def _child(spec_path: Path) -> None:
 
         return _Tracked()
 
-    pipeline.Context.timed = tracked
+    Context.timed = tracked
 
     def sample() -> None:
         while not stop.is_set():

@@ -27,9 +27,12 @@ from pathlib import Path
 import numpy as np
 
 from experiments.cross_season import config as _config
-from experiments.cross_season import pipeline as P
-from experiments.cross_season import stats as _stats
+from experiments.cross_season.context import Context, seed_context
+from experiments.cross_season.evaluation import pair_ceilings_and_baselines, rgb_baseline_features
+from experiments.cross_season.nets import net_outputs, train_nets
+from experiments.cross_season.sessions import fit_grid, load_sessions
 from placejax import io
+from placejax.evaluation import mean_sd, top1
 from placejax.training import data_mesh
 
 
@@ -38,32 +41,32 @@ def measure(config, workdir: Path) -> dict:
     mesh = data_mesh(config.devices or None)
     _config.validate(config, mesh.size)
     workdir.mkdir(parents=True, exist_ok=True)
-    ctx = P.Context(config=config, workdir=workdir, mesh=mesh)
-    sessions = P.load_sessions(ctx)
-    grid = P.fit_grid(ctx, sessions)
+    ctx = Context(config=config, workdir=workdir, mesh=mesh)
+    sessions = load_sessions(ctx)
+    grid = fit_grid(ctx, sessions)
     c = grid.num_classes
-    thumbs = P.rgb_baseline_features(sessions)
+    thumbs = rgb_baseline_features(sessions)
 
     seeds = [config.seed + k for k in range(config.n_seeds)]
     per_seed_logits = []
     for seed in seeds:
-        sctx = P.seed_context(ctx, seed)
-        nets = P.train_nets(sctx, sessions, c, modalities=("rgb",))
+        sctx = seed_context(ctx, seed)
+        nets = train_nets(sctx, sessions, c, modalities=("rgb",))
         per_seed_logits.append(
-            {(a, t.name): P.net_outputs(sctx, net, t, c)["logits"] for (a, _), net in nets.items() for t in sessions}
+            {(a, t.name): net_outputs(sctx, net, t, c)["logits"] for (a, _), net in nets.items() for t in sessions}
         )
     pairs = []
     for s in sessions:
         for t in sessions:
             if s.name == t.name:
                 continue
-            accs = [P.top1(lg[(s.name, t.name)], t.labels) for lg in per_seed_logits]
-            mean, sd = _stats.mean_sd(accs)
+            accs = [top1(lg[(s.name, t.name)], t.labels) for lg in per_seed_logits]
+            mean, sd = mean_sd(accs)
             pairs.append(
                 {
                     "train": s.name,
                     "test": t.name,
-                    **P.pair_ceilings_and_baselines(s, t, thumbs),
+                    **pair_ceilings_and_baselines(s, t, thumbs),
                     "rgb_net": mean,
                     "rgb_net_sd": sd,
                     "rgb_net_per_seed": accs,
@@ -75,7 +78,7 @@ def measure(config, workdir: Path) -> dict:
         "config": config.to_dict(),
         "pairs": pairs,
         "mean": {k: float(np.mean([p[k] for p in pairs])) for k in keys},
-        "rgb_net_mean_over_seeds": dict(zip(("mean", "sd"), _stats.mean_sd(seed_means), strict=True)),
+        "rgb_net_mean_over_seeds": dict(zip(("mean", "sd"), mean_sd(seed_means), strict=True)),
         "rgb_net_seed_means": seed_means,
     }
     io.write_json(workdir / "calibration.json", out)

@@ -40,6 +40,7 @@ import numpy as np
 
 from experiments.cross_season import baselines
 from placejax import hha
+from placejax.classify import run_layout
 from placejax.data import PlaceGrid, open_array_cache
 from placejax.data.simcampus import SKY_DEPTH
 from placejax.depth import far_to_sky
@@ -47,10 +48,12 @@ from placejax.depth import far_to_sky
 SESSIONS = ("WI", "SP", "SU", "AU")
 
 
-def _cache(root: Path, session: str, kind: str):
-    found = sorted((root / "cache").glob(f"{session}-{kind}-*"))
+def _cache(root: Path, session: str, stage: str, variant: str | None = None):
+    """The run's one cache of ``session``'s ``stage`` (names: ``placejax.classify.run_layout``)."""
+    found = run_layout.cache_folders(root, session, stage, variant)
     if len(found) != 1:
-        raise FileNotFoundError(f"expected one {session}-{kind}-* cache in {root / 'cache'}, found {len(found)}")
+        name = run_layout.cache_name(session, stage, variant or "<H>x<W>")
+        raise FileNotFoundError(f"expected one {name}-* cache in {root / run_layout.CACHE_DIR}, found {len(found)}")
     return open_array_cache(found[0])
 
 
@@ -162,12 +165,12 @@ def main(argv: list[str] | None = None) -> None:
         )
     root = args.workdir
     grid = PlaceGrid.load(root / "grid.json")
-    images = {s: _cache(root, s, "rgb[0-9]*") for s in SESSIONS}  # the session frames, e.g. WI-rgb64x64-…
+    images = {s: _cache(root, s, "frames") for s in SESSIONS}  # the session frames, at the run's image size
     labels = {s: grid.label(images[s].extras["poses"]) for s in SESSIONS}
     intrinsics = {s: np.asarray(images[s].extras["intrinsics"]) for s in SESSIONS}
-    rendered = {s: np.asarray(_cache(root, s, "depth-true").data, np.float32) for s in SESSIONS}
+    rendered = {s: np.asarray(_cache(root, s, "depth", "true").data, np.float32) for s in SESSIONS}
     if args.network is None:
-        predicted = {s: np.asarray(_cache(root, s, "depth-trained").data, np.float32) for s in SESSIONS}
+        predicted = {s: np.asarray(_cache(root, s, "depth", "trained").data, np.float32) for s in SESSIONS}
     else:
         predicted = _network_depth(
             args.network, args.overrides, images, args.flip_average, tuple(args.shift_px), args.preset

@@ -17,9 +17,11 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import json
 import os
+import socket
 import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -27,7 +29,16 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "file_sha256", "save_figure", "write_bytes", "write_json", "write_npz", "write_text"]
+__all__ = [
+    "atomic_write",
+    "file_sha256",
+    "run_lock",
+    "save_figure",
+    "write_bytes",
+    "write_json",
+    "write_npz",
+    "write_text",
+]
 
 
 def _umask() -> int:
@@ -124,3 +135,37 @@ def file_sha256(path: str | os.PathLike) -> str:
         for block in iter(lambda: f.read(1 << 22), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+@contextlib.contextmanager
+def run_lock(folder: str | os.PathLike, *, hint: str = "use another folder") -> Iterator[None]:
+    """Exclusive use of a folder by one process: a second holder fails at once instead of colliding later.
+
+    The lock is an ``flock`` on ``folder/.lock`` (which names the holder: pid and host), so the kernel drops it
+    when its process dies, however it dies; a stale ``.lock`` file left behind locks nothing. Not reentrant: a
+    process that takes the lock of a folder it already holds fails like any other.
+
+    Args:
+        folder: an existing folder.
+        hint: what the error message tells the second run to do instead (e.g. which option names the folder).
+
+    Raises:
+        RuntimeError: another process holds the lock (the message names it).
+    """
+    folder = Path(folder)
+    f = open(folder / ".lock", "a+")  # held open for the whole block: closing it releases the lock
+    try:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            message = f"{folder} is in use by another run ({holder}); wait for it to finish, or {hint}"
+            raise RuntimeError(message) from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        f.flush()
+        yield
+    finally:
+        f.close()

@@ -15,9 +15,16 @@ import numpy as np
 import pytest
 
 from experiments.cross_season import apply_overrides, get_config, run
-from experiments.cross_season import pipeline as P
-from placejax.classify import ArtefactError, PlaceClassifier, _run_layout, unknown
+from experiments.cross_season.context import Context
+from experiments.cross_season.depth_hha import compute_depth_and_hha, depth_source
+from experiments.cross_season.fusion import train_mlp
+from experiments.cross_season.nets import net_outputs, train_nets
+from experiments.cross_season.sessions import fit_grid, load_sessions
+from placejax.classify import ArtefactError, PlaceClassifier, run_layout, unknown
 from placejax.classify.__main__ import main as classify_main
+from placejax.data import eval_dataset
+from placejax.data.cache import cache_digest
+from placejax.training import data_mesh, predict
 
 TRAIN, TEST = "WI", "SU"
 
@@ -65,24 +72,24 @@ def experiment_outputs(smoke_run):
     per session its uint8 frames, HHA images, labels and the logits of RGB-Net, HHA-Net and the fusion MLP of
     the classifier trained on ``TRAIN``."""
     cfg, workdir, _ = smoke_run
-    ctx = P.Context(config=cfg, workdir=Path(workdir).absolute(), mesh=P.data_mesh(None))
-    sessions = P.load_sessions(ctx)
-    grid = P.fit_grid(ctx, sessions)
-    P.compute_depth_and_hha(ctx, sessions)
-    nets = P.train_nets(ctx, sessions, grid.num_classes)
+    ctx = Context(config=cfg, workdir=Path(workdir).absolute(), mesh=data_mesh(None))
+    sessions = load_sessions(ctx)
+    grid = fit_grid(ctx, sessions)
+    compute_depth_and_hha(ctx, sessions)
+    nets = train_nets(ctx, sessions, grid.num_classes)
     by_name = {s.name: s for s in sessions}
     tr = by_name[TRAIN]
     out = {
-        (m, s.name): P.net_outputs(ctx, nets[(TRAIN, m)], s, grid.num_classes) for m in ("rgb", "hha") for s in sessions
+        (m, s.name): net_outputs(ctx, nets[(TRAIN, m)], s, grid.num_classes) for m in ("rgb", "hha") for s in sessions
     }
     emb = np.concatenate([out[("rgb", TRAIN)]["fc7"], out[("hha", TRAIN)]["fc7"]], 1)
-    upstream = {m: P.cache_digest(nets[(TRAIN, m)].key) for m in ("rgb", "hha")}
-    state, prepare, _ = P.train_mlp(ctx, tr, emb, grid.num_classes, 0, upstream)
+    upstream = {m: cache_digest(nets[(TRAIN, m)].key) for m in ("rgb", "hha")}
+    state, prepare, _ = train_mlp(ctx, tr, emb, grid.num_classes, 0, upstream)
     result = {}
     for s in sessions:
         e = np.concatenate([out[("rgb", s.name)]["fc7"], out[("hha", s.name)]["fc7"]], 1)
-        ds = P.eval_dataset(e, batch_size=cfg.eval.batch_size)
-        fused = P.predict(state, ds, len(s), mesh=ctx.mesh, prepare=prepare, progress=False)["logits"]
+        ds = eval_dataset(e, batch_size=cfg.eval.batch_size)
+        fused = predict(state, ds, len(s), mesh=ctx.mesh, prepare=prepare, progress=False)["logits"]
         result[s.name] = {
             "images": np.asarray(s.cached.images),
             "hha": np.asarray(s.hha.data),
@@ -282,9 +289,9 @@ def test_from_run_errors_name_the_problem(smoke_run, tmp_path, monkeypatch):
         PlaceClassifier.from_run(workdir, "XX")
     with pytest.raises(FileNotFoundError, match=r"classifiers\.json"):
         PlaceClassifier.from_run(tmp_path, TRAIN)
-    real = _run_layout.locate_run
+    real = run_layout.locate_run
     monkeypatch.setattr(
-        _run_layout, "locate_run", lambda w, s: dataclasses.replace(real(w, s), depth={"source": "true"})
+        run_layout, "locate_run", lambda w, s: dataclasses.replace(real(w, s), depth={"source": "true"})
     )
     with pytest.raises(ValueError, match="no depth network"):
         PlaceClassifier.from_run(workdir, TRAIN)
@@ -300,8 +307,8 @@ def test_from_run_reads_the_shipped_depth_network(smoke_run, monkeypatch):
     shipped_record = depth.load_shipped("default")
     shipped, meta = depth.TrainedDepth.from_record(shipped_record), shipped_record.meta
     spec = {"source": "trained", "shipped": "default", "config": dataclasses.asdict(depth.PRESETS["default"])}
-    real = _run_layout.locate_run
-    monkeypatch.setattr(_run_layout, "locate_run", lambda w, s: dataclasses.replace(real(w, s), depth=spec))
+    real = run_layout.locate_run
+    monkeypatch.setattr(run_layout, "locate_run", lambda w, s: dataclasses.replace(real(w, s), depth=spec))
     clf = PlaceClassifier.from_run(workdir, TRAIN)
     assert clf.meta["depth"]["size"] == depth.PRESETS["default"].image_size == shipped.config.image_size
     assert clf.meta["depth"]["source"] == {"shipped": "default", "fingerprint": meta["fingerprint"]}
@@ -449,8 +456,8 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_r
     assert clf._spec.far_as_sky_m == cfg.depth.far_as_sky_m > 0  # the run's settings reached the classifier
     assert clf._spec.flip_average is cfg.depth.flip_average is True  # (the equality tests above cover it)
     assert clf._spec.shifts == tuple(cfg.depth.shift_px) == (2, 4)  # (and so the shifted views)
-    ctx = P.Context(config=cfg, workdir=Path(workdir).absolute(), mesh=P.data_mesh(None))
-    session = P.load_sessions(ctx)[0]
+    ctx = Context(config=cfg, workdir=Path(workdir).absolute(), mesh=data_mesh(None))
+    session = load_sessions(ctx)[0]
     images = np.asarray(session.cached.images[:8])
 
     def classifier_depth(threshold):
@@ -462,9 +469,9 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_r
     np.testing.assert_array_equal(classifier_depth(threshold), far_to_sky(plain, threshold))
     assert 0.3 < (classifier_depth(threshold) == 1000.0).mean() < 0.7
 
-    key, experiment_depth = P._depth_source(_far_as_sky(ctx, threshold), "trained")
+    key, experiment_depth = depth_source(_far_as_sky(ctx, threshold), "trained")
     assert key["far_as_sky_m"] == threshold  # the depth and HHA caches are keyed by it
-    _, experiment_plain = P._depth_source(_far_as_sky(ctx, 0.0), "trained")
+    _, experiment_plain = depth_source(_far_as_sky(ctx, 0.0), "trained")
     got = experiment_depth(session, 0, 8)
     np.testing.assert_array_equal(got, far_to_sky(experiment_plain(session, 0, 8), threshold))
     assert 0.2 < (got == 1000.0).mean() < 0.8

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from experiments.cross_season import apply_overrides, get_config, run
+from placejax.classify import run_layout
 from placejax.data import PlaceGrid, open_array_cache
 
 REPO = Path(__file__).resolve().parents[1]
@@ -139,25 +140,54 @@ def test_frozen_trunk_features_are_cached_once_and_reused(smoke, monkeypatch):
     """The default path freezes the trunk: its conv features are computed once per session and modality (both
     seeds of the smoke run read the same caches) and a later call reads them without running the trunk."""
     workdir, _ = smoke
-    from experiments.cross_season import pipeline as P
+    from experiments.cross_season import nets
+    from experiments.cross_season.context import Context
+    from experiments.cross_season.depth_hha import compute_depth_and_hha
+    from experiments.cross_season.sessions import fit_grid, load_sessions
+    from placejax.pretrain import modality_weights
+    from placejax.training import data_mesh
 
-    feats = [d for d in (workdir / "cache").iterdir() if "-convfeat-" in d.name and d.is_dir()]
+    feats = [f for s in SEASONS for m in nets.MODALITIES for f in run_layout.cache_folders(workdir, s, "features", m)]
     assert len(feats) == len(SEASONS) * 3  # sessions × (rgb, hha, depth1), not × seeds
     cfg = _smoke_config()
-    ctx = P.Context(config=cfg, workdir=workdir, mesh=P.data_mesh(None))
-    sessions = P.load_sessions(ctx)
-    P.fit_grid(ctx, sessions)
-    P.compute_depth_and_hha(ctx, sessions)
+    ctx = Context(config=cfg, workdir=workdir, mesh=data_mesh(None))
+    sessions = load_sessions(ctx)
+    fit_grid(ctx, sessions)
+    compute_depth_and_hha(ctx, sessions)
 
     def no_trunk(*a, **k):
         raise AssertionError("the frozen trunk ran again instead of reading its cached features")
 
-    monkeypatch.setattr(P, "map_batches", no_trunk)
+    monkeypatch.setattr(nets, "map_batches", no_trunk)
     for modality in ("rgb", "hha"):
-        trunk = P._pretrained_vgg(ctx, P.modality_weights(cfg.vgg, modality))["trunk"]
-        cached = P._conv_features(ctx, sessions, modality, trunk)
+        trunk = nets.pretrained_vgg(ctx, modality_weights(cfg.vgg, modality))["trunk"]
+        cached = nets.conv_features(ctx, sessions, modality, trunk)
         assert {s.name for s in sessions} == set(cached)
         assert np.asarray(cached["WI"].data).shape == (len(sessions[0]), 7, 7, 64)
+
+
+def test_run_layout_names_every_cache_of_the_run(smoke):
+    """``placejax.classify.run_layout`` knows every cache the run builds: each cache folder of the smoke run is found
+    under exactly one (session, stage, variant), with one net-output cache per seed."""
+    workdir, results = smoke
+    n_seeds = len(results["seeds"]["seeds"])
+    source = results["config"]["depth"]["source"]
+    found = []
+    for s in SEASONS:
+        for stage, variant in (("frames", "64x64"), ("depth", source), ("hha", source)):
+            (one,) = run_layout.cache_folders(workdir, s, stage, variant)
+            found.append(one)
+        for m in ("rgb", "hha", "depth1"):
+            found += run_layout.cache_folders(workdir, s, "features", m)
+            for t in SEASONS:
+                outputs = run_layout.cache_folders(workdir, t, "outputs", f"{s}-{m}")
+                assert len(outputs) == n_seeds, (s, m, t)
+                found += outputs
+    assert len(found) == len(set(found))
+    on_disk = [p for p in (workdir / run_layout.CACHE_DIR).iterdir() if p.is_dir() and not p.name.endswith(".partial")]
+    assert sorted(found) == sorted(on_disk)
+    with pytest.raises(ValueError, match="unknown cache stage"):
+        run_layout.cache_name("WI", "logits", "rgb")
 
 
 def test_shuffled_labels_score_at_chance(smoke, tmp_path):
@@ -175,8 +205,7 @@ def test_shuffled_labels_score_at_chance(smoke, tmp_path):
         assert real_acc > shuffled_acc + margin, (method, real_acc, shuffled_acc)
     for r in shuffled["same_session"]:
         # Chance for a net that ignores the image: at most the share of the session's most frequent class.
-        caches = tmp_path / "shuffled" / "cache"
-        (d,) = [d for d in caches.iterdir() if re.fullmatch(rf"{r['train']}-rgb64x64-[0-9a-f]{{16}}", d.name)]
+        (d,) = run_layout.cache_folders(tmp_path / "shuffled", r["train"], "frames", "64x64")
         labels = grid.label(open_array_cache(d).extras["poses"])
         majority = np.bincount(labels[labels >= 0]).max() / len(labels)
         assert r["rgb_net"] <= majority + 0.1, (r, majority)
@@ -290,15 +319,15 @@ def test_paper_path_on_fake_nclt(tmp_path, midas_recipe_npz):
     assert results["preset"] == "paper" and results["config"]["data"]["source"] == "nclt"
     assert sorted(p["test"] for p in results["pairs"]) == sorted(d for d in dates for _ in range(3))
     assert {s: v["frames"] for s, v in results["sessions"].items()} == {d: fake.sessions[d].n_kept for d in dates}
-    feats = [d for d in (tmp_path / "work" / "cache").iterdir() if "-convfeat-" in d.name and d.is_dir()]
-    assert len(feats) == 4 * 3  # sessions × (rgb, hha, depth1), frozen ImageNet-style trunk
-    assert open_array_cache(feats[0]).data.shape[1:] == (7, 7, 32)
+    work = tmp_path / "work"
+    feats = [run_layout.cache_folders(work, s, "features", m) for s in dates for m in ("rgb", "hha", "depth1")]
+    assert [len(f) for f in feats] == [1] * 4 * 3  # one per session × (rgb, hha, depth1): frozen ImageNet-style trunk
+    assert open_array_cache(feats[0][0]).data.shape[1:] == (7, 7, 32)
     _assert_net_accuracies_recomputed(tmp_path / "work", results, dates, "32x32")
 
 
 def _session_labels(workdir: Path, grid: PlaceGrid, session: str, size: str) -> np.ndarray:
-    caches = workdir / "cache"
-    (rgb,) = [d for d in caches.iterdir() if re.fullmatch(rf"{re.escape(session)}-rgb{size}-[0-9a-f]{{16}}", d.name)]
+    (rgb,) = run_layout.cache_folders(workdir, session, "frames", size)
     return grid.label(open_array_cache(rgb).extras["poses"])
 
 
@@ -306,13 +335,12 @@ def _assert_net_accuracies_recomputed(workdir: Path, results: dict, sessions, si
     """Every net column of every pair, seed by seed, equals top-1 recomputed from the cached logits (one cache per
     seed's net) and the saved grid; the column is their mean."""
     grid = PlaceGrid.load(workdir / "grid.json")
-    caches = workdir / "cache"
     labels = {s: _session_labels(workdir, grid, s, size) for s in sessions}
     c = results["num_classes"]
     n_seeds = len(results["seeds"]["seeds"])
     for p in results["pairs"]:
         for m in ("rgb", "hha", "depth1"):
-            dirs = [d for d in caches.iterdir() if d.name.startswith(f"{p['train']}-{m}-on-{p['test']}-")]
+            dirs = run_layout.cache_folders(workdir, p["test"], "outputs", f"{p['train']}-{m}")
             assert len(dirs) == n_seeds
             accs = [np.mean(np.asarray(open_array_cache(d).data)[:, :c].argmax(1) == labels[p["test"]]) for d in dirs]
             assert sorted(accs) == pytest.approx(sorted(p[f"{m}_net_per_seed"]))
@@ -381,18 +409,19 @@ def test_bad_overrides_are_explained():
 
 
 def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smoke, tmp_path, monkeypatch):
-    from experiments.cross_season import pipeline
+    from experiments.cross_season import driver
+    from placejax import io
 
     workdir, _ = smoke
     cfg = _smoke_config()
-    with pipeline.workdir_lock(workdir):
+    with io.run_lock(workdir):
         with pytest.raises(RuntimeError, match=r"in use by another run \(pid \d+"):
             run(cfg, workdir)
     # A finished run on read-only storage (simulated: this suite runs as root, which may write anywhere) is read
     # back without a single write.
     real_access = os.access
-    monkeypatch.setattr(pipeline.os, "access", lambda p, mode: False if mode == os.W_OK else real_access(p, mode))
-    monkeypatch.setattr(pipeline, "_run", lambda *a: pytest.fail("a read-only finished run must not be rerun"))
+    monkeypatch.setattr(driver.os, "access", lambda p, mode: False if mode == os.W_OK else real_access(p, mode))
+    monkeypatch.setattr(driver, "_run", lambda *a: pytest.fail("a read-only finished run must not be rerun"))
     assert run(cfg, workdir) == json.loads((workdir / "results.json").read_text())
     other = _smoke_config()
     other.seed = 1
@@ -437,10 +466,9 @@ def test_ceilings_and_nearest_neighbour_baselines(smoke):
     """The second table: ceilings from poses and labels, 1-NN baselines; recomputed independently here."""
     workdir, results = smoke
     grid = PlaceGrid.load(workdir / "grid.json")
-    caches = workdir / "cache"
     poses = {}
     for s in SEASONS:
-        (rgb,) = [d for d in caches.iterdir() if re.fullmatch(rf"{s}-rgb64x64-[0-9a-f]{{16}}", d.name)]
+        (rgb,) = run_layout.cache_folders(workdir, s, "frames")
         poses[s] = open_array_cache(rgb).extras["poses"]
     labels = {s: grid.label(poses[s]) for s in SEASONS}
     for p in results["pairs"]:

@@ -153,22 +153,25 @@ def test_experiment_reads_the_shipped_trunk_as_pretrained_weights(tmp_path):
     import jax
     import jax.numpy as jnp
 
-    from experiments.cross_season import get_config, pipeline
+    from experiments.cross_season import get_config
+    from experiments.cross_season.context import Context
+    from experiments.cross_season.keys import weights_identity
+    from experiments.cross_season.nets import pretrained_vgg
     from placejax.models import VGG16
     from placejax.training import data_mesh
 
     cfg = get_config("default")
     cfg.vgg.update(pretrained=True, weights="shipped:simcampus_places_w0125_s64", width=0.125)
-    ctx = pipeline.Context(config=cfg, workdir=tmp_path, mesh=data_mesh(1))
-    params = pipeline._pretrained_vgg(ctx, cfg.vgg.weights)
+    ctx = Context(config=cfg, workdir=tmp_path, mesh=data_mesh(1))
+    params = pretrained_vgg(ctx, cfg.vgg.weights)
     want = jax.eval_shape(VGG16(num_classes=100, width=0.125).init, jax.random.key(0), jnp.zeros((1, 64, 64, 3)))
     assert set(params) == {"trunk"}
     assert jax.tree.map(lambda a: a.shape, params["trunk"]) == jax.tree.map(lambda a: a.shape, want["params"]["trunk"])
-    ident = pipeline.weights_identity(cfg.vgg.weights, "vgg16_imagenet")
+    ident = weights_identity(cfg.vgg.weights, "vgg16_imagenet")
     assert ident["shipped"] == cfg.vgg.weights and len(ident["sha256"]) == 64
     cfg.vgg.width = 0.25
     with pytest.raises(ValueError, match=r"width-0\.125 trunk"):
-        pipeline._pretrained_vgg(ctx, cfg.vgg.weights)
+        pretrained_vgg(ctx, cfg.vgg.weights)
 
 
 def test_rgb_fingerprint_is_unchanged_by_the_modality_field():

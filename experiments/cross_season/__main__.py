@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         _config.validate(cfg)
     except ValueError as e:
         parser.error(str(e))
-    from experiments.cross_season.pipeline import run
+    from experiments.cross_season.driver import run
     from experiments.cross_season.report import table_markdown
 
     workdir = args.workdir or f"runs/cross_season-{args.preset}"

@@ -7,12 +7,14 @@ Public surface:
     Prediction: what ``PlaceClassifier.predict`` returns.
     ArtefactError: a classifier file that is corrupt, truncated or of another format.
     unknown: unseen-place scores, thresholds and their evaluation.
+    run_layout: where a finished ``experiments.cross_season`` run keeps its checkpoints, caches and index.
 
 Command: ``python -m placejax.classify MODEL IMAGE... [--json] [--figure out.png]``.
 """
 
 from placejax.classify import _unknown as unknown
+from placejax.classify import run_layout
 from placejax.classify._artefact import ArtefactError
 from placejax.classify._classifier import PlaceClassifier, Prediction
 
-__all__ = ["ArtefactError", "PlaceClassifier", "Prediction", "unknown"]
+__all__ = ["ArtefactError", "PlaceClassifier", "Prediction", "run_layout", "unknown"]

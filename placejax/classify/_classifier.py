@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import hha as _hha
-from placejax.classify import _artefact, _run_layout
+from placejax.classify import _artefact, run_layout
 from placejax.classify import _unknown as unknown
 from placejax.data import PlaceGrid
 from placejax.data.camera import resize_image
@@ -280,7 +280,7 @@ class PlaceClassifier:
             ValueError: the run used rendered depth (``depth.source=true``): there is no depth network to
                 turn a photograph into depth.
         """
-        files = _run_layout.locate_run(workdir, train_session)
+        files = run_layout.locate_run(workdir, train_session)
         cfg = files.config
         d = files.depth
         if d["source"] == "trained":

@@ -1,9 +1,18 @@
-"""Where a finished ``experiments.cross_season`` run keeps what a classifier needs — the one module that knows.
+"""Where a finished ``experiments.cross_season`` run keeps its files — the one module that knows the layout.
 
-The run writes ``classifiers.json`` into its work directory (:func:`write_run_index`, called by the pipeline
-with the paths it used); :func:`locate_run` reads it back. Nothing else in ``placejax.classify`` knows the work
-directory's layout, so a change of layout (checkpoint folders, cache keys) is a change here and in the writer's
-caller only.
+The run writes ``classifiers.json`` into its work directory (:func:`write_run_index`, called by the experiment
+with the paths it used); :func:`locate_run` reads it back. The run's caches are named by :func:`cache_name` (the
+experiment builds them under these names) and found by :func:`cache_folders` (diagnostics and tests read them).
+Nothing else knows the work directory's layout, so a change of layout (checkpoint folders, cache names) is a
+change here and in the experiment's stages only.
+
+Work directory::
+
+    classifiers.json   the index below
+    results.json, table.md, config.json, grid.json, figures/
+    nets/<train>-<modality>-<hash>/   orbax checkpoints of each place classifier (NETS_DIR)
+    mlp/<train>-<hash>/               orbax checkpoints of each fusion MLP (MLP_DIR)
+    cache/<name>-<16 hex digits>/     one array cache per session and stage (CACHE_DIR; names: cache_name)
 
 ``classifiers.json``::
 
@@ -25,14 +34,90 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any
 
 from placejax.io import write_json
 
+__all__ = [
+    "CACHE_DIR",
+    "CACHE_STAGES",
+    "INDEX_NAME",
+    "MLP_DIR",
+    "NETS_DIR",
+    "RunFiles",
+    "cache_folders",
+    "cache_name",
+    "locate_run",
+    "write_run_index",
+]
+
 INDEX_NAME = "classifiers.json"
+"""The index file in a run's work directory."""
+CACHE_DIR = "cache"
+"""The work directory's folder of array caches (``placejax.data.build_array_cache`` roots)."""
+NETS_DIR = "nets"
+"""The work directory's folder of place-classifier checkpoints."""
+MLP_DIR = "mlp"
+"""The work directory's folder of fusion-MLP checkpoints."""
+CACHE_STAGES = ("frames", "depth", "hha", "features", "outputs")
+"""The stages :func:`cache_name` names a cache of."""
 _FORMAT = "placejax.cross_season.classifiers"
 _VERSION = 1
+_DIGEST = re.compile(r"-[0-9a-f]{16}")
+
+
+def cache_name(session: str, stage: str, variant: str) -> str:
+    """The name a run gives the cache of one session's stage (its folder is ``<name>-<16 hex digits of the key>``).
+
+    Args:
+        session: the session the cache holds frames of (for ``outputs``: the test session).
+        stage: one of :data:`CACHE_STAGES`.
+        variant: ``frames``: the image size ``"HxW"`` (``placejax.data.cache_session`` names a session's frames
+            so); ``depth`` and ``hha``: the depth source (``"trained"``, ``"midas"``, ``"true"``); ``features``:
+            the modality of the frozen trunk (``"rgb"``, ``"hha"``, ``"depth1"``); ``outputs``: the network,
+            ``"<training session>-<modality>"``.
+
+    Returns:
+        E.g. ``"WI-depth-trained"``, ``"WI-rgb-convfeat"``, ``"WI-rgb-on-SP"``, ``"WI-rgb64x64"``.
+    """
+    if stage == "frames":
+        return f"{session}-rgb{variant}"
+    if stage in ("depth", "hha"):
+        return f"{session}-{stage}-{variant}"
+    if stage == "features":
+        return f"{session}-{variant}-convfeat"
+    if stage == "outputs":
+        return f"{variant}-on-{session}"
+    raise ValueError(f"unknown cache stage {stage!r}; expected one of {CACHE_STAGES}")
+
+
+def cache_folders(workdir: str | os.PathLike, session: str, stage: str, variant: str | None = None) -> list[Path]:
+    """The complete cache folders of one session's stage in a run's work directory, sorted by name.
+
+    Several folders share a name when the stage was built under several keys (e.g. the outputs of a network of
+    each seed, or a cache built before a setting changed); an unfinished ``.partial`` build is not listed.
+
+    Args:
+        workdir: the run's work directory.
+        session, stage, variant: as :func:`cache_name`; ``variant=None`` matches every variant of ``frames``
+            (any image size) and is required by the other stages.
+
+    Returns:
+        Absolute paths (possibly none).
+    """
+    if variant is None:
+        if stage != "frames":
+            raise ValueError(f"cache stage {stage!r} needs a variant (see cache_name)")
+        pattern = re.escape(f"{session}-rgb") + r"[0-9]+x[0-9]+"
+    else:
+        pattern = re.escape(cache_name(session, stage, variant))
+    root = Path(workdir).absolute() / CACHE_DIR
+    if not root.is_dir():
+        return []
+    full = re.compile(pattern + _DIGEST.pattern)
+    return sorted(p for p in root.iterdir() if p.is_dir() and full.fullmatch(p.name))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,0 +1,172 @@
+"""Stage ``evaluate`` (and ``baselines``): top-1 of every method on every other session, the pose ceilings and
+nearest-neighbour baselines, the unseen-place columns, and the paired bootstrap intervals of the gains."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import ml_collections
+import numpy as np
+
+from experiments.cross_season import baselines as _baselines
+from experiments.cross_season.context import Context, SessionData
+from experiments.cross_season.depth_hha import depth_and_hha_caches
+from placejax.evaluation import frame_gains, gain_intervals, mean_sd, softmax, top1
+
+
+def method_logits(run, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
+    """Logits (or averaged probabilities) of every method of one seed's run on one pair."""
+    nets, outputs, fused, _ = run
+    out = {"ours": fused[(train, test)]}
+    for m in nets_modalities(nets, train):
+        out[f"{m}_net"] = outputs[(train, m, test)]["logits"]
+    if config.ablations.average:
+        out["average"] = softmax(outputs[(train, "rgb", test)]["logits"]) + softmax(
+            outputs[(train, "hha", test)]["logits"]
+        )
+    return out
+
+
+def _gain_intervals(cross: list[dict], seed: int) -> dict:
+    """Paired bootstrap 95 % intervals of Ours − each baseline, per pair and for the mean (``stats``); drops the
+    per-frame correctness the rows carried for it."""
+    correct = [p.pop("_correct") for p in cross]
+    out = {}
+    for base in ("rgb_net", "hha_net"):
+        per_pair, mean = gain_intervals([frame_gains(c["ours"], c[base]) for c in correct], seed=seed)
+        for p, g in zip(cross, per_pair, strict=True):
+            p[f"gain_vs_{base}"] = g
+        out[f"ours_vs_{base}"] = mean
+    return out
+
+
+def rgb_baseline_features(sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
+    """Standardised RGB and gradient-magnitude thumbnails of every session (the RGB-only baselines)."""
+    sizes = _baselines.THUMB_SIZES
+    return {
+        "nn_rgb": {s.name: _baselines.thumbnails(s.cached.images, sizes["nn_rgb"]) for s in sessions},
+        "nn_gradient": {
+            s.name: _baselines.gradient_thumbnails(s.cached.images, sizes["nn_gradient"]) for s in sessions
+        },
+    }
+
+
+def baseline_features(ctx: Context, sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
+    """Standardised thumbnails of every session for the nearest-neighbour baselines (``baselines`` module)."""
+    sizes = _baselines.THUMB_SIZES
+    feats = rgb_baseline_features(sessions)
+    feats["nn_hha"] = {s.name: _baselines.thumbnails(s.hha.data, sizes["nn_hha"]) for s in sessions}
+    if ctx.config.data.source == "simcampus":
+        # Geometry alone: HHA of rendered depth (the same caches as depth.source=true, built once).
+        true = depth_and_hha_caches(ctx, sessions, "true")
+        feats["nn_hha_true"] = {
+            s.name: _baselines.thumbnails(h.data, sizes["nn_hha_true"])
+            for s, (_, h) in zip(sessions, true, strict=True)
+        }
+    return feats
+
+
+def pair_ceilings_and_baselines(s: SessionData, t: SessionData, thumbs: dict) -> dict[str, float]:
+    """Pose ceilings and 1-NN baselines of training session ``s`` on test session ``t`` (``thumbs``: name →
+    session → standardised thumbnails)."""
+    # The best any classifier trained on s can do: test frames in classes s never visited are errors.
+    row = {
+        "seen_class_fraction": float(np.isin(t.labels, np.unique(s.labels)).mean()),
+        "heading_ceiling": _baselines.heading_ceiling(s.cached.poses, s.labels, t.cached.poses, t.labels),
+    }
+    for name, feats in thumbs.items():
+        guess = _baselines.nearest_neighbour_labels(feats[s.name], s.labels, feats[t.name])
+        row[name] = float(np.mean(guess == t.labels))
+    return row
+
+
+def nets_modalities(nets: dict, session: str) -> list[str]:
+    return [m for (s, m) in nets if s == session]
+
+
+def _unknown_columns(fused: dict, s: SessionData, t: SessionData) -> dict[str, float]:
+    """Unseen-place detection of the fusion trained on ``s`` when tested on ``t`` (extra columns of table.md).
+
+    Each score's threshold comes from ``s``'s own frames only (``target_frr`` of them rejected); test frames in
+    classes ``s`` never visited are the positives.
+    """
+    from placejax.classify import unknown
+
+    out = {}
+    seen = np.unique(s.labels)
+    for score in unknown.SCORES:
+        thr = unknown.fit_threshold(np.asarray(unknown.unknown_score(fused[(s.name, s.name)], score)))
+        m = unknown.detection_metrics(fused[(s.name, t.name)], t.labels, seen, thr, score)
+        out[f"unknown_{score}_auroc"] = m["auroc"]
+        if score == unknown.DEFAULT_SCORE:
+            out.update({f"unknown_{k}": v for k, v in m.items() if k != "auroc"})
+    # NaN (no unseen or no accepted frame in this pair) is written as null: results.json stays strict JSON.
+    return {k: (None if np.isnan(v) else v) for k, v in out.items()}
+
+
+def _unknown_summary(cross: list[dict]) -> dict:
+    """Means of the unseen-place columns over the pairs where each is defined (``n_pairs`` says how many)."""
+    from placejax.classify import unknown
+
+    keys = [k for k in cross[0] if k.startswith("unknown_")]
+    mean, n = {}, {}
+    for k in keys:
+        vals = [p[k] for p in cross if p[k] is not None]
+        mean[k], n[k] = (float(np.mean(vals)) if vals else None), len(vals)
+    return {"score": unknown.DEFAULT_SCORE, "target_frr": unknown.DEFAULT_TARGET_FRR, "mean": mean, "n_pairs": n}
+
+
+def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumbs: dict) -> dict[str, Any]:
+    """Scores every method of every seed's ``runs`` (``fusion.train_and_predict``) on every ordered session pair.
+
+    Args:
+        ctx: the run context (``config.seed``, ``config.n_seeds``, the ablations, the ``evaluate`` timer).
+        sessions: every session, labelled.
+        runs: per seed, ``(nets, outputs, fused, mlp_dirs)``.
+        thumbs: :func:`baseline_features`.
+
+    Returns:
+        The scoring part of ``results.json``: ``pairs`` (one row per cross-session pair: each method's mean, sd and
+        per-seed top-1, ceilings, baselines, unseen-place columns, gains with intervals), ``same_session`` (rows of
+        a session tested on itself), ``mean`` and ``mean_sd_over_seeds`` per method, ``gains`` (mean gains),
+        ``ceilings_and_baselines`` (means) and ``unknown`` (means of the unseen-place columns). Accuracies are
+        fractions.
+    """
+    config = ctx.config
+    fused = runs[0][2]  # the first seed's fusion: the unseen-place columns
+    with ctx.timed("evaluate"):
+        pairs = []
+        for s in sessions:
+            for t in sessions:
+                row: dict[str, Any] = {"train": s.name, "test": t.name, "n_test": len(t)}
+                per_seed = [method_logits(r, s.name, t.name, config) for r in runs]
+                for m in per_seed[0]:
+                    accs = [top1(logits[m], t.labels) for logits in per_seed]
+                    row[m], row[f"{m}_sd"] = mean_sd(accs)
+                    row[f"{m}_per_seed"] = accs
+                row.update(pair_ceilings_and_baselines(s, t, thumbs))
+                if t.name == s.name:
+                    row["same_session"] = True
+                else:
+                    row.update(_unknown_columns(fused, s, t))
+                    row["_correct"] = {
+                        m: np.stack([np.argmax(lg[m], 1) == t.labels for lg in per_seed]) for m in per_seed[0]
+                    }
+                pairs.append(row)
+    cross = [p for p in pairs if p["train"] != p["test"]]
+    methods = [k for k in ("ours", "rgb_net", "hha_net", "depth1_net", "average") if k in cross[0]]
+    gains = _gain_intervals(cross, config.seed)
+    return {
+        "pairs": cross,
+        "same_session": [p for p in pairs if p["train"] == p["test"]],
+        "mean": {m: float(np.mean([p[m] for p in cross])) for m in methods},
+        "mean_sd_over_seeds": {
+            m: mean_sd([np.mean([p[f"{m}_per_seed"][k] for p in cross]) for k in range(config.n_seeds)])[1]
+            for m in methods
+        },
+        "gains": gains,
+        "ceilings_and_baselines": {
+            k: float(np.mean([p[k] for p in cross])) for k in ("seen_class_fraction", "heading_ceiling", *thumbs)
+        },
+        "unknown": _unknown_summary(cross),
+    }

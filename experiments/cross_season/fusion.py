@@ -1,0 +1,72 @@
+"""Stage ``mlp``: per training session, the fusion MLP (paper §III-D) on the concatenated fc7 of its RGB and HHA
+nets (orbax-checkpointed), and its logits on every session; with the nets, one seed's models."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments.cross_season.context import Context, SessionData, seed_context
+from experiments.cross_season.keys import results_only
+from experiments.cross_season.nets import features_prepare, net_outputs, train_classifier, train_nets, training_labels
+from placejax.classify.run_layout import MLP_DIR
+from placejax.data import eval_dataset
+from placejax.data.cache import cache_digest
+from placejax.models import FusionMLP
+from placejax.training import apply_fn, predict
+
+
+def train_mlp(ctx: Context, s: SessionData, embeddings: np.ndarray, num_classes: int, si: int, upstream: dict):
+    """The fusion MLP (paper §III-D) on the training session's concatenated fc7 pairs; orbax-checkpointed."""
+    cfg = ctx.config
+    model = FusionMLP(num_classes=num_classes, hidden=cfg.mlp.hidden, dropout_rate=cfg.mlp.dropout)
+    key = jax.random.fold_in(jax.random.key(cfg.seed), 10_000 + si)
+    init_key, run_key = jax.random.split(key)
+    params = model.init(init_key, jnp.zeros((1, embeddings.shape[1])))["params"]
+    mlp_key = {"mlp": results_only(cfg.mlp), "upstream": upstream, "seed": cfg.seed}
+    folder = ctx.workdir / MLP_DIR / f"{s.name}-{cache_digest(mlp_key)}"
+    labels = training_labels(cfg, s, si)
+    state = train_classifier(
+        ctx,
+        f"MLP {s.name}",
+        apply_fn(model),
+        params,
+        embeddings,
+        labels,
+        features_prepare,
+        cfg.mlp,
+        seed=cfg.seed + 100 + si,
+        key=run_key,
+        folder=folder,
+    )
+    return state, features_prepare, folder
+
+
+def train_and_predict(ctx: Context, sessions: list[SessionData], num_classes: int, seed: int):
+    """Nets, their outputs, the fusion MLPs and the fused logits of one seed: ``(nets, outputs, fused, mlp_dirs)``."""
+    ctx = seed_context(ctx, seed)
+    cfg = ctx.config
+    nets = train_nets(ctx, sessions, num_classes)
+    with ctx.timed("outputs"):
+        outputs = {
+            (a, m, s.name): net_outputs(ctx, net, s, num_classes) for (a, m), net in nets.items() for s in sessions
+        }
+    fused: dict[tuple[str, str], np.ndarray] = {}
+    mlp_dirs: dict[str, Path] = {}
+    with ctx.timed("mlp"):
+        for si, s in enumerate(sessions):
+            emb = np.concatenate([outputs[(s.name, "rgb", s.name)]["fc7"], outputs[(s.name, "hha", s.name)]["fc7"]], 1)
+            upstream = {m: cache_digest(nets[(s.name, m)].key) for m in ("rgb", "hha")}
+            state, prepare, mlp_dirs[s.name] = train_mlp(ctx, s, emb, num_classes, si, upstream)
+            for t in sessions:
+                emb_t = np.concatenate(
+                    [outputs[(s.name, "rgb", t.name)]["fc7"], outputs[(s.name, "hha", t.name)]["fc7"]], 1
+                )
+                ds = eval_dataset(emb_t, batch_size=cfg.eval.batch_size // jax.process_count())
+                fused[(s.name, t.name)] = predict(state, ds, len(t), mesh=ctx.mesh, prepare=prepare, progress=False)[
+                    "logits"
+                ]
+    return nets, outputs, fused, mlp_dirs

@@ -1,0 +1,53 @@
+"""What identifies a stage's inputs in cache keys and checkpoint folder names: weights by their bytes, parameter
+trees by a digest, config sections without the keys that change no result."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+from pathlib import Path
+from typing import Any
+
+import jax
+import ml_collections
+import numpy as np
+
+from placejax import io
+
+
+@functools.lru_cache(maxsize=8)
+def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
+    del size, mtime_ns  # part of the cache key only: a replaced file is hashed again
+    return io.file_sha256(path)
+
+
+def weights_identity(path: str, registry_name: str) -> dict:
+    """What identifies a weights file in cache keys: its SHA-256 (not its path: a moved file is the same
+    weights, a replaced one is not), the shipped file's, or the registry entry."""
+    if not path:
+        return {"registry": registry_name}
+    from placejax.pretrain import SHIPPED_PREFIX, shipped_file
+
+    if path.startswith(SHIPPED_PREFIX):
+        res = shipped_file(path[len(SHIPPED_PREFIX) :])
+        return {"shipped": path, "sha256": hashlib.sha256(res.read_bytes()).hexdigest()}
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"weights file {path!r} not found")
+    st = p.stat()
+    return {"sha256": _file_sha256(str(p.resolve()), st.st_size, st.st_mtime_ns)}
+
+
+def results_only(section: ml_collections.ConfigDict) -> dict:
+    """A config section without the keys that change no result (checkpoint intervals), for cache keys."""
+    return {k: v for k, v in section.to_dict().items() if k != "save_every"}
+
+
+def params_digest(params: Any) -> str:
+    """16 hex digits of the SHA-256 of a parameter tree: every leaf's path, dtype, shape and bytes, in order."""
+    h = hashlib.sha256()
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        a = np.ascontiguousarray(jax.device_get(leaf))
+        h.update(f"{jax.tree_util.keystr(path)}:{a.dtype.str}:{a.shape};".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]

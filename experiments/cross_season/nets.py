@@ -1,0 +1,330 @@
+"""Stages ``features``, ``nets`` and ``outputs``: a VGG16 place classifier per (training session, modality) —
+RGB, HHA and the 1-channel depth ablation — trained from scratch or, with a pretrained trunk, on its cached frozen
+conv features (orbax-checkpointed); then every net's logits and fc7 on every session (cached)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import grain
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from experiments.cross_season.context import Context, SessionData
+from experiments.cross_season.keys import params_digest, results_only, weights_identity
+from placejax.classify.run_layout import NETS_DIR, cache_name
+from placejax.data import build_array_cache, eval_dataset, train_dataset
+from placejax.data.cache import cache_digest
+from placejax.models import VGG16, cpu_compiler_options, he_init, imagenet_normalise
+from placejax.pretrain import modality_weights
+from placejax.training import apply_fn, local_copy, make_optimizer, map_batches, predict, replicate, train
+
+MODALITIES = ("rgb", "hha", "depth1")
+_WHOLE = grain.sharding.ShardOptions(shard_index=0, shard_count=1)  # every frame, whatever the process
+
+
+def modality_images(s: SessionData, modality: str) -> np.ndarray:
+    """The uint8 ``(N, H, W, 3)`` frames a modality's net reads (memmaps; ``depth1`` is derived on the fly)."""
+    if modality == "rgb":
+        return s.cached.images
+    if modality in ("hha", "depth1"):
+        return s.hha.data
+    raise ValueError(f"unknown modality {modality!r}; expected one of {MODALITIES}")
+
+
+def network_input(images: np.ndarray, modality: str) -> np.ndarray:
+    """uint8 ``(B, H, W, 3)`` → float32 network input (ImageNet normalisation, as the VGG16 recipe).
+
+    HHA images go through the same normalisation as RGB (paper §III: the HHA net is the same VGG16 recipe, so HHA
+    is treated as an ordinary 3-channel image). ``depth1``, the 1-channel ablation (paper §IV), is the disparity
+    channel of the same HHA image repeated ×3, so the two differ only in the height and angle channels and share
+    quantisation and metric scaling.
+    """
+    x = np.asarray(images)
+    if modality == "depth1":
+        x = np.repeat(x[..., :1], 3, axis=-1)
+    return imagenet_normalise(x)
+
+
+def _vgg(ctx: Context, num_classes: int) -> VGG16:
+    c = ctx.config.vgg
+    return VGG16(num_classes=num_classes, width=c.width, dropout_rate=c.dropout)
+
+
+def pretrained_vgg(ctx: Context, weights: str) -> dict:
+    """Pretrained VGG16 parameters of ``weights`` (``vgg.weights`` or ``vgg.hha_weights``) at ``vgg.width``
+    (``placejax.pretrain.pretrained_vgg16``): a torchvision-layout file, ``shipped:<name>`` (a trunk pretrained on
+    other SimCampus worlds; fc6/fc7 then start from He init and are trained), or empty for the registry's
+    ImageNet weights."""
+    from placejax.pretrain import pretrained_vgg16
+
+    try:
+        return pretrained_vgg16(weights, ctx.config.vgg.width)
+    except ValueError as e:
+        raise ValueError(f"vgg weights {weights!r}, vgg.width={ctx.config.vgg.width}: {e}") from None
+
+
+def training_labels(config: ml_collections.ConfigDict, s: SessionData, si: int) -> np.ndarray:
+    """The labels the networks of training session ``s`` (index ``si``) learn from.
+
+    ``train.shuffle_labels`` (a control): the session's labels permuted across its frames with a seeded
+    permutation, so the label histogram is kept but every image–label link is broken; accuracies measured
+    against the true labels must then fall to chance.
+    """
+    if not config.train.shuffle_labels:
+        return s.labels
+    return np.random.default_rng([config.seed, si, 0x5EED]).permutation(s.labels)
+
+
+def _vgg_key(ctx: Context, modality: str) -> dict:
+    """The ``vgg`` section as a cache key: the weights of the modality's trunk by their identity (file hash)."""
+    c = ctx.config.vgg
+    out = {k: v for k, v in c.to_dict().items() if k not in ("weights", "hha_weights")}
+    if c.pretrained:
+        out["weights"] = weights_identity(modality_weights(c, modality), "vgg16_imagenet")
+    return out
+
+
+def _net_key(ctx: Context, s: SessionData, labels: np.ndarray, modality: str, num_classes: int) -> dict:
+    cfg = ctx.config
+    return {
+        "modality": modality,
+        "images": s.cached.key if modality == "rgb" else s.hha.key,
+        "labels": cache_digest({"labels": labels.tolist()}),
+        "num_classes": num_classes,
+        "vgg": _vgg_key(ctx, modality),
+        "train": results_only(cfg.train),
+        "seed": cfg.seed,
+    }
+
+
+@dataclasses.dataclass
+class TrainedNet:
+    """A trained place classifier and how to run it on any session."""
+
+    name: str
+    state: Any
+    inputs: Callable[[SessionData], np.ndarray]  # frames (or cached conv features) the net reads
+    prepare: Callable[[dict], dict]
+    key: dict
+
+
+def conv_features(ctx: Context, sessions: list[SessionData], modality: str, trunk_params: dict):
+    """Frozen ImageNet conv features of every session for one modality, cached as float16."""
+    model = _vgg(ctx, 2)
+    c = ctx.config
+    fn = jax.jit(
+        lambda p, x: model.apply({"params": {"trunk": p}}, x, method=VGG16.conv_features),
+        compiler_options=cpu_compiler_options("vgg16"),  # YNNPACK convs on CPU: ~1.8x faster; {} elsewhere
+    )
+    p = replicate(trunk_params, ctx.local_mesh)
+    out = {}
+    for s in sessions:
+        images = modality_images(s, modality)
+
+        def run(x, modality=modality):
+            return map_batches(lambda b: fn(p, jnp.asarray(network_input(b, modality))), x, c.eval.batch_size)
+
+        shape = jax.eval_shape(fn, trunk_params, jax.ShapeDtypeStruct((1, *images.shape[1:]), jnp.float32)).shape
+        out[s.name] = build_array_cache(
+            ctx.cache_root,
+            cache_name(s.name, "features", modality),
+            len(s),
+            lambda a, b, images=images, run=run: run(np.asarray(images[a:b])),
+            shape[1:],
+            np.float16,  # halves a multi-GB cache at full width; features are post-ReLU averages
+            key={
+                "kind": "vgg_conv_features",
+                "modality": modality,
+                "images": s.cached.key if modality == "rgb" else s.hha.key,
+                "vgg": {
+                    "width": c.vgg.width,
+                    "weights": weights_identity(modality_weights(c.vgg, modality), "vgg16_imagenet"),
+                },
+            },
+            chunk=c.eval.batch_size,
+            progress=ctx.progress,
+            desc=f"conv features {s.name} {modality}",
+        )
+    return out
+
+
+def train_classifier(
+    ctx: Context,
+    name: str,
+    fn: Callable[..., Any],
+    params: dict,
+    frames: Any,
+    labels: np.ndarray,
+    prepare: Callable[[dict], dict],
+    hp: ml_collections.ConfigDict,
+    *,
+    seed: int,
+    key: jax.Array,
+    folder: Path,
+) -> Any:
+    """Trains one place classifier (a VGG16, its head on cached features, or the fusion MLP) on the engine.
+
+    Args:
+        name: for the progress bar.
+        fn: ``placejax.training.apply_fn`` of the model.
+        params: initial parameters.
+        frames: per-frame inputs (images, cached features or embeddings).
+        labels: int ``(N,)``.
+        prepare: raw batch → ``{"x", "label", "valid"}``.
+        hp: a config section with ``epochs``, ``batch_size``, ``learning_rate``, ``optimizer``, ``weight_decay``,
+            ``warmup_steps``, ``save_every``.
+        seed: data order.
+        key: dropout keys.
+        folder: orbax checkpoints (resumed from when present).
+    """
+    ds = train_dataset(frames, labels, batch_size=hp.batch_size // jax.process_count(), seed=seed, num_epochs=hp.epochs)
+    return train(
+        fn,
+        params,
+        make_optimizer(hp.optimizer, weight_decay=hp.weight_decay),
+        ds,
+        key=key,
+        mesh=ctx.mesh,
+        prepare=prepare,
+        learning_rate=hp.learning_rate,
+        warmup_steps=hp.warmup_steps,
+        checkpoint_dir=folder,
+        save_every=hp.save_every,
+        desc=f"train {name}",
+        progress=ctx.progress,
+    )
+
+
+def features_prepare(b: dict) -> dict:
+    return {"x": np.asarray(b["image"], np.float32), "label": b["label"], "valid": b["valid"]}
+
+
+def train_nets(
+    ctx: Context, sessions: list[SessionData], num_classes: int, modalities: tuple[str, ...] | None = None
+) -> dict[tuple[str, str], TrainedNet]:
+    """Trains (or resumes, or reloads) a VGG16 per (training session, modality).
+
+    ``modalities`` defaults to rgb and hha (and depth1 with ``ablations.depth1``); the world calibration trains
+    rgb alone. A net's seed and key depend on the modality's index in ``MODALITIES``, not in this tuple.
+    """
+    cfg = ctx.config
+    if modalities is None:
+        modalities = ("rgb", "hha", "depth1") if cfg.ablations.depth1 else ("rgb", "hha")
+    model = _vgg(ctx, num_classes)
+    key = jax.random.key(cfg.seed)
+    h, w = sessions[0].cached.image_shape
+    nets = {}
+    trunks: dict[str, dict] = {}  # pretrained parameters by weights (the HHA net may read its own)
+    init = jax.jit(model.init)
+    for modality in modalities:
+        mi = MODALITIES.index(modality)
+        pretrained = None
+        if cfg.vgg.pretrained:
+            weights = modality_weights(cfg.vgg, modality)
+            if weights not in trunks:
+                trunks[weights] = pretrained_vgg(ctx, weights)
+            pretrained = trunks[weights]
+        if pretrained is not None:
+            with ctx.timed("features"):
+                feats = conv_features(ctx, sessions, modality, pretrained["trunk"])
+
+            def inputs(s, feats=feats):
+                return feats[s.name].data
+
+            prepare = features_prepare
+            fn = apply_fn(model, "head")
+        else:
+
+            def inputs(s, modality=modality):
+                return modality_images(s, modality)
+
+            def prepare(b, modality=modality):
+                return {"x": network_input(b["image"], modality), "label": b["label"], "valid": b["valid"]}
+
+            fn = apply_fn(model)
+        for si, s in enumerate(sessions):
+            with ctx.timed("nets"):
+                name = f"{s.name}-{modality}"
+                labels = training_labels(cfg, s, si)
+                net_key = _net_key(ctx, s, labels, modality, num_classes)
+                init_key, run_key = jax.random.split(jax.random.fold_in(key, 1000 * mi + si))
+                params = he_init(init(init_key, jnp.zeros((1, h, w, 3)))["params"], init_key)
+                if pretrained is not None:
+                    # Paper §IV: pretrained convs frozen (features cached), fc6/fc7 fine-tuned, fc8 new; weights
+                    # without fc6/fc7 (a shipped trunk) start them from He init.
+                    cls = dict(params["classifier"])
+                    for layer in ("fc6", "fc7"):
+                        if layer in pretrained.get("classifier", {}):
+                            cls[layer] = pretrained["classifier"][layer]
+                    params = {"classifier": cls}
+                folder = ctx.workdir / NETS_DIR / f"{name}-{cache_digest(net_key)}"
+                state = train_classifier(
+                    ctx,
+                    name,
+                    fn,
+                    params,
+                    inputs(s),
+                    labels,
+                    prepare,
+                    cfg.train,
+                    seed=cfg.seed + si,
+                    key=run_key,
+                    folder=folder,
+                )
+                # Only the parameters are used from here on (outputs on every session). The optimiser state (SGD
+                # momentum: as large as the parameters, ~0.5 GB per full-width fc6–fc8) of every net kept until the
+                # end of the run doubled the peak memory of the paper preset (measured: 12 nets held ~12 GB).
+                state = state.replace(opt_state=None)
+                # The outputs and the fusion MLP are keyed by the weights themselves, not only by the recipe: a
+                # net retrained under the same recipe (its folder deleted, another device count: the sums of a
+                # step are grouped differently) must not meet the outputs of the one before.
+                identity = {**net_key, "ckpt": folder.name, "weights": params_digest(state.params)}
+                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, identity)
+    return nets
+
+
+def net_outputs(ctx: Context, net: TrainedNet, s: SessionData, num_classes: int) -> dict[str, np.ndarray]:
+    """Logits ``(N, C)`` and fc7 ``(N, D)`` of ``net`` on every frame of ``s`` (cached)."""
+    cfg = ctx.config
+    d = int(net.state.params["classifier"]["fc7"]["bias"].shape[0])
+    frames = net.inputs(s)
+
+    def compute(a: int, b: int) -> np.ndarray:
+        # This process alone (whichever holds the cache's lock): every frame, on its own devices.
+        ds = eval_dataset(np.asarray(frames[a:b]), batch_size=cfg.eval.batch_size, shard=_WHOLE)
+        out = predict(
+            local_copy(net.state, ctx.local_mesh),
+            ds,
+            b - a,
+            mesh=ctx.local_mesh,
+            prepare=net.prepare,
+            features=("fc7",),
+            progress=False,
+        )
+        return np.concatenate([out["logits"], out["fc7"]], axis=1)
+
+    cache = build_array_cache(
+        ctx.cache_root,
+        cache_name(s.name, "outputs", net.name),
+        len(s),
+        compute,
+        (num_classes + d,),
+        np.float32,
+        key={
+            "kind": "net_outputs",
+            "net": cache_digest(net.key),
+            "frames": s.cached.key,
+            "hha": None if s.hha is None else s.hha.key,  # None: an RGB-only calibration run
+        },
+        chunk=max(cfg.eval.batch_size * 4, 256),
+        progress=ctx.progress,
+        desc=f"{net.name} on {s.name}",
+    )
+    data = np.asarray(cache.data)
+    return {"logits": data[:, :num_classes], "fc7": data[:, num_classes:]}

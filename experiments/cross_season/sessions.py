@@ -1,0 +1,55 @@
+"""Stages ``sessions`` and ``grid``: every session's RGB frames, decoded or rendered once and cached at
+``data.image_size``, and the ``grid.n × grid.n`` place grid over all sessions' viewpoints (``grid.json``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from experiments.cross_season.context import Context, SessionData
+from placejax.data import PlaceGrid, cache_session, truncated
+
+
+def load_sessions(ctx: Context) -> list[SessionData]:
+    """Opens every session of ``data.sessions`` and caches its RGB frames at ``data.image_size``."""
+    c = ctx.config.data
+    out = []
+    for name in c.sessions:
+        if c.source == "simcampus":
+            from placejax.data import simcampus
+
+            src = simcampus.load_session(
+                name,
+                world_seed=c.world_seed,
+                image_size=tuple(c.image_size),
+                frame_spacing=c.frame_spacing,
+                max_frames=c.max_frames or None,
+            )
+        elif c.source == "nclt":
+            from placejax.data import nclt
+
+            if not c.nclt_root or not Path(c.nclt_root).is_dir():
+                raise FileNotFoundError(
+                    f"data.nclt_root={c.nclt_root!r} is not a folder; pass data.nclt_root=/path/to/nclt holding "
+                    "images/, ground_truth/ and ladybug3_calib/ (layout: docs/nclt.md)"
+                )
+            src = nclt.load_session(c.nclt_root, name, camera=c.camera, undistort=c.undistort, progress=ctx.progress)
+            if c.max_frames:
+                src = truncated(src, c.max_frames)
+        else:
+            raise ValueError(f"data.source must be 'simcampus' or 'nclt', got {c.source!r}")
+        cached = cache_session(src, ctx.cache_root, image_size=tuple(c.image_size), progress=ctx.progress)
+        out.append(SessionData(name=name, cached=cached, source=src))
+    return out
+
+
+def fit_grid(ctx: Context, sessions: list[SessionData]) -> PlaceGrid:
+    """The place grid over the bounding box of all sessions' viewpoints (paper §IV: 10 × 10)."""
+    grid = PlaceGrid.fit([s.cached.poses for s in sessions], n=ctx.config.grid.n)
+    if jax.process_index() == 0:  # one writer for shared files
+        grid.save(ctx.workdir / "grid.json")
+    for s in sessions:
+        s.labels = grid.label(s.cached.poses).astype(np.int32)
+    return grid
