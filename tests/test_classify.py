@@ -4,6 +4,7 @@ saved and loaded bit-exactly, refusing bad files and bad images; the command; th
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import shutil
 import zipfile
@@ -205,13 +206,18 @@ def test_save_load_predict_is_identical(clf, experiment_outputs, tmp_path):
 
 
 def _rewrite(src: Path, dst: Path, *, manifest=None, array_bytes=None, drop=None) -> Path:
+    """``src`` with one member dropped or edited; an edited manifest gets a matching ``manifest.sha256``, so that
+    the checks behind the checksum are reached."""
     with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        new_manifest = None
         for item in zin.infolist():
             data = zin.read(item.filename)
             if item.filename == drop:
                 continue
             if item.filename == "manifest.json" and manifest is not None:
-                data = json.dumps(manifest(json.loads(data))).encode()
+                data = new_manifest = json.dumps(manifest(json.loads(data))).encode()
+            if item.filename == "manifest.sha256" and new_manifest is not None:
+                data = hashlib.sha256(new_manifest).hexdigest().encode()
             if array_bytes is not None and item.filename == array_bytes[0]:
                 data = array_bytes[1](data)
             zout.writestr(item, data)

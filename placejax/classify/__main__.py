@@ -8,28 +8,32 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from placejax.classify import _images
+from placejax.classify._images import MAX_IMAGE_PIXELS
 
 
 class UsageError(Exception):
     """A bad argument: the message names it and what was expected."""
 
 
-def read_image(path: str) -> np.ndarray:
-    """uint8 ``(H, W, 3)`` RGB of an image file (anything OpenCV decodes: PNG, JPEG, ...)."""
-    import cv2
+def read_image(path: str, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+    """uint8 ``(H, W, 3)`` RGB of an image file (PNG, JPEG, BMP, GIF, WebP, TIFF, PNM), at most ``max_pixels``.
 
-    p = Path(path)
-    if not p.is_file():
-        raise UsageError(f"IMAGE {path}: no such file")
-    data = np.fromfile(p, np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    if img is None:
-        raise UsageError(f"IMAGE {path}: not an image file OpenCV can decode (expected PNG, JPEG, BMP, ...)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    The size is read from the file's header and checked before decoding (``placejax.classify._images``).
+
+    Raises:
+        UsageError: no such file, another format, over the pixel or file-size budget, or undecodable.
+    """
+    try:
+        return _images.read_image(path, max_pixels=max_pixels)
+    except (FileNotFoundError, _images.ImageError) as e:
+        raise UsageError(f"IMAGE {e}") from None
 
 
 def _load_model(model: str, session: str | None):
@@ -42,7 +46,7 @@ def _load_model(model: str, session: str | None):
                 raise UsageError(f"MODEL {model} is a run's work directory: pass --session NAME (a training session)")
             return PlaceClassifier.from_run(p, session)
         return PlaceClassifier.load(p)
-    except (FileNotFoundError, ArtefactError, KeyError, ValueError) as e:
+    except (FileNotFoundError, ArtefactError, KeyError, ValueError, OSError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         raise UsageError(f"MODEL {model}: {msg}") from None
 
@@ -50,11 +54,14 @@ def _load_model(model: str, session: str | None):
 def _text(name: str, rec: dict, grid_n: int) -> str:
     row, col = divmod(rec["class"], grid_n)
     b = rec["cell_bounds_m"]
-    verdict = (
-        f"UNKNOWN place ({rec['unknown_kind']} score {rec['unknown_score']:.3f} > threshold {rec['threshold']:.3f})"
-        if rec["rejected"]
-        else "known place"
-    )
+    if not rec["rejected"]:
+        verdict = "known place"
+    elif not math.isfinite(rec["unknown_score"]) or not math.isfinite(rec["confidence"]):
+        verdict = "UNKNOWN place (the network's outputs are not finite numbers)"
+    else:
+        verdict = (
+            f"UNKNOWN place ({rec['unknown_kind']} score {rec['unknown_score']:.3f} > threshold {rec['threshold']:.3f})"
+        )
     return (
         f"{name}: class {rec['class']} (row {row}, col {col}), confidence {rec['confidence']:.3f}, cell centre "
         f"({rec['cell_center_m'][0]:.1f}, {rec['cell_center_m'][1]:.1f}) m, x [{b['x_lo']:.1f}, {b['x_hi']:.1f}] "
@@ -76,17 +83,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--branch", default="fusion", choices=("fusion", "rgb", "hha"), help="which classifier")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of text")
     parser.add_argument("--figure", metavar="OUT.png", help="also draw each image beside its cell on the map")
+    parser.add_argument(
+        "--max-pixels",
+        type=int,
+        default=MAX_IMAGE_PIXELS,
+        help=f"refuse images whose header declares more pixels than this (default {MAX_IMAGE_PIXELS})",
+    )
     args = parser.parse_args(argv)
     try:
-        images = [read_image(p) for p in args.images]
+        images = [read_image(p, args.max_pixels) for p in args.images]
         clf = _load_model(args.model, args.session)
         # Images may differ in size; each is resized to the model's input size, then all run as one batch.
         pairs = zip(args.images, images, strict=True)
         batch = np.stack([clf.prepare(im[None], name=f"IMAGE {p}")[0] for p, im in pairs])
-        pred = clf.predict(batch, branch=args.branch)
     except UsageError as e:
-        print(f"error: {e}", file=sys.stderr)
+        # One line, whatever the input: messages may quote file content.
+        print(f"error: {' '.join(str(e).split())}"[:2000], file=sys.stderr)
         return 2
+    pred = clf.predict(batch, branch=args.branch)
     records = pred.records()
     if args.json:
         doc = {

@@ -41,7 +41,8 @@ class Prediction:
         cell_bounds: float64 ``(N, 4)`` ``(x_lo, x_hi, y_lo, y_hi)`` of the predicted cell, metres.
         unknown_score: float32 ``(N,)`` unfamiliarity (``unknown_kind``; larger = less like a trained place).
         rejected: bool ``(N,)`` score above the threshold fitted on training frames: "I don't know this place".
-            Always False for the single-network branches (no threshold was fitted for them).
+            Also True wherever a logit, probability or the score is NaN or infinite (fail closed); otherwise
+            always False for the single-network branches (no threshold was fitted for them).
         branch: which classifier produced the outputs: ``"fusion"`` (the paper's method), ``"rgb"`` or ``"hha"``.
         unknown_kind: the score's name (see ``placejax.classify.unknown``).
         threshold: the rejection threshold used (NaN: none).
@@ -166,6 +167,25 @@ def forward(spec: _Spec, params: dict, rgb: jax.Array) -> dict[str, jax.Array]:
 
 
 @functools.lru_cache(maxsize=8)
+def _expected_shapes(spec: _Spec) -> dict[str, Any]:
+    """``ShapeDtypeStruct`` trees of every network's parameters: shapes only, nothing the file sizes is allocated."""
+    h, w = spec.image_size
+    dn_h, dn_w = spec.depth_net_size
+
+    def shape(*dims):
+        return jax.ShapeDtypeStruct(dims, jnp.float32)
+
+    key = jax.random.key(0)
+    expected = {
+        "depth": jax.eval_shape(spec.depth_model.init, key, shape(1, dn_h, dn_w, 3)),
+        "rgb": jax.eval_shape(spec.vgg.init, key, shape(1, h, w, 3))["params"],
+        "mlp": jax.eval_shape(spec.mlp.init, key, shape(1, 2 * _fc7_width(spec.vgg)))["params"],
+    }
+    expected["hha"] = expected["rgb"]
+    return expected
+
+
+@functools.lru_cache(maxsize=8)
 def _jitted_forward(spec: _Spec):
     # YNNPACK convolutions on CPU (VGG16 dominates the cost; results agree to float rounding); {} elsewhere.
     return jax.jit(functools.partial(forward, spec), compiler_options=cpu_compiler_options("vgg16"))
@@ -251,15 +271,7 @@ class PlaceClassifier:
 
     def _check_params(self) -> None:
         """Every network's parameters have exactly the shapes its module expects (a mismatched file fails here)."""
-        spec = self._spec
-        h, w = spec.image_size
-        dn_h, dn_w = spec.depth_net_size
-        expected = {
-            "depth": jax.eval_shape(spec.depth_model.init, jax.random.key(0), jnp.zeros((1, dn_h, dn_w, 3))),
-            "rgb": jax.eval_shape(spec.vgg.init, jax.random.key(0), jnp.zeros((1, h, w, 3)))["params"],
-            "mlp": jax.eval_shape(spec.mlp.init, jax.random.key(0), jnp.zeros((1, 2 * _fc7_width(spec.vgg))))["params"],
-        }
-        expected["hha"] = expected["rgb"]
+        expected = _expected_shapes(self._spec)
         for name, want in expected.items():
             want_flat, have = _leaf_specs(want), _leaf_specs(self.params.get(name, {}))
             if want_flat != have:
@@ -369,22 +381,35 @@ class PlaceClassifier:
         return _artefact.write_artefact(path, {**self.meta, "versions": _versions()}, flat)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> PlaceClassifier:
-        """Reads a file written by :meth:`save`; every array's SHA-256, shape and dtype is checked.
+    def load(cls, path: str | os.PathLike, *, max_bytes: int = _artefact.DEFAULT_MAX_BYTES) -> PlaceClassifier:
+        """Reads a file written by :meth:`save`, treating it as untrusted.
+
+        The whole manifest is validated against its schema (types, ranges, finite values, known names) and its
+        checksum, and every array's declared size against ``max_bytes``, before anything is built or allocated;
+        then every array's SHA-256, shape and dtype is checked (see ``docs/security.md``, "Budgets").
+
+        Args:
+            path: the classifier file.
+            max_bytes: the most bytes of parameters the file may declare (default 4 GiB).
 
         Raises:
             FileNotFoundError: no such file.
-            ArtefactError: not a classifier file, corrupt, another format version, or parameters that do not fit.
+            ArtefactError: not a classifier file, corrupt, over a budget, another format version, a manifest
+                field that breaks the schema, or parameters that do not fit; the message names the file.
         """
-        manifest, flat = _artefact.read_artefact(path)
+        from placejax.classify._schema import check_manifest
+
+        manifest, flat = _artefact.read_artefact(path, max_bytes=max_bytes, validate=check_manifest)
         meta = {k: v for k, v in manifest.items() if k not in ("format", "version", "arrays", "versions")}
-        params = {name: _artefact.unflatten(flat, name) for name in ("depth", "rgb", "hha", "mlp")}
         try:
+            params = {name: _artefact.unflatten(flat, name) for name in ("depth", "rgb", "hha", "mlp")}
             return cls(meta, params)
-        except (KeyError, TypeError) as e:
-            raise _artefact.ArtefactError(f"{path}: manifest lacks or mangles a field ({e!r})") from None
-        except _artefact.ArtefactError as e:
+        except (KeyError, TypeError, ValueError) as e:  # ArtefactError is a ValueError
             raise _artefact.ArtefactError(f"{path}: {e}") from None
+        except Exception as e:  # the schema passed: whatever else the content provokes is still the file's fault
+            raise _artefact.ArtefactError(
+                f"{path}: the networks cannot be built from this file ({type(e).__name__}: {e})"
+            ) from None
 
     # ----------------------------------------------------------------------------------------------- inference
 
@@ -457,6 +482,13 @@ class PlaceClassifier:
         kind = self.meta["unknown"]["score"]
         score = np.asarray(unknown.unknown_score(logits, kind))
         thr = self.threshold if branch == "fusion" else float("nan")
+        # Fail closed: a NaN or infinite logit, probability or score never counts as a known place (a NaN
+        # score is never above a threshold, so it is rejected here explicitly, whatever the branch).
+        broken = ~(
+            np.isfinite(np.asarray(logits, np.float64)).all(axis=1)
+            & np.isfinite(probs).all(axis=1)
+            & np.isfinite(score)
+        )
         centres = self.grid.cell_centers()
         return Prediction(
             label=label,
@@ -465,7 +497,7 @@ class PlaceClassifier:
             cell_center=centres[label],
             cell_bounds=np.array([self.grid.cell_bounds(int(k)) for k in label], np.float64).reshape(-1, 4),
             unknown_score=score,
-            rejected=(score > thr) if np.isfinite(thr) else np.zeros(len(label), bool),
+            rejected=((score > thr) if np.isfinite(thr) else np.zeros(len(label), bool)) | broken,
             branch=branch,
             unknown_kind=kind,
             threshold=thr,

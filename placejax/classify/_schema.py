@@ -1,0 +1,204 @@
+"""The schema of a ``PlaceClassifier`` file's manifest, checked in full before anything is built from it.
+
+Every field ``PlaceClassifier`` reads is checked for type, range and finiteness here, so that a file either builds
+a classifier that computes meaningful numbers or is refused at load with an :class:`ArtefactError` naming the
+file and the field (``depth.near_m``, ``normalise.std[1]``, ...). Free-form records (``config``, ``source``,
+``versions``, ``unknown.all_scores``) must be JSON objects and are otherwise only kept.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from placejax.classify._artefact import ArtefactError
+
+MAX_IMAGE_SIDE = 4096
+"""Largest ``image_size`` side a classifier file may declare, pixels (the networks' input; photographs of any
+size are resized to it)."""
+MAX_DEPTH_NET_SIDE = 4096
+MAX_FEATURES = 1024
+MAX_WIDTH = 8.0
+MAX_HIDDEN = 1 << 16
+MAX_SHIFTS = 16
+MAX_SHIFT_PX = 1024
+MAX_CLASSES = 1 << 20
+
+_TOP = {
+    "format",
+    "version",
+    "arrays",
+    "versions",
+    "train_session",
+    "num_classes",
+    "image_size",
+    "intrinsics",
+    "normalise",
+    "depth",
+    "vgg",
+    "mlp_hidden",
+    "grid",
+    "visited_classes",
+    "unknown",
+    "config",
+    "source",
+}
+_OPTIONAL_TOP = {"versions", "visited_classes", "config", "source"}
+_DEPTH_REQUIRED = {"kind", "features", "encoder_width", "size", "near_m", "far_m"}
+_DEPTH_OPTIONAL = {"metric", "far_as_sky_m", "flip_average", "shifts", "source"}
+_ARRAY_GROUPS = ("depth", "rgb", "hha", "mlp")
+_TINY = 2.0**-126  # smallest normal float32: the networks and the HHA encoder compute in float32
+
+
+class _Checker:
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, field: str, problem: str) -> None:
+        raise ArtefactError(f"{self.source}: manifest field {field!r} {problem}")
+
+    def obj(self, value: Any, field: str, required: set[str], optional: set[str] = frozenset()) -> dict:
+        if type(value) is not dict:
+            self.fail(field, f"is a JSON {_json_type(value)}, expected an object")
+        missing = sorted(required - set(value))
+        if missing:
+            self.fail(field, f"lacks {', '.join(missing)}")
+        unknown = sorted(set(value) - required - optional)
+        if unknown:
+            self.fail(field, f"has unknown entries {[k[:40] for k in unknown[:5]]}")
+        return value
+
+    def integer(self, value: Any, field: str, lo: int, hi: int) -> int:
+        if type(value) is not int:
+            self.fail(field, f"is a JSON {_json_type(value)}, expected an integer in [{lo}, {hi}]")
+        if not lo <= value <= hi:
+            self.fail(field, f"is {value}, expected an integer in [{lo}, {hi}]")
+        return value
+
+    def number(self, value: Any, field: str, *, lo: float = -math.inf, hi: float = math.inf, positive=False) -> float:
+        if type(value) not in (int, float):
+            self.fail(field, f"is a JSON {_json_type(value)}, expected a number")
+        v = float(value)
+        if not math.isfinite(v):
+            self.fail(field, f"is {v}, expected a finite number")
+        if positive and not v >= _TINY:
+            self.fail(field, f"is {v}, expected a positive normal number (at least {_TINY:.3g})")
+        if not lo <= v <= hi:
+            self.fail(field, f"is {v}, expected a number in [{lo}, {hi}]")
+        return v
+
+    def boolean(self, value: Any, field: str) -> bool:
+        if type(value) is not bool:
+            self.fail(field, f"is a JSON {_json_type(value)}, expected true or false")
+        return value
+
+    def text(self, value: Any, field: str, max_len: int = 256) -> str:
+        if type(value) is not str or not 0 < len(value) <= max_len:
+            self.fail(field, f"must be a string of 1 to {max_len} characters")
+        return value
+
+    def array(self, value: Any, field: str, n: int | None = None, max_n: int = 1 << 20) -> list:
+        if type(value) is not list:
+            self.fail(field, f"is a JSON {_json_type(value)}, expected a list")
+        if (n is not None and len(value) != n) or len(value) > max_n:
+            self.fail(field, f"has {len(value)} items, expected {n if n is not None else f'at most {max_n}'}")
+        return value
+
+
+def _json_type(value: Any) -> str:
+    return {dict: "object", list: "list", str: "string", bool: "boolean", type(None): "null"}.get(type(value), "number")
+
+
+def check_manifest(m: dict[str, Any], source: str) -> None:
+    """Checks a classifier manifest (the parsed ``manifest.json``) against the schema ``PlaceClassifier`` reads.
+
+    Args:
+        m: the manifest, as parsed from JSON (its ``arrays`` table is checked by ``read_artefact``).
+        source: the file's name, for the messages.
+
+    Raises:
+        ArtefactError: the first field that is missing, unknown, of the wrong type, out of range or not finite,
+            named with the file.
+    """
+    from placejax.classify import unknown
+    from placejax.data import PlaceGrid
+    from placejax.depth import network_size
+
+    c = _Checker(source)
+    c.obj(m, "(top level)", _TOP - _OPTIONAL_TOP, _OPTIONAL_TOP)
+    c.text(m["train_session"], "train_session")
+    for key in ("config", "source", "versions"):
+        if key in m and type(m[key]) is not dict:
+            c.fail(key, f"is a JSON {_json_type(m[key])}, expected an object")
+    try:
+        grid = PlaceGrid.from_dict(m["grid"], source="grid")
+    except (ValueError, TypeError, AttributeError) as e:
+        c.fail("grid", f"is not a valid PlaceGrid ({e})")
+    classes = c.integer(m["num_classes"], "num_classes", 1, MAX_CLASSES)
+    if classes != grid.num_classes:
+        c.fail(
+            "num_classes", f"is {classes}, but the classes do not fit the {grid.n}×{grid.n} grid ({grid.num_classes})"
+        )
+    if "visited_classes" in m:
+        for i, k in enumerate(c.array(m["visited_classes"], "visited_classes", max_n=classes)):
+            c.integer(k, f"visited_classes[{i}]", 0, classes - 1)
+    h, w = (
+        c.integer(v, f"image_size[{i}]", 1, MAX_IMAGE_SIDE)
+        for i, v in enumerate(c.array(m["image_size"], "image_size", 2))
+    )
+    rows = c.array(m["intrinsics"], "intrinsics", 3)
+    k = [
+        [c.number(v, f"intrinsics[{i}][{j}]") for j, v in enumerate(c.array(r, f"intrinsics[{i}]", 3))]
+        for i, r in enumerate(rows)
+    ]
+    for i, name in ((0, "fx"), (1, "fy")):
+        c.number(k[i][i], f"intrinsics[{i}][{i}] ({name})", positive=True, hi=1e12)
+    norm = c.obj(m["normalise"], "normalise", {"mean", "std"})
+    for i, v in enumerate(c.array(norm["mean"], "normalise.mean", 3)):
+        c.number(v, f"normalise.mean[{i}]", lo=-1e6, hi=1e6)
+    for i, v in enumerate(c.array(norm["std"], "normalise.std", 3)):
+        c.number(v, f"normalise.std[{i}]", positive=True, hi=1e6)
+
+    d = c.obj(m["depth"], "depth", _DEPTH_REQUIRED, _DEPTH_OPTIONAL)
+    if d["kind"] not in ("trained", "midas"):
+        c.fail("depth.kind", f"is {str(d['kind'])[:40]!r}, expected 'trained' or 'midas'")
+    c.integer(d["features"], "depth.features", 1, MAX_FEATURES)
+    c.number(d["encoder_width"], "depth.encoder_width", positive=True, hi=MAX_WIDTH)
+    size = c.integer(d["size"], "depth.size", 32, MAX_DEPTH_NET_SIDE)
+    near = c.number(d["near_m"], "depth.near_m", positive=True, hi=1e6)
+    far = c.number(d["far_m"], "depth.far_m", positive=True, hi=1e6)
+    if not near < far:
+        c.fail("depth.far_m", f"is {far}, not beyond depth.near_m = {near}")
+    for key in ("metric", "flip_average"):
+        if key in d:
+            c.boolean(d[key], f"depth.{key}")
+    if "far_as_sky_m" in d:
+        c.number(d["far_as_sky_m"], "depth.far_as_sky_m", lo=0.0, hi=1e6)
+    if "shifts" in d:
+        for i, s in enumerate(c.array(d["shifts"], "depth.shifts", max_n=MAX_SHIFTS)):
+            c.integer(s, f"depth.shifts[{i}]", -MAX_SHIFT_PX, MAX_SHIFT_PX)
+    if "source" in d and type(d["source"]) is not dict:
+        c.fail("depth.source", f"is a JSON {_json_type(d['source'])}, expected an object")
+    try:
+        network_size((h, w), size, square=d["kind"] == "trained")
+    except ValueError as e:
+        c.fail("image_size", f"does not suit the depth network: {e}")
+
+    vgg = c.obj(m["vgg"], "vgg", {"width", "pretrained"})
+    c.number(vgg["width"], "vgg.width", positive=True, hi=MAX_WIDTH)
+    c.boolean(vgg["pretrained"], "vgg.pretrained")
+    c.integer(m["mlp_hidden"], "mlp_hidden", 1, MAX_HIDDEN)
+
+    u = c.obj(m["unknown"], "unknown", {"score", "threshold", "target_frr"}, {"all_scores"})
+    if u["score"] not in unknown.SCORES:
+        c.fail("unknown.score", f"is {str(u['score'])[:40]!r}, expected one of {unknown.SCORES}")
+    for key in ("threshold", "target_frr"):
+        # NaN means "not fitted" (written as NaN by the run); infinities would make rejection all or nothing.
+        if type(u[key]) not in (int, float) or math.isinf(u[key]):
+            c.fail(f"unknown.{key}", f"is {str(u[key])[:40]}, expected a finite number (or NaN: none fitted)")
+    if "all_scores" in u and type(u["all_scores"]) is not dict:
+        c.fail("unknown.all_scores", f"is a JSON {_json_type(u['all_scores'])}, expected an object")
+
+    for name in m["arrays"]:
+        if name.split("/", 1)[0] not in _ARRAY_GROUPS:
+            c.fail(f"arrays[{name[:80]!r}]", f"is not under one of the networks {_ARRAY_GROUPS}")
