@@ -493,6 +493,32 @@ def test_key_limits_leave_ordinary_keys_alone(tmp_path):
     np.testing.assert_array_equal(read_torch_checkpoint(path)["w"], W)
 
 
+def test_vgg16s_structure_fits_the_default_budgets():
+    """torchvision's vgg16-397923af.pth (528 MB, not downloaded here): its state dict's pickle, rebuilt with the
+    same 32 keys, shapes and legacy storages, passes every pickle and state-dict limit, and its 553 MB of tensors,
+    each exactly its storage (no copies), fit DEFAULT_MAX_BYTES with room to spare."""
+    from placejax.weights._restricted_pickle import load
+    from placejax.weights._torch_checkpoint import _Hooks
+
+    convs = [(3, 64), (64, 64), (64, 128), (128, 128), (128, 256), (256, 256), (256, 256)]
+    convs += [(256, 512)] + [(512, 512)] * 5
+    shapes = {}
+    for i, (cin, cout) in zip((0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28), convs, strict=True):
+        shapes[f"features.{i}.weight"], shapes[f"features.{i}.bias"] = (cout, cin, 3, 3), (cout,)
+    for i, (cin, cout) in zip((0, 3, 6), [(25088, 4096), (4096, 4096), (4096, 1000)], strict=True):
+        shapes[f"classifier.{i}.weight"], shapes[f"classifier.{i}.bias"] = (cout, cin), (cout,)
+    numels = {k: int(np.prod(v)) for k, v in shapes.items()}
+    assert len(shapes) == 32 and sum(numels.values()) == 138_357_544  # torchvision's VGG16 parameter count
+    strides = {k: tuple(int(np.prod(v[i + 1 :])) for i in range(len(v))) for k, v in shapes.items()}
+    pairs = [
+        (k, p_tensor(p_storage(str(n), numels[k], legacy=True), shapes[k], strides[k])) for n, k in enumerate(shapes)
+    ]
+    refs = {}
+    state = load(io.BytesIO(p_pickle(p_odict(*pairs))), _Hooks(refs))
+    assert list(state) == list(shapes) and len(refs) == 32
+    assert 4 * sum(numels.values()) == 553_430_176 < DEFAULT_MAX_BYTES // 7
+
+
 def _deep(n: int, open_op: bytes, close_op: bytes) -> bytes:
     return open_op * n + close_op * n
 
