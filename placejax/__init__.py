@@ -13,9 +13,9 @@ JAX, Flax or OpenCV until a subpackage is used):
   path), the safe ``torch.save`` reader and the converters.
 - `placejax.pretrain`: the VGG16 trunk pretrained on domain-randomised SimCampus worlds.
 - `placejax.data`: sessions (NCLT, SimCampus, in-memory arrays), the place grid, caches and grain pipelines.
+- `placejax.route`: a Bayes filter over the place cells along a route, fed by the classifier and odometry.
 - `placejax.training`: the one training engine every network uses.
-- `placejax.classify`: `PlaceClassifier`, the pure end-to-end `placejax.classify.forward` and unseen-place
-  scores.
+- `placejax.classify`: `PlaceClassifier` (uint8 RGB ``(N, H, W, 3)`` → places) and unseen-place scores.
 - `placejax.io`: atomic file writes and the npz-record reader.
 - `PlaceClassifier`, `Prediction`: shortcuts for `placejax.classify.PlaceClassifier` and
   `placejax.classify.Prediction`.
@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING as _TYPE_CHECKING
 
 __version__ = "0.1.0"
 
-_SUBMODULES = ("classify", "data", "depth", "hha", "io", "models", "pretrain", "training", "weights")
+_SUBMODULES = ("classify", "data", "depth", "hha", "io", "models", "pretrain", "route", "training", "weights")
 _FROM_CLASSIFY = ("PlaceClassifier", "Prediction")
 
 __all__ = [
@@ -39,12 +39,13 @@ __all__ = [
     "io",
     "models",
     "pretrain",
+    "route",
     "training",
     "weights",
 ]
 
 if _TYPE_CHECKING:  # what IDEs and type checkers see; at run time the same names load lazily (__getattr__)
-    from placejax import classify, data, depth, hha, io, models, pretrain, training, weights
+    from placejax import classify, data, depth, hha, io, models, pretrain, route, training, weights
     from placejax.classify import PlaceClassifier, Prediction
 
 

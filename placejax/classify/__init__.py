@@ -12,8 +12,7 @@ Public surface:
 Command: ``python -m placejax.classify MODEL IMAGE... [--json] [--figure out.png]``.
 """
 
-from placejax.classify import _unknown as unknown
-from placejax.classify import run_layout
+from placejax.classify import run_layout, unknown
 from placejax.classify._artefact import ArtefactError
 from placejax.classify._classifier import PlaceClassifier, Prediction
 

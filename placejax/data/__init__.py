@@ -7,6 +7,8 @@ Public surface:
     nclt: the NCLT reader, ``nclt.load_session(root, date, camera=5, ...)``.
     simcampus: the built-in seasonal campus rendered in JAX, ``simcampus.load_session("WI", ...)`` (imported on
         first use: it brings JAX).
+    folder: one's own sessions as folders of images with a pose file (imported on first use).
+    export: writes SimCampus or NCLT sessions as such folders (imported on first use).
     PlaceGrid: the n × n place classes over all sessions' viewpoints.
     cache_session, build_array_cache, ...: atomic, resumable on-disk caches.
     train_dataset, eval_dataset, Augment: grain pipelines, sharded by JAX process.
@@ -29,7 +31,7 @@ from placejax.data.session import ArraySession, Session, session_identity, trunc
 
 # Imported on first attribute access (PEP 562): SimCampus renders with JAX, which the rest of the data layer
 # does not need.
-_LAZY_SUBMODULES = ("simcampus",)
+_LAZY_SUBMODULES = ("export", "folder", "simcampus")
 
 
 def __getattr__(name: str):
@@ -57,6 +59,8 @@ __all__ = [
     "cache_session",
     "camera",
     "eval_dataset",
+    "export",
+    "folder",
     "nclt",
     "open_array_cache",
     "open_session_cache",

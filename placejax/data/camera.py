@@ -8,6 +8,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+__all__ = ["project", "resize_image", "resize_intrinsics", "rotate_intrinsics_cw"]
+
 
 def _as_k(k: np.ndarray) -> np.ndarray:
     k = np.asarray(k, dtype=np.float64)
@@ -41,7 +43,8 @@ def rotate_intrinsics_cw(k: np.ndarray, raw_height: int) -> np.ndarray:
 
 
 def resize_intrinsics(k: np.ndarray, from_hw: tuple[int, int], to_hw: tuple[int, int]) -> np.ndarray:
-    """Intrinsics after resizing an ``from_hw`` image to ``to_hw`` (``cv2.resize``, pixel-centre aligned).
+    """Intrinsics ``k`` ``(3, 3)`` after resizing an ``from_hw`` image to ``to_hw`` (``cv2.resize``, pixel-centre
+    aligned); a new ``(3, 3)`` float64 matrix.
 
     With pixel centres at integer coordinates, ``cv2.resize`` maps u to (u + 0.5)·s − 0.5 with s = W'/W (same
     for v with H'/H), so fx' = s·fx and cx' = (cx + 0.5)·s − 0.5.

@@ -36,6 +36,7 @@ SIMCAMPUS_RENDER_PRESETS: dict[str, dict] = {
     "smoke": {"world_seed": 0, "image_size": (64, 64), "frame_spacing": 40.0, "max_frames": 0},
     "default": {"world_seed": 0, "image_size": (64, 64), "frame_spacing": 2.0, "max_frames": 0},
 }
+"""Preset → how ``python -m placejax.data.simcampus export`` renders the campus (the experiment's data presets)."""
 
 
 def simcampus_world_from_camera(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:

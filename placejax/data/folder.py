@@ -78,6 +78,7 @@ __all__ = [
 ]
 
 CAMERA_FILE = "camera.json"
+"""The file name of a session folder's camera (intrinsics and image size, JSON)."""
 _CAMERA_YAML = ("camera.yaml", "camera.yml")
 IMAGES_DIR = "images"
 IMAGE_TABLE = "images.csv"
@@ -1107,7 +1108,8 @@ def write_session(
 def write_poses(
     folder: str | os.PathLike, utimes: np.ndarray, positions: np.ndarray, quaternions: np.ndarray, pose_format: str
 ) -> Path:
-    """Writes ``poses_tum.txt`` or ``poses_kitti.txt`` (removing the other), floats in round-trip precision.
+    """Writes ``poses_tum.txt`` or ``poses_kitti.txt`` (removing the other), floats in round-trip precision:
+    ``utimes`` int ``(N,)`` microseconds, ``positions`` ``(N, 3)`` metres, ``quaternions`` ``(N, 4)``.
 
     Returns:
         The file written.

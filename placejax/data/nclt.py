@@ -62,6 +62,7 @@ __all__ = [
 CAM5_INTRINSICS = np.array(
     [[399.433184, 0.0, 826.361952], [0.0, 399.433184, 621.668624], [0.0, 0.0, 1.0]], dtype=np.float64
 )
+"""float64 ``(3, 3)`` pinhole matrix of the undistorted, unrotated 1616 × 1232 NCLT Cam5 image (pixels)."""
 
 _UTIME_RE = re.compile(r"^\d+$")
 _IMAGE_SUFFIXES = (".tiff", ".tif")

@@ -27,6 +27,8 @@ _EXPECTED_MINUTES = {"smoke": 1, "default": 55}
 # Presets whose trained network ships inside the package (``placejax/depth/weights/<name>.npz``, its recipe and
 # metrics in the README there): a fresh machine loads it instead of training it (``_EXPECTED_MINUTES``).
 SHIPPED = {"default": "simcampus_depth_default_128"}
+"""Preset → name of the depth-network record shipped in ``placejax/depth/weights/`` (``shipped:NAME`` for
+``placejax.weights.resolve``)."""
 # Frames per season of the evaluation campus in a shipped file's ``quick_check`` (what the tests reproduce).
 QUICK_CHECK_FRAMES = 4
 

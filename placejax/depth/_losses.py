@@ -185,20 +185,22 @@ def midas_loss(
 # Metric log depth: the network predicts log(depth / LOG_DEPTH_UNIT_M), ≥ 0 for every depth ≥ 0.25 m (its output
 # layer is a ReLU).
 LOG_DEPTH_UNIT_M = 0.25
+"""Metres of the metric log-depth unit: a network predicts ``log(depth / LOG_DEPTH_UNIT_M)`` (≥ 0 from 0.25 m)."""
 
 
 def log_depth(depth_m: jax.Array) -> jax.Array:
-    """Metres → the log-depth a metric depth network predicts (``log(depth / 0.25 m)``)."""
+    """Metres → the log-depth a metric depth network predicts (``log(depth / 0.25 m)``), elementwise: any shape."""
     return jnp.log(jnp.maximum(depth_m, LOG_DEPTH_UNIT_M) / LOG_DEPTH_UNIT_M)
 
 
 def depth_from_log(pred: jax.Array) -> jax.Array:
-    """The inverse of :func:`log_depth`: a metric depth network's output → metres."""
+    """The inverse of :func:`log_depth`: a metric depth network's output → metres, elementwise: any shape."""
     return LOG_DEPTH_UNIT_M * jnp.exp(pred)
 
 
 def far_to_sky(depth_m, from_m: float, sky_m: float = MAX_DEPTH_M):
-    """A metric network's far predictions as sky: depth at or beyond ``from_m`` → ``sky_m``.
+    """A metric network's far predictions as sky: depth ``depth_m`` (metres, any shape) at or beyond ``from_m`` →
+    ``sky_m``.
 
     A metric log-depth network is trained to put the sky, and everything beyond its ``max_depth_m``, at exactly
     ``max_depth_m``; what it outputs there is a soft, lumpy surface tens of metres away rather than a flat one,

@@ -266,6 +266,8 @@ PRESETS = {
         eval_frames=200,
     ),
 }
+"""The depth network's training presets by name (:class:`DepthTrainConfig` each): ``smoke`` for the tests, ``default``
+the shipped network's."""
 
 
 def normalise(rgb_uint8: jax.Array) -> jax.Array:

@@ -63,6 +63,7 @@ DAV2_CONFIGS: dict[str, dict[str, Any]] = {
         out_channels=(256, 512, 1024, 1024),
     ),
 }
+"""Encoder name → widths of the released Depth Anything V2 models (encoder, head features and output channels)."""
 
 
 @functools.lru_cache(maxsize=64)

@@ -12,9 +12,13 @@ from flax import traverse_util
 # torchvision's ImageNet statistics (the input convention of the VGG16 and MiDaS weights), on the 0–1 and the
 # 0–255 scale: the one definition in placejax.
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+"""float32 ``(3,)`` torchvision's ImageNet RGB mean on the 0–1 scale."""
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+"""float32 ``(3,)`` torchvision's ImageNet RGB standard deviation on the 0–1 scale."""
 IMAGENET_MEAN_255 = IMAGENET_MEAN * 255.0
+"""float32 ``(3,)`` :data:`IMAGENET_MEAN` on the 0–255 scale."""
 IMAGENET_STD_255 = IMAGENET_STD * 255.0
+"""float32 ``(3,)`` :data:`IMAGENET_STD` on the 0–255 scale."""
 
 
 def imagenet_normalise(images: np.ndarray) -> np.ndarray:

@@ -131,6 +131,7 @@ def resize(
 
 
 def upsample2x_align_corners(x: Array) -> Array:
-    """Bilinear ×2 upsampling of an NHWC batch with ``align_corners=True`` (MiDaS's fusion-block resize)."""
+    """Bilinear ×2 upsampling of an NHWC batch ``(N, H, W, C)`` → ``(N, 2H, 2W, C)`` with ``align_corners=True``
+    (MiDaS's fusion-block resize)."""
     _, h, w, _ = x.shape
     return resize(x, (2 * h, 2 * w), "bilinear", align_corners=True)

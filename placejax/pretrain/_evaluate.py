@@ -81,7 +81,8 @@ def pixel_descriptor(rgb: np.ndarray) -> np.ndarray:
 
 
 def gradient_thumbnail(rgb: np.ndarray, size: int = 12) -> np.ndarray:
-    """Grey-level 12 × 12 thumbnail's x/y finite differences, per image centred: ``(n, 2·size·(size−1))``."""
+    """Grey-level 12 × 12 thumbnail's x/y finite differences of ``rgb`` ``(n, H, W, 3)``, per image centred:
+    ``(n, 2·size·(size−1))``."""
     grey = np.asarray(rgb, np.float32).mean(-1)
     n, h, w = grey.shape
     thumb = grey[:, : h // size * size, : w // size * size].reshape(n, size, h // size, size, w // size).mean((2, 4))

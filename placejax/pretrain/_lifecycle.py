@@ -25,17 +25,22 @@ from placejax.weights import _resolve, _shipped
 
 # The trunk shipped with the package (its README records command, seed, config and held-out metrics).
 SHIPPED = "simcampus_places_w0125_s64"
+"""Name of the RGB trunk shipped in ``placejax/pretrain/weights/`` (``shipped:NAME`` in a weights spec)."""
 # The HHA net's trunk, pretrained on HHA images (``modality="hha"``).
 SHIPPED_HHA = "simcampus_places_hha_w0125_s64"
+"""Name of the HHA net's trunk pretrained on HHA images of perturbed rendered depth."""
 # The same, pretrained on HHA of the default depth network's predictions (``hha_depth="trained:default"``): the
 # experiment's HHA net reads this one.
 SHIPPED_HHA_PREDICTED = "simcampus_places_hha_predicted_w0125_s64"
+"""Name of the HHA net's trunk pretrained on HHA of the default depth network's predictions: the one the experiment's
+HHA net reads."""
 # The depth network whose predictions it was pretrained on (its ``meta["hha_depth_network"]``): the default preset
 # at 96² and 2400 steps, shipped before the 128² networks. A trunk pretrained on the 128² 2400-step network's
 # predictions scored lower on world 1 (HHA-Net 20.4 against 20.7 %, README of placejax/pretrain/weights), so
 # this one stayed. ``image_size`` and ``steps`` are the settings in which that network's recipe differs from the
 # preset's.
 SHIPPED_HHA_PREDICTED_DEPTH = ("default", {"image_size": 96, "steps": 2400})
+"""``(preset, settings)`` of the depth network :data:`SHIPPED_HHA_PREDICTED` was pretrained on."""
 _EXPECTED_MINUTES = {"smoke": 1, "default": 45}
 
 
@@ -88,6 +93,7 @@ def load_shipped(name: str = SHIPPED) -> _shipped.WeightsRecord:
 
 
 SHIPPED_PREFIX = _resolve.SHIPPED_PREFIX
+"""The prefix of a shipped weights spec, ``"shipped:"`` (``placejax.weights.SHIPPED_PREFIX``)."""
 _IMAGENET = "registry:vgg16_imagenet"
 
 
@@ -163,6 +169,7 @@ def heldout_report(trunk_params, cfg: PretrainConfig, *, n_worlds: int = 2) -> d
 
 # The held-out check the tests repeat (fast): views of validation world 0, a shipped file records its recall.
 CHECK_FRAMES = 48
+"""Views of held-out world 0 in :func:`quick_check` (a shipped record keeps its recall in ``meta["quick_check"]``)."""
 
 
 def quick_check(trunk_params, cfg: PretrainConfig) -> dict[str, float]:

@@ -170,6 +170,8 @@ PRESETS = {
     # The shipped trunk (placejax/pretrain/weights): ~45 min on 2 shared CPU cores.
     "default": PretrainConfig(),
 }
+"""The trunk pretraining presets by name (:class:`PretrainConfig` each): ``smoke`` for the tests, ``default`` the
+shipped trunk's."""
 
 
 def training_frames(cfg: PretrainConfig, progress: bool = True) -> dict[str, np.ndarray]:

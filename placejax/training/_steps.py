@@ -21,6 +21,8 @@ import optax
 from placejax.training._state import TrainState
 
 Objective = Callable[[TrainState, Any, dict[str, jax.Array], jax.Array], tuple[jax.Array, tuple[dict, Any]]]
+"""The type of a training objective: ``(state, params, batch, key) → (loss, (metrics, batch_stats))``, static in the
+jitted step."""
 
 
 def _logits_and_features(out: Any) -> tuple[jax.Array, dict[str, jax.Array]]:

@@ -26,6 +26,8 @@ import sys
 import threading
 import time
 
+__all__ = ["launch", "main"]
+
 
 def _free_port() -> int:
     with socket.socket() as s:
@@ -110,6 +112,7 @@ def launch(
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point (``python -m placejax.training.launch --help``); returns the exit status."""
     parser = argparse.ArgumentParser(
         prog="python -m placejax.training.launch",
         description=__doc__,

@@ -160,6 +160,7 @@ REGISTRY: dict[str, PretrainedWeights] = {
         size_bytes=553_433_881,
     ),
 }
+"""Name → :class:`PretrainedWeights` of the official weights ``load`` knows (``registry:NAME`` for ``resolve``)."""
 
 # Depth Anything V2 (DepthAnything/Depth-Anything-V2, README.md and metric_depth/README.md): the official
 # preprocessing of depth_anything_v2/dpt.py's image2tensor, the same for the relative and metric models.

@@ -27,7 +27,9 @@ from placejax.weights._torch_checkpoint import read_torch_checkpoint
 __all__ = ["REGISTRY_PREFIX", "SHIPPED_PREFIX", "identity", "resolve"]
 
 REGISTRY_PREFIX = "registry:"
+"""The prefix of a registry weights spec, ``"registry:"``."""
 SHIPPED_PREFIX = "shipped:"
+"""The prefix of a shipped weights spec, ``"shipped:"``."""
 
 
 def _spec(spec: str | os.PathLike, default: str | None) -> str:

@@ -8,8 +8,6 @@ shipped record whose fingerprint is not the preset's is not used), and load it (
 and ``placejax/pretrain/weights/``, because a fresh machine cannot afford to train them.
 """
 
-from __future__ import annotations
-
 import importlib.resources
 import io as _io
 import os
@@ -35,6 +33,7 @@ __all__ = [
 
 # Packages whose ``weights/`` folder holds shipped records; a record's file name (without ``.npz``) is its name.
 SHIPPED_PACKAGES = ("placejax.depth", "placejax.pretrain")
+"""Packages whose ``weights/`` folder holds shipped records; a record's file name (without ``.npz``) is its name."""
 
 
 class WeightsRecord(NamedTuple):

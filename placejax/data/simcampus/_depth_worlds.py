@@ -58,6 +58,8 @@ def random_look(key: jax.Array) -> _render.Look:
 
 
 CAMERA_TILTS = ("random", "terrain")
+"""How the depth-training frames' cameras are tilted: ``"random"`` (random pitch and roll) or ``"terrain"`` (following
+the ground)."""
 
 
 @jax.jit

@@ -25,6 +25,7 @@ import numpy as np
 
 # Depth (m) reported for sky pixels (flagged separately in the sky mask).
 SKY_DEPTH = 1000.0
+"""Depth in metres reported for sky pixels (they are also flagged in the sky mask)."""
 # Radius (m) of the backdrop ring (far tree line / hills) centred on the campus.
 BACKDROP_RADIUS = 500.0
 # Primitives intersected per image column and kind (culling budget): boxes, cylinders, ellipsoids.

@@ -17,6 +17,7 @@ from placejax.data.simcampus import _world as W
 from placejax.data.simcampus._render import Geometry, Look, bounding_spheres, ellipsoid_unit_map
 
 SEASONS = ("WI", "SP", "SU", "AU")
+"""The four sessions of the campus: winter, spring, summer, autumn."""
 # Capacities of the primitive tables: every scene is padded to these so that one compiled renderer serves all
 # seasons and all worlds (no retracing when switching).
 N_BOX, N_CYL, N_ELL = 160, 384, 768
@@ -247,6 +248,7 @@ def calibrated_styles(designed: dict[str, SeasonStyle], contrast: float) -> dict
 
 
 STYLES: dict[str, SeasonStyle] = calibrated_styles(_DESIGNED, SEASON_CONTRAST)
+"""Each season's appearance (:class:`SeasonStyle`), calibrated to the designed contrast between seasons."""
 
 
 def season_index(season: str) -> int:

@@ -29,6 +29,7 @@ def make_world(seed: int) -> W.World:
 
 @functools.lru_cache(maxsize=16)
 def season_scene(world: W.World, season: str):
+    """The geometry and look of ``world`` in ``season`` (one of :data:`SEASONS`), as the renderer takes them."""
     return _seasons.build_scene(world, season)
 
 

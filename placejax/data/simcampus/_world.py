@@ -45,7 +45,8 @@ BOX_GEO, BOX_LOOK, CYL_GEO, CYL_LOOK, ELL_GEO, ELL_LOOK = 8, 13, 5, 7, 8, 7
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Prims:
-    """A table of primitives of one kind: geometry rows, look rows and a role per row."""
+    """A table of primitives of one kind: geometry rows ``geo`` ``(n, G)``, look rows ``look`` ``(n, L)`` and a role
+    per row, ``role`` ``(n,)``."""
 
     geo: np.ndarray
     look: np.ndarray
