@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from placejax import hha
 from placejax.classify import ArtefactError, PlaceClassifier
@@ -446,6 +448,19 @@ def test_image_pixel_budget_holds_at_its_limit(tmp_path):
         kind, dims = images.image_dimensions(other.read_bytes())
         assert dims == (7, 5), (ext, kind, dims)
         assert images.read_image(other, max_pixels=35).shape == (5, 7, 3)
+
+
+@settings(max_examples=300, deadline=None, database=None)
+@given(
+    magic=st.sampled_from(
+        [b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff", b"BM", b"GIF89a", b"RIFF\0\0\0\0WEBP", b"II*\0", b"MM\0*", b"P6"]
+    ),
+    tail=st.binary(max_size=200),
+)
+def test_header_parsers_never_raise(magic, tail):
+    """Any bytes after a known magic number give a format and dimensions or None, never an exception."""
+    kind, dims = images.image_dimensions(magic + tail)
+    assert dims is None or (len(dims) == 2 and all(isinstance(v, int) and v >= 0 for v in dims)), (kind, dims)
 
 
 def test_non_finite_outputs_are_rejected_never_known(tiny_clf):

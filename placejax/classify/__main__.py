@@ -46,9 +46,13 @@ def _load_model(model: str, session: str | None):
                 raise UsageError(f"MODEL {model} is a run's work directory: pass --session NAME (a training session)")
             return PlaceClassifier.from_run(p, session)
         return PlaceClassifier.load(p)
+    except UsageError:
+        raise
     except (FileNotFoundError, ArtefactError, KeyError, ValueError, OSError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         raise UsageError(f"MODEL {model}: {msg}") from None
+    except Exception as e:  # a damaged run directory (orbax, ...): still bad input, still one line
+        raise UsageError(f"MODEL {model}: could not be read ({type(e).__name__}: {e})") from None
 
 
 def _text(name: str, rec: dict, grid_n: int) -> str:

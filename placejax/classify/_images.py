@@ -181,7 +181,10 @@ def read_image(
     size = p.stat().st_size
     if size > max_file_bytes:
         raise ImageError(f"{path}: a file of {size} bytes, more than the limit of {max_file_bytes} bytes for an image")
-    data = np.fromfile(p, np.uint8)
+    try:
+        data = np.fromfile(p, np.uint8)
+    except OSError as e:
+        raise ImageError(f"{path}: cannot be read ({e.strerror or e})") from None
     found = image_dimensions(data.tobytes()) if data.size else None
     if found is None:
         raise ImageError(f"{path}: not an image file in a format read here ({_FORMATS})")
