@@ -6,30 +6,22 @@ import grain
 import numpy as np
 import pytest
 
+from placejax.data import ArraySession
 from placejax.data.cache import build_array_cache, cache_session
 from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dataset
 
 
-class ToySession:
-    def __init__(self, n=23, hw=(10, 8), seed=0):
-        rng = np.random.default_rng(seed)
-        self.name = "toy"
-        self.utimes = np.arange(n, dtype=np.int64)
-        self.poses = rng.normal(size=(n, 3))
-        self.intrinsics = np.eye(3)
-        self.image_shape = hw
-        self._images = rng.integers(0, 256, size=(n, *hw, 3), dtype=np.uint8)
-
-    def __len__(self):
-        return len(self.utimes)
-
-    def image(self, i):
-        return self._images[i].copy()
+def toy_session(n=23, hw=(10, 8), seed=0):
+    """A deterministic in-memory session of ``n`` random uint8 ``(H, W, 3)`` frames."""
+    rng = np.random.default_rng(seed)
+    poses = rng.normal(size=(n, 3))
+    images = rng.integers(0, 256, size=(n, *hw, 3), dtype=np.uint8)
+    return ArraySession(images, poses, np.eye(3), name="toy", utimes=np.arange(n, dtype=np.int64))
 
 
 @pytest.fixture(scope="module")
 def cached(tmp_path_factory):
-    s = ToySession()
+    s = toy_session()
     c = cache_session(s, tmp_path_factory.mktemp("cache"), progress=False)
     labels = (np.arange(len(s)) * 7 % 5).astype(np.int32)
     return s, c, labels
@@ -176,7 +168,7 @@ def test_any_session_works_and_memory_stays_bounded(cached):
 
 
 def test_bad_labels_named():
-    s = ToySession(n=5)
+    s = toy_session(n=5)
     with pytest.raises(ValueError, match=r"labels for 'toy' must be integer \(5,\)"):
         FrameSource(s, np.zeros(4, np.int32))
     with pytest.raises(ValueError, match="must be integer"):
