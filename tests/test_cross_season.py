@@ -283,6 +283,7 @@ def test_interrupted_and_killed_run_resumes_to_the_same_accuracies(smoke, tmp_pa
     assert _accuracies(resumed) == _accuracies(uninterrupted)
 
 
+@pytest.mark.slow
 def test_paper_path_on_fake_nclt(tmp_path, midas_recipe_npz):
     """The paper preset's code path (NCLT reader, official-format MiDaS and VGG16 files, frozen convs with
     cached features, MLP) on a tiny fake NCLT tree with random weights."""
@@ -552,3 +553,49 @@ def test_nearest_neighbour_and_heading_ceiling_on_analytic_cases():
     assert t.shape == (2, 48) and np.allclose(np.linalg.norm(t[1]), 1.0) and np.allclose(t[0], 0.0)
     g = baselines.gradient_thumbnails(rgb, 4)
     assert g.shape == (2, 16) and np.allclose(g[0], 0.0) and np.allclose(np.linalg.norm(g[1]), 1.0)
+
+
+def test_smoke_route_columns(smoke):
+    """The route stage's keys exist and are sane, and RGB-Net + route is recomputed here, seed by seed, from the
+    cached RGB-Net logits, SimCampus's simulated odometry and placejax.route (docs/route.md)."""
+    from experiments.cross_season.route import filter_config
+    from placejax import route
+    from placejax.data import simcampus
+
+    workdir, results = smoke
+    r = results["route"]
+    assert r["settings"] == results["config"]["route"]
+    assert r["distance_source"] == {s: "odometry" for s in SEASONS}
+    assert set(r["gains"]) == {"ours_route_vs_ours", "rgb_net_route_vs_rgb_net"}
+    grid = PlaceGrid.load(workdir / "grid.json")
+    cfg = get_config("smoke")
+    labels = {s: _session_labels(workdir, grid, s, "64x64") for s in SEASONS}
+    for p in results["pairs"]:
+        for m, base in (("ours_route", "ours"), ("rgb_net_route", "rgb_net")):
+            assert 0.0 <= p[m] <= p["seen_class_fraction"] + 1e-9
+            assert len(p[f"{m}_per_seed"]) == 2 and p[m] == pytest.approx(np.mean(p[f"{m}_per_seed"]))
+            g = p[f"gain_{m}_vs_{base}"]
+            assert g["gain"] == pytest.approx(p[m] - p[base]) and g["lo"] <= g["hi"]
+            assert g["excludes_zero"] == (g["lo"] > 0 or g["hi"] < 0)
+        # The route's unseen-place columns are defined exactly where the single-frame ones are.
+        for key in ("unknown_route_auroc", "unknown_route_msp_auroc"):
+            assert (p[key] is None) == (p["unknown_msp_auroc"] is None)
+            assert p[key] is None or 0.0 <= p[key] <= 1.0
+        for key in ("unknown_route_rejected_seen", "unknown_route_rejected_unseen"):
+            assert p[key] is None or 0.0 <= p[key] <= 1.0
+        test = simcampus.load_session(p["test"], image_size=(8, 8), frame_spacing=cfg.data.frame_spacing)
+        moved = route.moved_from_travelled(test.travelled_m)
+        dirs = run_layout.cache_folders(workdir, p["test"], "outputs", f"{p['train']}-rgb")
+        accs = []
+        for d in dirs:
+            logits = np.asarray(open_array_cache(d).data)[:, : results["num_classes"]]
+            probs = route.calibrated_probabilities(logits, results["config"]["route"]["temperature"])
+            cells, _ = route.place_belief(route.forward(probs, moved, grid, filter_config(cfg)), grid.num_classes)
+            accs.append(np.mean(cells.argmax(1) == labels[p["test"]]))
+        assert sorted(accs) == pytest.approx(sorted(p["rgb_net_route_per_seed"]), abs=1e-9)
+        assert (workdir / "figures" / f"route_{p['train']}_{p['test']}.png").stat().st_size > 1000
+    for key in ("unknown_route_auroc", "unknown_route_msp_auroc"):
+        assert key in r["unknown_mean"]
+    table = (workdir / "table.md").read_text()
+    assert "| train | test | Ours | Ours + route | gain | RGB-Net | RGB-Net + route | gain |" in table
+    assert "timings_s" in results and results["timings_s"]["route"] > 0

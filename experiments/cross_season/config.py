@@ -80,6 +80,17 @@ HELP: dict[str, str] = {
     "ablations.depth1": "also train a net on the 1-channel depth image (the HHA disparity channel ×3)",
     "ablations.average": "also report equal-weight averaging of RGB-Net and HHA-Net softmax outputs",
     "seed": "seed of initialisation, shuffling and dropout (the first of n_seeds)",
+    "route.temperature": "softmax temperature of the outputs the route filter reads (docs/route.md)",
+    "route.uniform_mix": "route filter: probability per frame of a jump to any cell (recovery), in [0, 1)",
+    "route.unknown_level": "route filter: the unknown state's emission, in units of 1 / classes",
+    "route.unknown_prior": "route filter: initial probability of the unknown state, in [0, 1)",
+    "route.unknown_enter_per_m": "route filter: rate per metre of entering the unknown state",
+    "route.unknown_leave_per_m": "route filter: rate per metre of leaving the unknown state",
+    "route.emission_floor": "route filter: lower bound of a cell's emission (probability)",
+    "route.odometry_noise_frac": "route filter: odometry sd as a fraction of the distance travelled",
+    "route.odometry_noise_m": "route filter: odometry sd added to the distance travelled (m)",
+    "route.max_speed_mps": "route filter without odometry: distance bound = time between frames × this speed (m/s)",
+    "route.block_frames": "consecutive test frames per block of the route gains' bootstrap",
     "n_seeds": "train every net and MLP with seeds seed, seed+1, ...; the table reports mean ± sd over them",
     "devices": "devices of the data mesh (0: all)",
     "figures": "write the figures",
@@ -154,6 +165,21 @@ def _base() -> ml_collections.ConfigDict:
         save_every=1000,
     )
     c.eval = dict(batch_size=128)
+    # The route filter's settings (docs/route.md), chosen on world 1 (docs/route.md, "In the experiment"); odometry
+    # noise, floor and the unknown state's rates are a priori values.
+    c.route = dict(
+        temperature=1.0,
+        uniform_mix=1e-3,
+        unknown_level=2.0,
+        unknown_prior=0.01,
+        unknown_enter_per_m=0.005,
+        unknown_leave_per_m=0.1,
+        emission_floor=1e-4,
+        odometry_noise_frac=0.1,
+        odometry_noise_m=0.5,
+        max_speed_mps=2.0,
+        block_frames=25,
+    )
     c.ablations = dict(depth1=True, average=True)
     c.seed = 0
     c.n_seeds = 3
@@ -251,6 +277,22 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
         v = get(c, key)
         if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
             errors.append(f"{key}={v!r}: expected a finite number >= 0")
+    for key in ("route.temperature", "route.unknown_level", "route.max_speed_mps"):
+        v = get(c, key)
+        if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+            errors.append(f"{key}={v!r}: expected a finite positive number")
+    route_rates = ("route.unknown_enter_per_m", "route.unknown_leave_per_m", "route.emission_floor")
+    for key in (*route_rates, "route.odometry_noise_frac", "route.odometry_noise_m"):
+        v = get(c, key)
+        if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+            errors.append(f"{key}={v!r}: expected a finite number >= 0")
+    for key in ("route.uniform_mix", "route.unknown_prior"):
+        v = get(c, key)
+        if not (isinstance(v, int | float) and 0 <= v < 1):
+            errors.append(f"{key}={v!r}: expected a number in [0, 1)")
+    v = get(c, "route.block_frames")
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        errors.append(f"route.block_frames={v!r}: expected a positive int")
     for key in ("vgg.dropout", "mlp.dropout"):
         if isinstance(get(c, key), int | float) and get(c, key) >= 1:
             errors.append(f"{key}={get(c, key)!r}: a dropout rate must be < 1")

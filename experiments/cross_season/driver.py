@@ -11,6 +11,8 @@ Stages, in order (``results.json`` records each one's wall time in this run), an
     mlp        per training session, the fusion MLP on [fc7_rgb, fc7_hha]; orbax (fusion).
     baselines  thumbnails of every session for the nearest-neighbour baselines (evaluation).
     evaluate   top-1 accuracy on every other session for all methods, gains and their intervals (evaluation).
+    route      the route filter on the fusion's and RGB-Net's outputs along every test session: columns
+               ours_route, rgb_net_route, their gains, the route's unseen-place scores (route).
 Then ``classifiers.json`` (index), ``results.json``, ``table.md`` and the figures (report).
 
 A kill at any point leaves complete caches, ``.partial`` caches that resume chunk by chunk, and orbax
@@ -35,6 +37,7 @@ from experiments.cross_season.depth_hha import compute_depth_and_hha
 from experiments.cross_season.evaluation import baseline_features, evaluate
 from experiments.cross_season.fusion import train_and_predict
 from experiments.cross_season.index import write_classifier_index
+from experiments.cross_season.route import route_columns, write_route_figures
 from experiments.cross_season.sessions import fit_grid, load_sessions
 from placejax import io
 from placejax.training import data_mesh, release_free_memory, sync_processes
@@ -119,6 +122,7 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         thumbs = baseline_features(ctx, sessions)
 
     scores = evaluate(ctx, sessions, runs, thumbs)
+    scores["route"], route_traces = route_columns(ctx, sessions, runs, grid, scores["pairs"])
     ctx.timings["total"] = time.perf_counter() - t_start
     results = {
         "preset": config.preset,
@@ -141,4 +145,5 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         if config.figures:
             with ctx.timed("figures"):
                 report.write_figures(results, sessions, grid, fused, outputs, workdir / "figures")
+                write_route_figures(route_traces, sessions, workdir / "figures")
     return results

@@ -104,7 +104,9 @@ def table_markdown(results: dict) -> str:
             f"and top-1 on the accepted seen frames (%). '–': undefined for that pair (no unseen or no accepted "
             f"frame); the mean is over the pairs where it is defined.\n"
         )
-    return "\n".join(lines) + "\n" + note + _baselines_markdown(results)
+    from experiments.cross_season.route import route_markdown
+
+    return "\n".join(lines) + "\n" + note + _baselines_markdown(results) + route_markdown(results)
 
 
 _BASELINE_COLUMNS = {
