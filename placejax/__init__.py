@@ -15,18 +15,36 @@ JAX, Flax or OpenCV until a subpackage is used):
 - `placejax.data`: sessions (NCLT, SimCampus, in-memory arrays), the place grid, caches and grain pipelines.
 - `placejax.route`: a Bayes filter over the place cells along a route, fed by the classifier and odometry.
 - `placejax.training`: the one training engine every network uses.
-- `placejax.classify`: `PlaceClassifier` (uint8 RGB ``(N, H, W, 3)`` → places) and unseen-place scores.
+- `placejax.classify`: `PlaceClassifier` (uint8 RGB ``(N, H, W, 3)`` → places), the pure end-to-end
+  `placejax.classify.forward` and unseen-place scores.
+- `placejax.evaluation`: top-1 accuracy, seed means and paired bootstrap intervals of a gain.
 - `placejax.io`: atomic file writes and the npz-record reader.
 - `PlaceClassifier`, `Prediction`: shortcuts for `placejax.classify.PlaceClassifier` and
   `placejax.classify.Prediction`.
 """
 
 import importlib as _importlib
+import importlib.metadata as _metadata
 from typing import TYPE_CHECKING as _TYPE_CHECKING
 
-__version__ = "0.1.0"
+try:  # the installed distribution's version (pyproject.toml is the one place it is written)
+    __version__ = _metadata.version("placejax")
+except _metadata.PackageNotFoundError:  # a source tree that was not installed
+    __version__ = "unknown"
 
-_SUBMODULES = ("classify", "data", "depth", "hha", "io", "models", "pretrain", "route", "training", "weights")
+_SUBMODULES = (
+    "classify",
+    "data",
+    "depth",
+    "evaluation",
+    "hha",
+    "io",
+    "models",
+    "pretrain",
+    "route",
+    "training",
+    "weights",
+)
 _FROM_CLASSIFY = ("PlaceClassifier", "Prediction")
 
 __all__ = [
@@ -35,6 +53,7 @@ __all__ = [
     "classify",
     "data",
     "depth",
+    "evaluation",
     "hha",
     "io",
     "models",
@@ -45,7 +64,7 @@ __all__ = [
 ]
 
 if _TYPE_CHECKING:  # what IDEs and type checkers see; at run time the same names load lazily (__getattr__)
-    from placejax import classify, data, depth, hha, io, models, pretrain, route, training, weights
+    from placejax import classify, data, depth, evaluation, hha, io, models, pretrain, route, training, weights
     from placejax.classify import PlaceClassifier, Prediction
 
 

@@ -30,8 +30,10 @@ from typing import IO, Any
 import numpy as np
 
 __all__ = [
+    "NPZ_META_KEY",
     "atomic_write",
     "file_sha256",
+    "read_npz",
     "run_lock",
     "save_figure",
     "write_bytes",
@@ -95,6 +97,7 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
 
 # The entry of an ``.npz`` that holds its record (JSON as uint8 bytes) in files written with ``meta=``.
 NPZ_META_KEY = "meta"
+"""The entry of an ``.npz`` written with ``meta=`` that holds the record (key-sorted JSON as uint8 bytes)."""
 
 
 def write_npz(
@@ -114,7 +117,11 @@ def write_npz(
 
 
 def read_npz(source: str | os.PathLike | IO[bytes]) -> tuple[dict[str, np.ndarray], dict[str, Any] | None]:
-    """``(arrays, meta)`` of an ``.npz`` (a path or a binary file object); ``meta`` is None when it has none."""
+    """``(arrays, meta)`` of an ``.npz`` (a path or a binary file object); ``meta`` is None when it has none.
+
+    The one reader of placejax's npz records: ``placejax.weights.read_record`` (weights records: the shipped
+    depth network and trunks, exported ones) builds on it.
+    """
     with np.load(source) as z:
         meta = json.loads(bytes(z[NPZ_META_KEY]).decode()) if NPZ_META_KEY in z.files else None
         arrays = {k: np.asarray(z[k]) for k in z.files if k != NPZ_META_KEY}

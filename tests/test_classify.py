@@ -175,6 +175,32 @@ def test_batch_equals_loop_and_buckets_bound_compiles(clf, experiment_outputs):
     assert fn._cache_size() - before <= 1
 
 
+def test_public_forward_is_what_the_classifier_runs_and_jit_equals_eager(clf, experiment_outputs):
+    """``placejax.classify.forward(spec, params, rgb_uint8)``, the pure end-to-end function: jitted, it gives what
+    ``PlaceClassifier.logits`` gives (the parity with the experiment's outputs is tested above); eager (op by op)
+    it agrees to float rounding (HHA to ±1 level on a few pixels); its outputs are ``jax.Array``s."""
+    import functools
+
+    import jax.numpy as jnp
+
+    from placejax import classify
+
+    images = experiment_outputs[TRAIN]["images"][:2]
+    jitted = jax.jit(functools.partial(classify.forward, clf.spec))(clf.params, jnp.asarray(images))
+    assert all(isinstance(v, jax.Array) for v in jitted.values())
+    assert jitted["fusion"].shape == (2, clf.grid.num_classes) and jitted["hha_image"].dtype == jnp.uint8
+    via_classifier = clf.logits(images)
+    for k in ("fusion", "rgb", "hha"):
+        scale = np.abs(via_classifier[k]).max()
+        np.testing.assert_allclose(np.asarray(jitted[k]), via_classifier[k], rtol=0, atol=1e-2 * scale)
+    with jax.disable_jit():
+        eager = classify.forward(clf.spec, clf.params, jnp.asarray(images))
+    scale = np.abs(via_classifier["rgb"]).max()
+    np.testing.assert_allclose(np.asarray(eager["rgb"]), np.asarray(jitted["rgb"]), rtol=0, atol=1e-3 * scale)
+    diff = np.abs(np.asarray(eager["hha_image"], int) - np.asarray(jitted["hha_image"], int))
+    assert diff.max() <= 1 and (diff == 0).mean() >= 0.98
+
+
 def test_other_image_sizes_are_resized_as_the_cache_does(clf, experiment_outputs):
     img = experiment_outputs[TRAIN]["images"][:2]
     big = np.stack([cv2.resize(im, (64, 64), interpolation=cv2.INTER_LINEAR) for im in img])

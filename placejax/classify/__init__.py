@@ -5,6 +5,9 @@ Public surface:
         preprocessing of one training session, built from a finished ``experiments.cross_season`` run
         (``from_run``), saved to and loaded from one self-describing file (``save`` / ``load``).
     Prediction: what ``PlaceClassifier.predict`` returns.
+    forward, ClassifierSpec: the classifier end to end as a pure, jittable function of arrays
+        (``forward(spec, params, rgb_uint8)``: uint8 ``(N, H, W, 3)`` → logits ``(N, C)`` as ``jax.Array``s);
+        ``PlaceClassifier`` wraps it (``clf.spec``, ``clf.params``).
     ArtefactError: a classifier file that is corrupt, truncated or of another format.
     unknown: unseen-place scores, thresholds and their evaluation.
     run_layout: where a finished ``experiments.cross_season`` run keeps its checkpoints, caches and index.
@@ -14,6 +17,6 @@ Command: ``python -m placejax.classify MODEL IMAGE... [--json] [--figure out.png
 
 from placejax.classify import run_layout, unknown
 from placejax.classify._artefact import ArtefactError
-from placejax.classify._classifier import PlaceClassifier, Prediction
+from placejax.classify._classifier import ClassifierSpec, PlaceClassifier, Prediction, forward
 
-__all__ = ["ArtefactError", "PlaceClassifier", "Prediction", "run_layout", "unknown"]
+__all__ = ["ArtefactError", "ClassifierSpec", "PlaceClassifier", "Prediction", "forward", "run_layout", "unknown"]

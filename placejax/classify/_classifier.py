@@ -14,12 +14,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import hha as _hha
-from placejax.classify import _artefact, run_layout
-from placejax.classify import _unknown as unknown
+from placejax.classify import _artefact, run_layout, unknown
 from placejax.data import PlaceGrid
 from placejax.data.camera import resize_image
 from placejax.depth import average_views, depth_from_log, far_to_sky, network_size
-from placejax.models import IMAGENET_MEAN, IMAGENET_STD, VGG16, FusionMLP, MidasSmall, cpu_compiler_options, resize
+from placejax.depth._inference import network_on_images
+from placejax.models import VGG16, FusionMLP, MidasSmall, cpu_compiler_options
 
 BRANCHES = ("fusion", "rgb", "hha")
 _BOUNDS = ("x_lo", "x_hi", "y_lo", "y_hi")
@@ -81,8 +81,27 @@ class Prediction:
 
 
 @dataclasses.dataclass(frozen=True)
-class _Spec:
-    """The static (hashable) part of a classifier: the modules and the preprocessing constants."""
+class ClassifierSpec:
+    """The static (hashable) part of a classifier: the modules and the preprocessing constants.
+
+    With the parameters, all :func:`forward` needs; hashable, so it can be a static argument of ``jax.jit``
+    (``jax.jit(functools.partial(forward, spec))``). ``PlaceClassifier.spec`` is a built classifier's.
+
+    Attributes:
+        image_size: ``(H, W)`` of the images, pixels.
+        depth_model: the depth network (``MidasSmall``).
+        depth_net_size: ``(h, w)`` the images are resized to before the depth network, pixels.
+        near_m, far_m: the percentile mapping of relative inverse depth to metres (relative networks).
+        intrinsics: ``(3, 3)`` pinhole matrix of the training session's images (0-based pixel centres).
+        vgg: the VGG16 both branches use.
+        mlp: the fusion MLP.
+        mean, std: the VGG16s' input normalisation on the 0–255 scale, per RGB channel.
+        features_float16: the conv features are rounded through float16 (as the experiment caches them).
+        depth_metric: the depth network predicts metric log depth.
+        far_as_sky_m: metric networks: predictions at or beyond this many metres become sky (0 = off).
+        flip_average: metric networks: mean log depth of the image and of its mirror image.
+        shifts: metric networks: and of the image shifted sideways by ±k pixels for each k.
+    """
 
     image_size: tuple[int, int]
     depth_model: MidasSmall
@@ -104,7 +123,7 @@ class _Spec:
 # ---------------------------------------------------------------------------------------------------- stages
 
 
-def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
+def stage_depth(spec: ClassifierSpec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
     """uint8 ``(N, H, W, 3)`` → float32 metric depth ``(N, H, W)`` (metres), as the experiment computes it.
 
     The MiDaS transform (bicubic resize to the network size, ImageNet normalisation), the network, the bicubic
@@ -113,14 +132,10 @@ def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
     views, ``placejax.depth.average_views``, as ``TrainedDepth.predict_metric(flip_average=, shifts=)``) and
     ``placejax.depth.far_to_sky``.
     """
-    mean = jnp.asarray(IMAGENET_MEAN).reshape(1, 1, 1, 3)
-    std = jnp.asarray(IMAGENET_STD).reshape(1, 1, 1, 3)
 
     def network(x):  # [0, 1] images at the input size → the network's output at the input size
-        if tuple(x.shape[1:3]) != spec.depth_net_size:
-            x = resize(x, spec.depth_net_size, "bicubic", align_corners=False)
-        out = spec.depth_model.apply(depth_vars, (x - mean) / std, train=False)
-        return resize(out[..., None], tuple(rgb.shape[1:3]), "bicubic", align_corners=False)[..., 0]
+        # The same MiDaS transform and network as placejax.depth.apply.
+        return network_on_images(spec.depth_model, depth_vars, x, spec.depth_net_size)
 
     x = rgb.astype(jnp.float32) / 255.0
     if spec.depth_metric:  # a metric log-depth network (placejax.depth, target="log_metric")
@@ -129,12 +144,12 @@ def stage_depth(spec: _Spec, depth_vars: Any, rgb: jax.Array) -> jax.Array:
     return _hha.inverse_depth_to_metric(network(x), near_m=spec.near_m, far_m=spec.far_m)
 
 
-def stage_hha(spec: _Spec, depth_m: jax.Array) -> jax.Array:
+def stage_hha(spec: ClassifierSpec, depth_m: jax.Array) -> jax.Array:
     """Metric depth ``(N, H, W)`` → uint8 HHA ``(N, H, W, 3)`` with the training session's intrinsics."""
     return _hha.encode(depth_m, np.asarray(spec.intrinsics, np.float32))
 
 
-def stage_nets(spec: _Spec, params: dict, rgb: jax.Array, hha: jax.Array) -> dict[str, jax.Array]:
+def stage_nets(spec: ClassifierSpec, params: dict, rgb: jax.Array, hha: jax.Array) -> dict[str, jax.Array]:
     """Both VGG16s: logits ``(N, C)`` and fc7 ``(N, D)`` of each."""
     mean = jnp.asarray(spec.mean, jnp.float32).reshape(1, 1, 1, 3)
     std = jnp.asarray(spec.std, jnp.float32).reshape(1, 1, 1, 3)
@@ -152,14 +167,28 @@ def stage_nets(spec: _Spec, params: dict, rgb: jax.Array, hha: jax.Array) -> dic
     return out
 
 
-def stage_mlp(spec: _Spec, params: dict, nets: dict[str, jax.Array]) -> jax.Array:
+def stage_mlp(spec: ClassifierSpec, params: dict, nets: dict[str, jax.Array]) -> jax.Array:
     """The fusion MLP on ``[fc7_rgb, fc7_hha]``: logits ``(N, C)``."""
     emb = jnp.concatenate([nets["rgb_fc7"], nets["hha_fc7"]], axis=1)
     return spec.mlp.apply({"params": params["mlp"]}, emb, train=False)
 
 
-def forward(spec: _Spec, params: dict, rgb: jax.Array) -> dict[str, jax.Array]:
-    """All stages: logits of the fusion and of each net, and the HHA image the HHA-Net saw."""
+def forward(spec: ClassifierSpec, params: dict, rgb: jax.Array) -> dict[str, jax.Array]:
+    """A trained classifier end to end, as a pure function of arrays: uint8 RGB → depth → HHA → both VGG16s →
+    fusion MLP.
+
+    Jittable and composable (``spec`` is static: ``jax.jit(functools.partial(forward, spec))``);
+    ``PlaceClassifier.logits`` runs exactly this in fixed-size batches.
+
+    Args:
+        spec: the classifier's static part (``PlaceClassifier.spec``).
+        params: ``{"depth": ..., "rgb": ..., "hha": ..., "mlp": ...}`` (``PlaceClassifier.params``).
+        rgb: uint8 ``(N, H, W, 3)`` RGB at ``spec.image_size``.
+
+    Returns:
+        ``jax.Array``s: ``"fusion"``, ``"rgb"`` and ``"hha"`` logits, float32 ``(N, C)``, and ``"hha_image"``,
+        the uint8 ``(N, H, W, 3)`` HHA image the HHA-Net saw.
+    """
     hha = stage_hha(spec, stage_depth(spec, params["depth"], rgb))
     nets = stage_nets(spec, params, rgb, hha)
     fused = stage_mlp(spec, params, nets)
@@ -167,7 +196,7 @@ def forward(spec: _Spec, params: dict, rgb: jax.Array) -> dict[str, jax.Array]:
 
 
 @functools.lru_cache(maxsize=8)
-def _expected_shapes(spec: _Spec) -> dict[str, Any]:
+def _expected_shapes(spec: ClassifierSpec) -> dict[str, Any]:
     """``ShapeDtypeStruct`` trees of every network's parameters: shapes only, nothing the file sizes is allocated."""
     h, w = spec.image_size
     dn_h, dn_w = spec.depth_net_size
@@ -186,7 +215,7 @@ def _expected_shapes(spec: _Spec) -> dict[str, Any]:
 
 
 @functools.lru_cache(maxsize=8)
-def _jitted_forward(spec: _Spec):
+def _jitted_forward(spec: ClassifierSpec):
     # YNNPACK convolutions on CPU (VGG16 dominates the cost; results agree to float rounding); {} elsewhere.
     return jax.jit(functools.partial(forward, spec), compiler_options=cpu_compiler_options("vgg16"))
 
@@ -243,7 +272,7 @@ class PlaceClassifier:
     # ----------------------------------------------------------------------------------------------- building
 
     @staticmethod
-    def _build_spec(meta: dict[str, Any]) -> _Spec:
+    def _build_spec(meta: dict[str, Any]) -> ClassifierSpec:
         d = meta["depth"]
         image_size = tuple(int(v) for v in meta["image_size"])
         if d["kind"] == "trained":
@@ -251,7 +280,7 @@ class PlaceClassifier:
         else:
             net_size = network_size(image_size, d["size"], square=False)
         vgg = meta["vgg"]
-        return _Spec(
+        return ClassifierSpec(
             image_size=image_size,
             depth_model=MidasSmall(features=int(d["features"]), encoder_width=float(d["encoder_width"])),
             depth_net_size=net_size,
@@ -412,6 +441,11 @@ class PlaceClassifier:
             ) from None
 
     # ----------------------------------------------------------------------------------------------- inference
+
+    @property
+    def spec(self) -> ClassifierSpec:
+        """The static part :func:`forward` takes with :attr:`params` (hashable: a ``jax.jit`` static argument)."""
+        return self._spec
 
     @property
     def image_size(self) -> tuple[int, int]:
