@@ -1,8 +1,10 @@
-"""Forward speed of MidasSmall and VGG16 (fc7 embeddings) on CPU, against PyTorch on the same weights.
+"""Forward speed of MidasSmall, Depth Anything V2 Small and VGG16 (fc7 embeddings) on CPU, against PyTorch on the
+same weights.
 
-    python -m benchmarks.models_speed [--repeats 5] [--no-torch] [--only midas|vgg]
+    python -m benchmarks.models_speed [--repeats 5] [--no-torch] [--only midas|dav2|vgg]
 
-Prints a table and writes ``benchmarks/results/models_speed.json`` with every run's time. Per column: the
+Prints a table and writes ``benchmarks/results/models_speed.json`` (``models_speed_<only>.json`` with ``--only``)
+with every run's time. Per column: the
 median ms/image over ``--repeats`` timed runs (after a warm-up/compile call; each run is at least 0.2 s of
 back-to-back calls; the frameworks' runs interleaved so they share the machine's load), images/s, the spread
 (max − min) / median of the runs, and the ratio PyTorch time / Flax time (> 1: Flax is faster). Both
@@ -15,6 +17,12 @@ The ``flax`` column is placejax's fast inference path: MiDaS with its encoder Ba
 that shrinks fc6 (``fold_adaptive_pool`` + ``VGG16(folded_pool=True)``, inputs below 224²); both jitted with
 ``cpu_compiler_options`` (YNNPACK matrix products). ``flax_plain`` is the same network as ``Model().apply``
 under a plain ``jax.jit`` (unfolded variables, default compiler options), for reference.
+
+Depth Anything V2 Small (relative head) runs at its trained 518² and at the presets' image sizes rounded up to
+multiples of 14 (64² → 70², 256² → 266²); its PyTorch side is ``transformers``' ``DepthAnythingForDepthEstimation``
+(scaled-dot-product attention) with the official position-embedding rule, the reference of
+``tests/test_models_dav2.py``, built by ``tests/torch_refs/make_dav2_reference.py``. Its ``flax`` column is
+``DepthAnythingV2().apply`` jitted with ``cpu_compiler_options("depth_anything_v2")``; ``flax_plain`` without.
 
 VGG16 runs at the sizes the experiment's presets use (``default``/``smoke``: 1/8 width at 64²; ``paper``:
 full width at 256²) and at 64² and 224² at full width.
@@ -37,13 +45,14 @@ import numpy as np
 from placejax import io
 from placejax.models import (
     VGG16,
+    DepthAnythingV2,
     MidasSmall,
     cpu_compiler_options,
     fold_adaptive_pool,
     fold_batch_norm,
 )
 from placejax.pretrain import trunk_map_size
-from placejax.weights import convert_midas_small, convert_vgg16
+from placejax.weights import convert_depth_anything_v2, convert_midas_small, convert_vgg16
 
 RESULTS = Path(__file__).parent / "results"
 # VGG16 cases: (width, input side, what uses it).
@@ -53,6 +62,29 @@ VGG_CASES: tuple[tuple[float, int, str], ...] = (
     (1.0, 224, "ImageNet size"),
     (1.0, 256, "preset paper"),
 )
+
+
+# Depth Anything V2 Small cases: (input side, what uses it).
+DAV2_CASES: tuple[tuple[int, str], ...] = (
+    (70, "presets default, smoke (64² images)"),
+    (266, "preset paper (256² images)"),
+    (518, "trained size"),
+)
+_DAV2_REFERENCE = Path(__file__).resolve().parents[1] / "tests" / "torch_refs" / "make_dav2_reference.py"
+
+
+def _dav2_torch_reference():
+    """The parity test's PyTorch reference module (transformers' port with the official position-embedding
+    rule), loaded from its file: one definition of the Small configuration and the HF → official key map."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_dav2_reference", _DAV2_REFERENCE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    from transformers.models.dinov2 import modeling_dinov2
+
+    modeling_dinov2.Dinov2Embeddings.interpolate_pos_encoding = module.official_interpolate_pos_encoding
+    return module
 
 
 # Each timed run repeats its call until it lasts at least this long (short calls, e.g. a 1/8-width VGG16 at
@@ -173,7 +205,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--no-torch", action="store_true", help="skip the PyTorch baseline")
-    parser.add_argument("--only", choices=("midas", "vgg"), default=None)
+    parser.add_argument("--only", choices=("midas", "dav2", "vgg"), default=None)
     args = parser.parse_args()
     torch = None if args.no_torch else _torch()
     rng = np.random.default_rng(0)
@@ -204,6 +236,33 @@ def main() -> None:
             row = _case("midas_small", batch, (256, 256), flax_fns, torch_fns, args.repeats, rng)
             rows.append(row)
             _print_row(rows[-1])
+
+    if args.only in (None, "dav2"):
+        model = DepthAnythingV2.from_encoder("vits")
+        if torch is not None:
+            ref = _dav2_torch_reference()
+            tm = ref.build(ref.SMALL_RELATIVE)
+            ref.randomise(tm, seed=0)
+            variables = convert_depth_anything_v2(
+                {k: v.numpy() for k, v in ref.hf_to_official(tm.state_dict(), model.depth).items()}, model
+            )
+            tm_cl = ref.build(ref.SMALL_RELATIVE).to(memory_format=torch.channels_last)
+            tm_cl.load_state_dict(tm.state_dict())
+            depth = lambda m: (lambda x: m(pixel_values=x).predicted_depth)
+            torch_fns = {"torch": (depth(tm), "nchw"), "torch_channels_last": (depth(tm_cl), "channels_last")}
+        else:
+            shapes = jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, 28, 28, 3)))
+            variables = jax.tree.map(lambda s: np.asarray(rng.normal(0, 0.02, s.shape), np.float32), shapes)
+            torch_fns = {}
+        flax_fns = {
+            "flax": (jax.jit(model.apply, compiler_options=cpu_compiler_options("depth_anything_v2")), variables),
+            "flax_plain": (jax.jit(model.apply), variables),
+        }
+        for side, use in DAV2_CASES:
+            for batch in (1, 8):
+                row = _case("dav2_small", batch, (side, side), flax_fns, torch_fns, args.repeats, rng, used_by=use)
+                rows.append(row)
+                _print_row(row)
 
     if args.only in (None, "vgg"):
         opts = cpu_compiler_options("vgg16")
@@ -254,8 +313,10 @@ def main() -> None:
         # Shared machines: a load average above the core count means the timings are contended.
         "load_average_1_5_15min": list(os.getloadavg()),
     }
-    io.write_json(RESULTS / "models_speed.json", {"meta": meta, "rows": rows})
-    print(f"wrote {RESULTS / 'models_speed.json'}")
+    # A partial run (--only) gets its own file, so it does not replace the full run's record.
+    out = RESULTS / ("models_speed.json" if args.only is None else f"models_speed_{args.only}.json")
+    io.write_json(out, {"meta": meta, "rows": rows})
+    print(f"wrote {out}")
 
 
 def _print_row(row: dict) -> None:

@@ -24,7 +24,11 @@ _YNN_DOT = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVID
 #   midas_small 256²: 80.7 / 50.6 / 80.0 / 80.0 (dots carry MiDaS's 1×1 convolutions and most of its time).
 # "Dots only" is the fastest for both networks. (An earlier round on a 2-core AMD EPYC with AVX2 had measured
 # convolutions + dots: ~400 → ~230 ms at 224² for VGG16, no gain for MiDaS.)
-_KINDS: dict[str, dict[str, str]] = {"vgg16": _YNN_DOT, "midas_small": _YNN_DOT}
+# Depth Anything V2 Small (2-core AMD EPYC shared with other jobs, load average 6–13, 2026-12-05), per image,
+# defaults / YNNPACK dots: 518² batch 8 6.53 / 4.66 s, batch 1 4.00 / 3.99 s; 266² batch 8 455 / 495 ms; 70²
+# batch 8 35 / 43 ms (benchmarks/models_speed.py --only dav2; spreads of 7–90 % between runs). Dots help where
+# its ViT blocks' matrix products dominate, at the trained size; kept for that size.
+_KINDS: dict[str, dict[str, str]] = {"vgg16": _YNN_DOT, "midas_small": _YNN_DOT, "depth_anything_v2": _YNN_DOT}
 
 
 @functools.cache
@@ -42,8 +46,8 @@ def cpu_compiler_options(kind: str = "vgg16") -> dict[str, str]:
 
     Args:
         kind: ``"vgg16"`` (VGG16 forward / conv features: ~2.5× faster at 224²) or ``"midas_small"`` (MiDaS
-            small and the narrower depth networks: ~1.6× faster at 256²); both route matrix products to
-            YNNPACK.
+            small and the narrower depth networks: ~1.6× faster at 256²) or ``"depth_anything_v2"`` (~1.4× at
+            518², batch 8, Small; none at small inputs); all route matrix products to YNNPACK.
 
     Returns:
         A new dict, empty when JAX's default backend is not the CPU (GPU/TPU users get the defaults), when

@@ -35,6 +35,8 @@ CASES = {
     # The released Small architecture (ViT-S/14, 37² position grid, blocks 2/5/8/11), once, at a tiny input.
     "small_metric": (384, 12, 6, (2, 5, 8, 11), 64, (48, 96, 192, 384), 37, "metric", 80, ((42, 56),), 1),
 }
+# The released relative Small (not written by main(); benchmarks/models_speed.py builds it for its timings).
+SMALL_RELATIVE = (384, 12, 6, (2, 5, 8, 11), 64, (48, 96, 192, 384), 37, "relative", 1, (), 1)
 
 
 def official_interpolate_pos_encoding(self, embeddings, height, width):
@@ -100,8 +102,9 @@ def hf_to_official(sd: dict[str, torch.Tensor], depth: int) -> dict[str, torch.T
     return out
 
 
-def build(case: str):
-    hidden, depth, heads, layers, fusion, neck, grid, head, max_depth, _, _ = CASES[case]
+def build(spec: tuple) -> DepthAnythingForDepthEstimation:
+    """The HF model of one ``CASES`` entry (or ``SMALL_RELATIVE``), default-initialised, in eval mode."""
+    hidden, depth, heads, layers, fusion, neck, grid, head, max_depth, _, _ = spec
     backbone = Dinov2Config(
         hidden_size=hidden,
         num_hidden_layers=depth,
@@ -156,7 +159,7 @@ def main() -> None:
     index = {}
     for k, case in enumerate(CASES):
         _, depth, _, _, _, _, _, _, _, sizes, batch = CASES[case]
-        model = build(case)
+        model = build(CASES[case])
         randomise(model, seed=k)
         official = hf_to_official(model.state_dict(), depth)
         torch.save(official, out / f"{case}.pth")
