@@ -3,6 +3,7 @@ placejax-trained network, MiDaS, or SimCampus's rendered depth), then its HHA ``
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -36,13 +37,12 @@ def depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionData
     if source == "midas":
         from placejax import depth as _depth
         from placejax.models import MidasSmall
-        from placejax.weights import convert_midas_small, load, read_torch_checkpoint
+        from placejax.weights import convert_midas_small, resolve
 
         model = MidasSmall(features=c.midas_features, encoder_width=c.midas_encoder_width)
-        if c.midas_weights:
-            variables = convert_midas_small(read_torch_checkpoint(c.midas_weights), model)
-        else:
-            variables = load("midas_v21_small_256")
+        # depth.midas_weights: a torch.save file, an .npz record, or empty for the registry's official weights.
+        convert = functools.partial(convert_midas_small, model=model)
+        variables = resolve(c.midas_weights or "registry:midas_v21_small_256", convert=convert).variables
         ident = weights_identity(c.midas_weights, "midas_v21_small_256")
 
         def midas(s: SessionData, a: int, b: int) -> np.ndarray:

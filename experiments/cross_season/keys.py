@@ -3,39 +3,21 @@ trees by a digest, config sections without the keys that change no result."""
 
 from __future__ import annotations
 
-import functools
 import hashlib
-from pathlib import Path
 from typing import Any
 
 import jax
 import ml_collections
 import numpy as np
 
-from placejax import io
-
-
-@functools.lru_cache(maxsize=8)
-def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
-    del size, mtime_ns  # part of the cache key only: a replaced file is hashed again
-    return io.file_sha256(path)
-
 
 def weights_identity(path: str, registry_name: str) -> dict:
-    """What identifies a weights file in cache keys: its SHA-256 (not its path: a moved file is the same
-    weights, a replaced one is not), the shipped file's, or the registry entry."""
-    if not path:
-        return {"registry": registry_name}
-    from placejax.pretrain import SHIPPED_PREFIX, shipped_file
+    """What identifies a weights file in cache keys (``placejax.weights.identity``): its SHA-256 (not its path: a
+    moved file is the same weights, a replaced one is not), the shipped file's, or the registry entry
+    ``registry_name`` for an empty ``path``."""
+    from placejax.weights import identity
 
-    if path.startswith(SHIPPED_PREFIX):
-        res = shipped_file(path[len(SHIPPED_PREFIX) :])
-        return {"shipped": path, "sha256": hashlib.sha256(res.read_bytes()).hexdigest()}
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"weights file {path!r} not found")
-    st = p.stat()
-    return {"sha256": _file_sha256(str(p.resolve()), st.st_size, st.st_mtime_ns)}
+    return identity(path, default=f"registry:{registry_name}")
 
 
 def results_only(section: ml_collections.ConfigDict) -> dict:
