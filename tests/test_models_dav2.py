@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from placejax.models import DAV2_CONFIGS, DepthAnythingV2, dav2_input_size
+from placejax.models import DAV2_CONFIGS, DepthAnythingV2, dav2_apply, dav2_input_size, resize
 from placejax.models._dav2 import interpolate_pos_embed
 from placejax.weights import (
     REGISTRY,
@@ -159,6 +159,23 @@ def test_batch_equals_loop_and_jit_equals_eager():
     for i in range(3):
         single = model.apply(variables, x[i : i + 1])  # eager, one image
         np.testing.assert_allclose(single[0], batched[i], rtol=0, atol=1e-5 * float(np.ptp(batched)))
+
+
+def test_dav2_apply_is_the_official_pipeline(refs):
+    """uint8 RGB → normalise → bicubic to the 14-multiple size → network → bilinear (aligned corners) back."""
+    model = MODELS["tiny_metric"]
+    variables, _ = _load(refs, "tiny_metric")
+    rgb = np.random.default_rng(5).integers(0, 256, (3, 30, 45, 3), dtype=np.uint8)
+    got = jax.jit(lambda v, x: dav2_apply(v, x, model=model, short_side=56))(variables, jnp.asarray(rgb))
+    assert got.shape == (3, 30, 45) and got.dtype == jnp.float32
+    h, w = dav2_input_size(30, 45, 56)
+    assert (h, w) == (56, 84)
+    x = REGISTRY["depth_anything_v2_metric_vkitti_vits"].preprocessing.normalise(rgb)  # NumPy, the registry's
+    y = model.apply(variables, resize(jnp.asarray(x), (h, w), "bicubic"))
+    want = resize(y[..., None], (30, 45), "bilinear", align_corners=True)[..., 0]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * float(np.ptp(want)))
+    one = dav2_apply(variables, jnp.asarray(rgb[1:2]).astype(jnp.float32), model=model, short_side=56)
+    np.testing.assert_allclose(one[0], got[1], rtol=0, atol=1e-5 * float(np.ptp(want)))  # batch == loop
 
 
 def test_pos_embed_keeps_constants_and_trained_grid():

@@ -2,7 +2,14 @@
 exact resizes, CPU inference compiler options, from-scratch initialisation and the ImageNet input normalisation."""
 
 from placejax.models._cpu import cpu_compiler_options
-from placejax.models._dav2 import DAV2_CONFIGS, DepthAnythingV2, DinoV2Encoder, DPTHead, dav2_input_size
+from placejax.models._dav2 import (
+    DAV2_CONFIGS,
+    DepthAnythingV2,
+    DinoV2Encoder,
+    DPTHead,
+    dav2_apply,
+    dav2_input_size,
+)
 from placejax.models._fusion import FusionMLP
 from placejax.models._init import (
     IMAGENET_MEAN,
@@ -39,6 +46,7 @@ __all__ = [
     "VGG16Trunk",
     "adaptive_avg_pool",
     "cpu_compiler_options",
+    "dav2_apply",
     "dav2_input_size",
     "fold_adaptive_pool",
     "fold_batch_norm",

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from placejax.models._init import IMAGENET_MEAN_255, IMAGENET_STD_255
 from placejax.models._midas import _ResidualConvUnit
 from placejax.models._resize import _TORCH_CUBIC_A, _cubic_weights, resize
 
@@ -416,3 +417,41 @@ def dav2_input_size(height: int, width: int, short_side: int = 518) -> tuple[int
         return int(np.ceil(v / PATCH) * PATCH) if y < short_side else y
 
     return side(scale * height), side(scale * width)
+
+
+def dav2_apply(
+    variables: Any, images: Array, *, model: DepthAnythingV2, short_side: int = 518
+) -> Array:
+    """Depth of RGB images at their own resolution, through the official pre- and post-processing.
+
+    The images are ImageNet-normalised, resized (bicubic) to ``dav2_input_size(H, W, short_side)``, run through
+    ``model`` and the prediction resized back to ``(H, W)`` (bilinear, aligned corners), as the official
+    ``infer_image`` does (which resizes with OpenCV's bicubic; PyTorch's is used here, the same a = −0.75 kernel).
+    Pure and jittable (``model`` and ``short_side`` static): ``jax.jit(functools.partial(dav2_apply,
+    model=model, short_side=...))``. Each image is computed independently.
+
+    Args:
+        variables: the model's variables (``placejax.weights.load("depth_anything_v2_vits")`` etc.).
+        images: ``(N, H, W, 3)`` RGB on the 0–255 scale (uint8 or float).
+        model: the ``DepthAnythingV2`` the variables fit.
+        short_side: the network input's short side before rounding to multiples of 14 (518 official; smaller
+            is faster and further from the training size).
+
+    Returns:
+        ``(N, H, W)`` float32: relative inverse depth (relative head) or metres (metric head).
+
+    >>> m = DepthAnythingV2(embed_dim=32, depth=4, num_heads=2, layers=(0, 1, 2, 3), features=8,
+    ...                     out_channels=(4, 8, 16, 32), pos_grid=4)
+    >>> v = m.init(jax.random.key(0), jnp.zeros((1, 28, 28, 3)))
+    >>> dav2_apply(v, jnp.zeros((2, 30, 40, 3), jnp.uint8), model=m, short_side=28).shape
+    (2, 30, 40)
+    """
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise ValueError(f"dav2_apply expects RGB images (N, H, W, 3), got shape {images.shape}")
+    _, h, w, _ = images.shape
+    mean = jnp.asarray(IMAGENET_MEAN_255).reshape(1, 1, 1, 3)
+    std = jnp.asarray(IMAGENET_STD_255).reshape(1, 1, 1, 3)
+    x = (images.astype(jnp.float32) - mean) / std
+    x = resize(x, dav2_input_size(h, w, short_side), "bicubic")
+    y = model.apply(variables, x)
+    return resize(y[..., None], (h, w), "bilinear", align_corners=True)[..., 0].astype(jnp.float32)
