@@ -246,6 +246,14 @@ def test_odometry_interpolated(tmp_path):
     # yaw 3.0 → −3.0 is a turn of 2π − 6 through ±π, not −6 rad: halfway is π − 0.28… wrapped.
     np.testing.assert_allclose(s.odometry[1], [1, 2, np.angle(np.exp(1j * (3.0 + (2 * np.pi - 6) / 2)))])
     assert np.isnan(s.odometry[3]).all() and s.report.n_no_odometry == 1
+    np.testing.assert_allclose(s.travelled_m, [0, np.sqrt(5), 2 * np.sqrt(5), 2 * np.sqrt(5)])  # clamped at the end
+    (d / "odometry.csv").write_text(f"timestamp,travelled_m\n{t[0]},10\n{t[1]},13\n")
+    s = folder.load_session(d)
+    assert s.odometry is None and s.report.n_no_odometry == 1
+    np.testing.assert_array_equal(s.travelled_m, [0, 1.5, 3, 3])
+    (d / "odometry.csv").write_text(f"timestamp,travelled_m\n{t[0]},10\n{t[1]},9\n")
+    with pytest.raises(folder.FolderFormatError, match=r"odometry\.csv:3: travelled_m 9\.0 is below"):
+        folder.load_session(d)
 
 
 def test_cache_identity_survives_a_move_not_an_edit(tmp_path):
@@ -415,6 +423,7 @@ def test_simcampus_export_equals_direct(tmp_path, capsys):
     np.testing.assert_array_equal(s.intrinsics, direct.intrinsics)
     np.testing.assert_array_equal(s.images(range(6)), direct.images(range(6)))
     np.testing.assert_array_equal(s.depths(range(6)), direct.depths(range(6)))
+    np.testing.assert_array_equal(s.travelled_m, direct.travelled_m)
     # The camera axes agree with the renderer's (float32) rotation.
     from placejax.data.simcampus._render import world_from_camera
 
@@ -429,6 +438,12 @@ def test_nclt_export_reads_back_the_nclt_session(tmp_path):
     from placejax.data import nclt
 
     fake = make_fake_nclt(tmp_path / "nclt", ["2012-01-22"], n_frames=8)
+    t = fake.sessions["2012-01-22"].utimes
+    odo_t = np.arange(t[0] - 50_000, t[-1] + 50_000, 10_000)
+    xy = np.stack([np.cumsum(np.full(len(odo_t), 0.01)), np.sin(np.arange(len(odo_t)) / 20)], -1)
+    odo_csv = fake.root / "sensor_data" / "2012-01-22" / "odometry_mu_100hz.csv"
+    odo_csv.parent.mkdir(parents=True)
+    np.savetxt(odo_csv, np.column_stack([odo_t, xy, np.zeros((len(odo_t), 3)), np.arange(len(odo_t))]), delimiter=",")
     export_nclt(fake.root, tmp_path / "out", ["2012-01-22"], progress=False)
     ref = nclt.load_session(fake.root, "2012-01-22")
     s = folder.load_session(tmp_path / "out" / "2012-01-22")
@@ -436,6 +451,8 @@ def test_nclt_export_reads_back_the_nclt_session(tmp_path):
     np.testing.assert_allclose(s.poses, ref.poses, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(s.intrinsics, ref.intrinsics)
     np.testing.assert_array_equal(s.images(range(len(s))), np.stack([ref.image(i) for i in range(len(ref))]))
+    ref_travelled = nclt.travelled_at(nclt.read_odometry(odo_csv), ref.utimes)
+    np.testing.assert_allclose(s.travelled_m, ref_travelled - ref_travelled[0], rtol=0, atol=1e-9)
     env = dict(os.environ, PYTHONPATH=str(REPO))
     done = subprocess.run(
         [sys.executable, "-m", "placejax.data.nclt", "export", str(fake.root), str(tmp_path / "cli"), "--dates",
@@ -475,10 +492,109 @@ def test_own_data_doc_commands_exist():
         for line in body.splitlines()
         if line.startswith("python -m ")
     ]
-    assert len(commands) >= 3
-    for words in commands:
-        assert importlib.util.find_spec(words[2]) is not None, words
-        done = subprocess.run([sys.executable, "-m", *words[2:4], "--help"], capture_output=True, text=True)
-        assert done.returncode == 0, (words, done.stderr)
-        for option in (w for w in words if w.startswith("--")):
-            assert option in done.stdout, (option, words)
+    assert len(commands) >= 5
+    for _, _, module, *rest in commands:
+        assert importlib.util.find_spec(module) is not None, module
+        sub = rest[:1] if rest[:1] in (["check"], ["export"]) else []
+        done = subprocess.run([sys.executable, "-m", module, *sub, "--help"], capture_output=True, text=True)
+        assert done.returncode == 0, (module, done.stderr)
+        for option in (w for w in rest if w.startswith("--")):
+            assert option in done.stdout, (option, module)
+        if module == "experiments.cross_season":
+            from experiments.cross_season import config
+
+            preset = rest[rest.index("--preset") + 1] if "--preset" in rest else "default"
+            known = config.leaf_keys(config.get_config(preset))
+            for arg in (w for w in rest if "=" in w):
+                assert arg.split("=", 1)[0] in known, arg
+
+
+# --------------------------------------------------------------------------------------------------- the experiment
+
+# Fields of results.json that may differ between two runs of the same data: where and how it ran.
+_RUN_FIELDS = ("config", "timings_s", "versions")
+
+
+def _smoke(workdir: Path, *overrides: str) -> dict:
+    from experiments.cross_season import apply_overrides, get_config, run
+
+    cfg = get_config("smoke")
+    apply_overrides(cfg, ["devices=1", "progress=False", "figures=False", *overrides])
+    return run(cfg, workdir)
+
+
+def _without(x, key: str):
+    """``x`` (nested dicts and lists) with every dict entry ``key`` removed."""
+    if isinstance(x, dict):
+        return {k: _without(v, key) for k, v in x.items() if k != key}
+    return [_without(v, key) for v in x] if isinstance(x, list) else x
+
+
+def _same_results(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        if key not in _RUN_FIELDS:
+            assert a[key] == b[key], key  # every pair, every method, baselines and ceilings, bit for bit
+
+
+@pytest.mark.slow
+def test_experiment_on_exported_simcampus_equals_direct(tmp_path):
+    """The smoke preset (rendered depth) on the SimCampus seasons exported as folders (with their depth) gives
+    the same results.json as on SimCampus itself."""
+    from placejax.data.simcampus.__main__ import main as sc_main
+
+    assert sc_main(["export", str(tmp_path / "data"), "--preset", "smoke"]) == 0
+    direct = _smoke(tmp_path / "direct")
+    folders = _smoke(tmp_path / "folders", "data.source=folder", f"data.root={tmp_path / 'data'}")
+    assert len(direct["pairs"]) == 12 and "nn_hha_true" in direct["pairs"][0]
+    _same_results(direct, folders)
+    assert folders["config"]["data"]["source"] == "folder"
+
+
+@pytest.mark.slow
+def test_experiment_with_a_depth_network_and_the_classifier_on_folders(tmp_path, smoke_depth_run):
+    """With a trained depth network (no true depth), two seasons: the same results from folders as from SimCampus,
+    and ``PlaceClassifier.from_run`` on the folder run predicts what the direct run's classifier predicts."""
+    from placejax import depth
+    from placejax.classify import PlaceClassifier
+    from placejax.data.simcampus.__main__ import main as sc_main
+
+    shutil.copytree(smoke_depth_run, depth.run_dir(depth.PRESETS["smoke"], "smoke", tmp_path / "depth"))
+    argv = ["export", str(tmp_path / "data"), "--preset", "smoke", "--seasons", "WI", "SU", "--no-depth"]
+    assert sc_main(argv) == 0
+    common = (
+        "depth.source=trained",
+        "depth.trained_preset=smoke",
+        f"depth.trained_cache={tmp_path / 'depth'}",
+        "data.sessions=('WI','SU')",
+        "ablations.depth1=False",
+        "n_seeds=1",
+    )
+    direct = _smoke(tmp_path / "direct", *common)
+    folders = _smoke(tmp_path / "folders", *common, "data.source=folder", f"data.root={tmp_path / 'data'}")
+    # SimCampus renders depth, so the direct run has the baseline on HHA of true depth; these folders have no depth.
+    assert "nn_hha_true" in direct["pairs"][0] and "nn_hha_true" not in folders["pairs"][0]
+    _same_results(_without(direct, "nn_hha_true"), folders)
+    images = folder.load_session(tmp_path / "data" / "SU").images(range(8))
+    a = PlaceClassifier.from_run(tmp_path / "direct", "WI").predict(images)
+    b = PlaceClassifier.from_run(tmp_path / "folders", "WI").predict(images)
+    np.testing.assert_array_equal(a.label, b.label)
+    np.testing.assert_array_equal(a.probabilities, b.probabilities)
+
+
+def test_folder_source_config_checked():
+    from experiments.cross_season import apply_overrides, get_config
+    from experiments.cross_season.config import validate
+
+    cfg = get_config("smoke")
+    apply_overrides(cfg, ["data.source=folder"])
+    with pytest.raises(ValueError, match=r"data.source='folder' needs data.root="):
+        validate(cfg)
+    apply_overrides(cfg, ["data.root=/x", "data.stride=0"])
+    with pytest.raises(ValueError, match=r"data.stride=0: expected a positive int"):
+        validate(cfg)
+    apply_overrides(cfg, ["data.stride=2"])
+    validate(cfg)
+    apply_overrides(cfg, ["data.source=simcampus"])
+    with pytest.raises(ValueError, match=r"data.stride=2: only data.source='folder' subsamples"):
+        validate(cfg)

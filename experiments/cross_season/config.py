@@ -31,8 +31,9 @@ PRESETS = ("smoke", "default", "paper")
 
 # Help text for every key, printed by --help.
 HELP: dict[str, str] = {
-    "data.source": "'simcampus' (built in) or 'nclt' (needs data.nclt_root)",
-    "data.sessions": "session names: SimCampus seasons (WI SP SU AU) or NCLT dates (YYYY-MM-DD)",
+    "data.source": "'simcampus' (built in), 'nclt' (needs data.nclt_root) or 'folder' (session folders in data.root, "
+    "docs/own-data.md)",
+    "data.sessions": "session names: SimCampus seasons (WI SP SU AU), NCLT dates (YYYY-MM-DD) or folders in data.root",
     "data.image_size": "(H, W) of the cached upright images the networks see",
     "data.world_seed": "SimCampus campus seed",
     "data.frame_spacing": "SimCampus metres of travel between frames",
@@ -40,11 +41,16 @@ HELP: dict[str, str] = {
     "data.nclt_root": "NCLT root with images/, ground_truth/, ladybug3_calib/",
     "data.camera": "NCLT Ladybug3 camera (5 faces forward)",
     "data.undistort": "NCLT: remap with the official U2D tables",
+    "data.root": "data.source='folder': the folder holding one session folder per name of data.sessions",
+    "data.stride": "data.source='folder': keep every stride-th image of each session (1: every image)",
     "grid.n": "cells per axis of the place grid (n × n classes)",
-    "depth.source": "'trained' (placejax depth net), 'midas' (official MiDaS v2.1 small), 'true' (rendered)",
+    "depth.source": "'trained' (placejax depth net), 'midas' (official MiDaS v2.1 small), 'true' (rendered), "
+    "'depth_anything_v2' (relative, [near_m, far_m] mapping) or 'depth_anything_v2_metric' (VKITTI metres, no mapping)",
     "depth.midas_weights": "path of midas_v21_small_256.pt ('' = placejax.weights registry / download)",
     "depth.midas_features": "MiDaS decoder width (64 official; smaller only for tests)",
     "depth.midas_encoder_width": "MiDaS encoder channel multiplier (1.0 official)",
+    "depth.dav2_weights": "Depth Anything V2 Small weights file ('' = placejax.weights registry / download)",
+    "depth.dav2_short_side": "Depth Anything V2 input short side before rounding to multiples of 14 (518 official)",
     "depth.trained_preset": "preset of the placejax depth network (experiments.train_depth) for depth.source='trained'",
     "depth.trained_cache": "cache folder of the trained depth network ('' = its default)",
     "depth.near_m": "metric depth assigned to the 98th percentile of inverse depth (m)",
@@ -111,6 +117,8 @@ def _base() -> ml_collections.ConfigDict:
         nclt_root="",
         camera=5,
         undistort=False,
+        root="",
+        stride=1,
     )
     c.grid = dict(n=10)
     c.depth = dict(
@@ -118,6 +126,9 @@ def _base() -> ml_collections.ConfigDict:
         midas_weights="",
         midas_features=64,
         midas_encoder_width=1.0,
+        dav2_weights="",
+        # The official input size; far slower than the presets' 64² images need (docs/models.md, which network).
+        dav2_short_side=518,
         trained_preset="default",
         trained_cache="",
         near_m=1.0,
@@ -225,8 +236,8 @@ def get_config(preset: str = "default") -> ml_collections.ConfigDict:
 
 
 _CHOICES = {
-    "data.source": ("simcampus", "nclt"),
-    "depth.source": ("trained", "midas", "true"),
+    "data.source": ("simcampus", "nclt", "folder"),
+    "depth.source": ("trained", "midas", "true", "depth_anything_v2", "depth_anything_v2_metric"),
     "depth.flip_average": (True, False),
     "train.optimizer": ("sgd", "adamw"),
     "mlp.optimizer": ("sgd", "adamw"),
@@ -260,6 +271,7 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
         "mlp.save_every",
         "eval.batch_size",
         "n_seeds",
+        "data.stride",
     ]
     for key in positive_ints:
         v = get(c, key)
@@ -318,8 +330,19 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
             errors.append(f"data.sessions: {unknown} are not SimCampus seasons {tuple(SEASONS)}")
     if c.data.source == "nclt" and not c.data.nclt_root:
         errors.append("data.source='nclt' needs data.nclt_root=/path/to/nclt (layout: docs/nclt.md)")
-    if c.depth.source == "true" and c.data.source != "simcampus":
-        errors.append("depth.source='true' needs rendered depth: only data.source='simcampus' has it")
+    if c.data.source == "folder" and not c.data.root:
+        errors.append("data.source='folder' needs data.root=/path/holding/the/session/folders (docs/own-data.md)")
+    if c.data.source != "folder" and c.data.stride != 1:
+        errors.append(
+            f"data.stride={c.data.stride!r}: only data.source='folder' subsamples (SimCampus: data.frame_spacing)"
+        )
+    if c.depth.source == "true" and c.data.source == "nclt":
+        errors.append(
+            "depth.source='true' needs true depth: data.source='simcampus' renders it, session folders may have it "
+            "(depth/), NCLT has none"
+        )
+    if not (isinstance(c.depth.dav2_short_side, int) and c.depth.dav2_short_side >= 14):
+        errors.append(f"depth.dav2_short_side={c.depth.dav2_short_side!r}: expected an int >= 14 (pixels)")
     if c.depth.source == "trained":
         from placejax.depth import PRESETS as DEPTH_PRESETS
 

@@ -1,5 +1,6 @@
 """Stages ``depth`` and ``hha``: per session, metric depth ``float32 (N, H, W)`` from the chosen source (the
-placejax-trained network, MiDaS, or SimCampus's rendered depth), then its HHA ``uint8 (N, H, W, 3)``; both cached."""
+placejax-trained network, MiDaS, Depth Anything V2, or SimCampus's rendered depth), then its HHA
+``uint8 (N, H, W, 3)``; both cached."""
 
 from __future__ import annotations
 
@@ -18,6 +19,11 @@ from placejax.data import build_array_cache
 from placejax.training import map_batches
 
 
+def has_true_depth(sessions: list[SessionData]) -> bool:
+    """Whether every session has true metric depth: SimCampus renders it, a session folder may hold it (depth/)."""
+    return all(getattr(s.source, "has_depth", callable(getattr(s.source, "depths", None))) for s in sessions)
+
+
 def depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionData, int, int], np.ndarray]]:
     """``(key, fn(session, start, stop) → float32 metric depth (n, H, W))`` of a depth source."""
     c = ctx.config.depth
@@ -27,10 +33,13 @@ def depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionData
         return np.asarray(_hha.inverse_depth_to_metric(inv, **metric), np.float32)
 
     if source == "true":
-        if ctx.config.data.source != "simcampus":
-            raise ValueError("depth.source='true' needs rendered depth: only data.source='simcampus' has it")
 
         def true_depth(s: SessionData, a: int, b: int) -> np.ndarray:
+            if not has_true_depth([s]):
+                raise ValueError(
+                    f"depth.source='true' needs true depth: session {s.name!r} has none (SimCampus renders it, a "
+                    "session folder needs a depth/ folder, NCLT has none)"
+                )
             return s.source.depths(np.arange(a, b)).astype(np.float32)
 
         return {"source": "true (rendered z-depth)"}, true_depth
@@ -51,6 +60,35 @@ def depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionData
 
         key = {"source": "midas", "weights": ident, "model": [c.midas_features, c.midas_encoder_width], **metric}
         return key, midas
+    if source in ("depth_anything_v2", "depth_anything_v2_metric"):
+        import jax
+
+        from placejax.models import DepthAnythingV2, cpu_compiler_options, dav2_apply
+        from placejax.weights import REGISTRY, convert_depth_anything_v2, resolve
+
+        metric_out = source == "depth_anything_v2_metric"
+        name = "depth_anything_v2_metric_vkitti_vits" if metric_out else "depth_anything_v2_vits"
+        model = DepthAnythingV2.from_encoder(**REGISTRY[name].model_kwargs)
+        convert = functools.partial(convert_depth_anything_v2, model=model)
+        variables = jax.device_put(resolve(c.dav2_weights or f"registry:{name}", convert=convert).variables)
+        net = jax.jit(
+            functools.partial(dav2_apply, model=model, short_side=c.dav2_short_side),
+            compiler_options=cpu_compiler_options("depth_anything_v2"),
+        )
+
+        def dav2(s: SessionData, a: int, b: int) -> np.ndarray:
+            x = np.asarray(s.cached.images[a:b])
+            y = map_batches(lambda x: np.asarray(net(variables, x)), x, c.batch_size)
+            # The metric (Virtual KITTI 2) model's metres go to HHA as they are: no per-image [near, far] guess.
+            return np.asarray(y, np.float32) if metric_out else to_metric(y)
+
+        key = {
+            "source": source,
+            "weights": weights_identity(c.dav2_weights, name),
+            "short_side": c.dav2_short_side,
+            **({} if metric_out else metric),
+        }
+        return key, dav2
     if source == "trained":
         # The placejax-trained depth network: shipped with the package (default preset), or trained once per
         # machine into the cache, then reused.
@@ -74,7 +112,10 @@ def depth_source(ctx: Context, source: str) -> tuple[dict, Callable[[SessionData
         if trained.metric and tuple(c.shift_px):  # (absent when off: caches of runs before the setting stay valid)
             how["shift_px"] = [int(k) for k in c.shift_px]
         return {"source": "trained", "fingerprint": trained.fingerprint, **how}, trained_depth
-    raise ValueError(f"depth.source must be 'trained', 'midas' or 'true', got {source!r}")
+    raise ValueError(
+        "depth.source must be 'trained', 'midas', 'true', 'depth_anything_v2' or 'depth_anything_v2_metric', "
+        f"got {source!r}"
+    )
 
 
 def compute_depth_and_hha(ctx: Context, sessions: list[SessionData]) -> None:

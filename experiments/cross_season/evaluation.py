@@ -10,7 +10,7 @@ import numpy as np
 
 from experiments.cross_season import baselines as _baselines
 from experiments.cross_season.context import Context, SessionData
-from experiments.cross_season.depth_hha import depth_and_hha_caches
+from experiments.cross_season.depth_hha import depth_and_hha_caches, has_true_depth
 from placejax.evaluation import frame_gains, gain_intervals, mean_sd, softmax, top1
 
 
@@ -56,7 +56,7 @@ def baseline_features(ctx: Context, sessions: list[SessionData]) -> dict[str, di
     sizes = _baselines.THUMB_SIZES
     feats = rgb_baseline_features(sessions)
     feats["nn_hha"] = {s.name: _baselines.thumbnails(s.hha.data, sizes["nn_hha"]) for s in sessions}
-    if ctx.config.data.source == "simcampus":
+    if has_true_depth(sessions):
         # Geometry alone: HHA of rendered depth (the same caches as depth.source=true, built once).
         true = depth_and_hha_caches(ctx, sessions, "true")
         feats["nn_hha_true"] = {

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import jax
@@ -10,6 +11,8 @@ import numpy as np
 
 from experiments.cross_season.context import Context, SessionData
 from placejax.data import PlaceGrid, cache_session, truncated
+
+log = logging.getLogger(__name__)
 
 
 def load_sessions(ctx: Context) -> list[SessionData]:
@@ -38,8 +41,14 @@ def load_sessions(ctx: Context) -> list[SessionData]:
             src = nclt.load_session(c.nclt_root, name, camera=c.camera, undistort=c.undistort, progress=ctx.progress)
             if c.max_frames:
                 src = truncated(src, c.max_frames)
+        elif c.source == "folder":
+            from placejax.data import folder
+
+            # Every image of the folder, unless data.stride / data.max_frames say otherwise (docs/own-data.md).
+            src = folder.load_session(Path(c.root) / name, name=name, stride=c.stride, max_frames=c.max_frames or None)
+            log.info("%s", src.report)
         else:
-            raise ValueError(f"data.source must be 'simcampus' or 'nclt', got {c.source!r}")
+            raise ValueError(f"data.source must be 'simcampus', 'nclt' or 'folder', got {c.source!r}")
         cached = cache_session(src, ctx.cache_root, image_size=tuple(c.image_size), progress=ctx.progress)
         out.append(SessionData(name=name, cached=cached, source=src))
     return out

@@ -116,6 +116,7 @@ def export_simcampus(
             _folder.matrix_to_quaternion(rot),
             chunks("rgb"),
             depths=chunks("depth") if depth else None,
+            travelled_m=s.travelled_m,  # the simulated wheel odometry the route filter reads
             pose_format=pose_format,
         )
         io.write_json(
@@ -160,7 +161,8 @@ def export_nclt(
     roll, pitch, yaw of the robot body; the camera is taken to look along the body's heading, as Cam5 does), so
     the folder's planar poses equal the NCLT session's. With ``undistort`` the images are remapped with the
     official U2D tables; otherwise they keep the lens distortion, which ``camera.json`` cannot describe (the U2D
-    tables are not an OpenCV model): ``source.json`` says which.
+    tables are not an OpenCV model): ``source.json`` says which. The wheel odometry
+    ``ROOT/sensor_data/<date>/odometry_mu_100hz.csv``, when present, becomes ``odometry.csv`` (x, y, yaw).
 
     Returns:
         The session folders written.
@@ -198,6 +200,15 @@ def export_nclt(
                 "dropped": {"outside_ground_truth": s.report.n_outside_ground_truth, "no_pose": s.report.n_no_pose},
             },
         )
+        odometry = Path(root) / "sensor_data" / date / "odometry_mu_100hz.csv"
+        if odometry.is_file():  # where the experiment's route stage reads NCLT's wheel odometry
+            odo = nclt.read_odometry(odometry)
+            rows = ["timestamp,x,y,yaw"]
+            rows += [
+                f"{_folder.format_timestamp(t)},{float(v[0])!r},{float(v[1])!r},{float(v[5])!r}"
+                for t, v in zip(odo.utimes, odo.xyzrpy, strict=True)
+            ]
+            io.write_text(path / _folder.ODOMETRY_FILE, "\n".join(rows) + "\n")
         written.append(path)
     return written
 

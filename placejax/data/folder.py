@@ -11,7 +11,7 @@ A session folder holds::
     poses_kitti.txt      KITTI odometry poses: 12 numbers per line (row-major 3 × 4 camera-to-world), one per image
     depth/               optional: ``<image stem>.png`` (uint16 millimetres, 0 = missing) or ``.npy`` / ``.tiff``
                          (float32 metres), one per image
-    odometry.csv         optional: ``timestamp,x,y,yaw`` (s, m, m, rad) wheel odometry
+    odometry.csv         optional wheel odometry: ``timestamp,x,y,yaw`` (s, m, m, rad) or ``timestamp,travelled_m``
 
 Typical use::
 
@@ -560,25 +560,33 @@ def read_camera(path: str | os.PathLike) -> CameraSpec:
     )
 
 
-def read_odometry(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Reads ``odometry.csv``: a header ``timestamp,x,y,yaw``, then seconds, metres, metres, radians.
+_ODOMETRY_HEADERS = (("timestamp", "x", "y", "yaw"), ("timestamp", "travelled_m"))
+
+
+def read_odometry(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """Reads ``odometry.csv``: wheel odometry as poses or as an odometer.
+
+    Two forms, told apart by the header: ``timestamp,x,y,yaw`` (seconds, metres, metres, radians: the odometry
+    frame's pose) or ``timestamp,travelled_m`` (seconds, metres travelled since any origin: an odometer, which
+    must not decrease).
 
     Returns:
-        ``(utimes int64 (M,) µs, xy_yaw float64 (M, 3))``.
+        ``(utimes int64 (M,) µs, values float64 (M, 3) or (M, 1), header)``.
 
     Raises:
-        FolderFormatError: ``path:line:`` for a wrong header, a bad line, a non-finite value, an unsorted or
-            duplicate timestamp; ``path:`` for no rows.
+        FolderFormatError: ``path:line:`` for another header, a bad line, a non-finite value, an unsorted or
+            duplicate timestamp, a decreasing odometer; ``path:`` for no rows.
     """
     path = Path(path)
     rows = list(_data_lines(path))
-    if not rows or [h.strip().lower() for h in rows[0][1].split(",")] != ["timestamp", "x", "y", "yaw"]:
-        raise _err(path, rows[0][0] if rows else None, "header must be 'timestamp,x,y,yaw'")
+    header = tuple(h.strip().lower() for h in rows[0][1].split(",")) if rows else ()
+    if header not in _ODOMETRY_HEADERS:
+        raise _err(path, rows[0][0] if rows else None, "header must be 'timestamp,x,y,yaw' or 'timestamp,travelled_m'")
     ts, vals, lines = [], [], []
     for n, line in rows[1:]:
         fields = line.split(",")
-        if len(fields) != 4:
-            raise _err(path, n, f"expected 4 values 'timestamp,x,y,yaw', got {len(fields)}")
+        if len(fields) != len(header):
+            raise _err(path, n, f"expected {len(header)} values {','.join(header)!r}, got {len(fields)}")
         try:
             ts.append(parse_timestamp(fields[0]))
         except ValueError as e:
@@ -586,12 +594,23 @@ def read_odometry(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         v = _floats(path, n, fields[1:], "odometry")
         if not all(math.isfinite(x) for x in v):
             raise _err(path, n, f"odometry {v} is not finite")
+        if len(v) == 1 and vals and v[0] < vals[-1][0]:
+            raise _err(path, n, f"travelled_m {v[0]!r} is below the previous line's {vals[-1][0]!r} (an odometer)")
         vals.append(v)
         lines.append(n)
     if not ts:
         raise _err(path, None, "no odometry row")
     _check_increasing(ts, lines, path, "odometry")
-    return np.array(ts, np.int64), np.array(vals, np.float64)
+    return np.array(ts, np.int64), np.array(vals, np.float64), header
+
+
+def _interp(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """``np.interp`` whose value at a sample's exact time is that sample, bit for bit."""
+    out = np.interp(x.astype(np.float64), xp.astype(np.float64), fp)
+    idx = np.clip(np.searchsorted(xp, x), 0, len(xp) - 1)
+    hit = xp[idx] == x
+    out[hit] = fp[idx[hit]]
+    return out
 
 
 # --------------------------------------------------------------------------------------------------- matching
@@ -648,7 +667,7 @@ class FolderReport:
         n_no_pose: dropped: nearest pose farther than the tolerance (a gap in the trajectory).
         n_pose_rows: poses in the trajectory file.
         max_pose_gap_s: the largest time between consecutive poses, seconds (0 for KITTI files).
-        n_no_odometry: kept frames outside the odometry table (their ``odometry`` rows are NaN); 0 without one.
+        n_no_odometry: kept frames outside the odometry table (``odometry`` rows NaN, ``travelled_m`` clamped).
         n_over_max_frames: dropped: matched, but beyond ``max_frames``.
     """
 
@@ -733,7 +752,10 @@ class FolderSession:
         camera_height_m: metres above the ground, or None when unknown.
         files: the image file of every frame.
         depth_files: the depth file of every frame, or None without a ``depth/`` folder.
-        odometry: float64 ``(N, 3)`` wheel odometry x, y, yaw at the frame times (NaN outside the table), or None.
+        odometry: float64 ``(N, 3)`` wheel odometry x, y, yaw at the frame times (NaN outside the table), or None
+            (no ``odometry.csv``, or an odometer-only one).
+        travelled_m: float64 ``(N,)`` metres travelled since frame 0 by the odometry (``placejax.route`` reads
+            it; clamped outside the table), or None without ``odometry.csv``.
         report: kept / dropped counts.
     """
 
@@ -749,6 +771,7 @@ class FolderSession:
         quaternions: np.ndarray,
         depth_files: tuple[Path, ...] | None,
         odometry: np.ndarray | None,
+        travelled_m: np.ndarray | None,
         image_size: tuple[int, int] | None,
         report: FolderReport,
     ):
@@ -759,6 +782,7 @@ class FolderSession:
         self.rotations = quaternion_to_matrix(quaternions) if len(quaternions) else np.zeros((0, 3, 3))
         self.poses = planar_poses(positions, self.rotations, camera.vertical_axis)
         self.depth_files, self.odometry, self.report = depth_files, odometry, report
+        self.travelled_m = travelled_m
         self.camera_height_m = camera.camera_height_m
         raw = (camera.height, camera.width)
         self.raw_shape = raw
@@ -1000,15 +1024,22 @@ def load_session(
                 "(images of different sizes?)",
             )
     depth = _depth_files(folder, kept_files)
-    odo = None
+    odo = travelled = None
     if (folder / ODOMETRY_FILE).is_file():
-        o_t, o_v = read_odometry(folder / ODOMETRY_FILE)
+        o_t, o_v, header = read_odometry(folder / ODOMETRY_FILE)
         ku = utimes[keep]
-        yaw = np.unwrap(o_v[:, 2])
-        odo = np.stack([np.interp(ku, o_t, o_v[:, 0]), np.interp(ku, o_t, o_v[:, 1]), np.interp(ku, o_t, yaw)], -1)
-        odo[:, 2] = np.angle(np.exp(1j * odo[:, 2]))
         out = (ku < o_t[0]) | (ku > o_t[-1])
-        odo[out] = np.nan
+        if len(header) == 4:
+            yaw = np.unwrap(o_v[:, 2])
+            odo = np.stack([_interp(ku, o_t, o_v[:, 0]), _interp(ku, o_t, o_v[:, 1]), _interp(ku, o_t, yaw)], -1)
+            odo[:, 2] = np.angle(np.exp(1j * odo[:, 2]))
+            odo[out] = np.nan
+            # The odometer of a pose odometry: its planar path length (as placejax.data.nclt.travelled_at).
+            reading = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(o_v[:, :2], axis=0), axis=1))])
+        else:
+            reading = o_v[:, 0]
+        travelled = _interp(ku, o_t, reading)  # clamped outside the table: no motion invented there
+        travelled -= travelled[0]
         report = dataclasses.replace(report, n_no_odometry=int(out.sum()))
     return FolderSession(
         name=report.name,
@@ -1020,6 +1051,7 @@ def load_session(
         quaternions=quats[keep],
         depth_files=depth,
         odometry=odo,
+        travelled_m=travelled,
         image_size=image_size,
         report=report,
     )
@@ -1045,6 +1077,7 @@ def write_session(
     images: Iterable[np.ndarray],
     *,
     depths: Iterable[np.ndarray] | None = None,
+    travelled_m: np.ndarray | None = None,
     pose_format: str = "tum",
 ) -> Path:
     """Writes one session folder in this format (what the exporters and ``docs/own-data.md`` use).
@@ -1060,6 +1093,7 @@ def write_session(
         quaternions: float ``(N, 4)`` camera-to-world ``(qx, qy, qz, qw)``.
         images: ``N`` RGB uint8 ``(height, width, 3)`` images.
         depths: optional ``N`` float ``(height, width)`` metric depths.
+        travelled_m: optional float ``(N,)`` odometer reading at each image (metres), written as ``odometry.csv``.
         pose_format: ``"tum"`` (``poses_tum.txt``) or ``"kitti"`` (``poses_kitti.txt``).
 
     Returns:
@@ -1101,6 +1135,13 @@ def write_session(
         for k, d in enumerate(depths):
             with io.atomic_write(folder / DEPTH_DIR / f"{k:06d}.npy") as f:
                 np.save(f, np.asarray(d, np.float32), allow_pickle=False)
+    if travelled_m is not None:
+        travelled_m = np.asarray(travelled_m, np.float64)
+        if travelled_m.shape != (n,):
+            raise ValueError(f"travelled_m must have shape ({n},), got {travelled_m.shape}")
+        readings = (f"{format_timestamp(t)},{float(v)!r}" for t, v in zip(utimes, travelled_m, strict=True))
+        rows = ["timestamp,travelled_m", *readings]
+        io.write_text(folder / ODOMETRY_FILE, "\n".join(rows) + "\n")
     write_poses(folder, utimes, positions, quaternions, pose_format)
     return folder
 
