@@ -270,6 +270,43 @@ def test_cache_identity_survives_a_move_not_an_edit(tmp_path):
     np.testing.assert_array_equal(np.asarray(cached.images), images)
 
 
+def test_sigkilled_cache_build_of_a_folder_resumes_to_the_same_cache(tmp_path):
+    """A real kill -9 half-way through caching a folder session, then a rerun: the same cache as a fresh build."""
+    import json
+    import signal
+    import textwrap
+
+    d, images, *_ = _session(tmp_path / "s", n=9)
+    script = textwrap.dedent(
+        f"""
+        import os, signal
+        from placejax.data import folder
+        from placejax.data.cache import cache_session
+        s = folder.load_session({str(d)!r})
+        read = s.image
+        def image(i):
+            if i == 6:  # two chunks of 3 committed
+                os.kill(os.getpid(), signal.SIGKILL)
+            return read(i)
+        s.image = image
+        cache_session(s, {str(tmp_path / "killed")!r}, image_size=(6, 8), chunk=3, workers=1, progress=False)
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", script], env=dict(os.environ, PYTHONPATH=str(REPO)), timeout=300)
+    assert proc.returncode == -signal.SIGKILL
+    (partial,) = [p for p in (tmp_path / "killed").iterdir() if p.name.endswith(".partial")]
+    assert json.loads((partial / "progress.json").read_text())["rows_done"] == 6
+    s = folder.load_session(d)
+    resumed = cache_session(s, tmp_path / "killed", image_size=(6, 8), chunk=3, progress=False)
+    fresh = cache_session(s, tmp_path / "fresh", image_size=(6, 8), chunk=3, progress=False)
+    assert resumed.path.name == fresh.path.name
+    np.testing.assert_array_equal(np.asarray(resumed.images), np.asarray(fresh.images))
+    np.testing.assert_array_equal(resumed.poses, s.poses)
+    from placejax.data.camera import resize_image
+
+    np.testing.assert_array_equal(np.asarray(fresh.images), np.stack([resize_image(x, (6, 8)) for x in images]))
+
+
 # --------------------------------------------------------------------------------------------------- bad input
 
 
@@ -598,3 +635,26 @@ def test_folder_source_config_checked():
     apply_overrides(cfg, ["data.source=simcampus"])
     with pytest.raises(ValueError, match=r"data.stride=2: only data.source='folder' subsamples"):
         validate(cfg)
+    paper = get_config("paper")  # the paper's recipe (MiDaS, ImageNet VGG16) on folders
+    apply_overrides(paper, ["data.source=folder", "data.root=/x", "data.sessions=('a','b','c')"])
+    validate(paper)
+    apply_overrides(paper, ["depth.source=true"])
+    validate(paper)  # whether every folder has depth/ is checked when the depth stage reads them
+
+
+def test_experiment_grid_warns_about_a_session_elsewhere(tmp_path, caplog):
+    from types import SimpleNamespace
+
+    from experiments.cross_season.sessions import fit_grid
+
+    ctx = SimpleNamespace(config=SimpleNamespace(grid=SimpleNamespace(n=3)), workdir=tmp_path)
+    square = np.array([[0.0, 0, 0], [10, 10, 0]])
+    sessions = [SimpleNamespace(name=n, cached=SimpleNamespace(poses=p)) for n, p in (("a", square), ("b", square))]
+    with caplog.at_level("WARNING"):
+        fit_grid(ctx, sessions)
+    assert "shares no place cell" not in caplog.text
+    sessions.append(SimpleNamespace(name="far", cached=SimpleNamespace(poses=square + np.array([1000.0, 0, 0]))))
+    with caplog.at_level("WARNING"):
+        grid = fit_grid(ctx, sessions)
+    assert "session far shares no place cell" in caplog.text and "session a " not in caplog.text
+    assert grid.n == 3 and (tmp_path / "grid.json").is_file()

@@ -61,4 +61,13 @@ def fit_grid(ctx: Context, sessions: list[SessionData]) -> PlaceGrid:
         grid.save(ctx.workdir / "grid.json")
     for s in sessions:
         s.labels = grid.label(s.cached.poses).astype(np.int32)
+    cells = [set(np.unique(s.labels).tolist()) for s in sessions]
+    for k, s in enumerate(sessions):
+        if not cells[k] & set().union(*(c for j, c in enumerate(cells) if j != k)):
+            # Nothing to recognise across sessions: usually a session in another map frame (own recordings).
+            log.warning(
+                "session %s shares no place cell with the other sessions: another map frame? "
+                "(python -m placejax.data check draws every trajectory over the grid)",
+                s.name,
+            )
     return grid
