@@ -215,3 +215,34 @@ def test_configs_and_unknown_encoder():
     assert shapes["params"]["depth_head"]["scratch_output_conv1"]["kernel"].shape == (3, 3, 128, 64)
     with pytest.raises(ValueError, match="vitg"):
         DepthAnythingV2.from_encoder("vitg")
+
+
+@pytest.mark.parametrize("source", ["depth_anything_v2", "depth_anything_v2_metric"])
+def test_experiment_depth_source(refs, source):
+    """depth.source=depth_anything_v2[_metric]: the metric model's metres go to HHA as they are, the relative
+    model's output through the per-image [near_m, far_m] mapping."""
+    from types import SimpleNamespace
+
+    from experiments.cross_season import config as xconfig
+    from experiments.cross_season.depth_hha import depth_source
+    from placejax.hha import inverse_depth_to_metric
+
+    c = xconfig.get_config("default")
+    c.depth.update(source=source, dav2_weights=str(refs / "small_metric.pth"), dav2_short_side=28, batch_size=2)
+    xconfig.validate(c)
+    key, fn = depth_source(SimpleNamespace(config=c, progress=False), source)
+    rgb = np.random.default_rng(6).integers(0, 256, (3, 24, 32, 3), dtype=np.uint8)
+    got = fn(SimpleNamespace(cached=SimpleNamespace(images=rgb)), 0, 3)
+    assert got.shape == (3, 24, 32) and got.dtype == np.float32
+    metric = source.endswith("metric")
+    model = DepthAnythingV2.from_encoder("vits", head="metric" if metric else "relative", max_depth=80.0)
+    variables = convert_depth_anything_v2(read_torch_checkpoint(refs / "small_metric.pth"), model)
+    raw = np.asarray(dav2_apply(variables, jnp.asarray(rgb), model=model, short_side=28))
+    want = raw if metric else np.asarray(inverse_depth_to_metric(raw, near_m=c.depth.near_m, far_m=c.depth.far_m))
+    # The stage runs jitted with YNNPACK dots, in padded batches of 2: float rounding, which the relative case's
+    # 1/x mapping to metres magnifies near the far end (measured 6e-5 relative).
+    np.testing.assert_allclose(got, want, rtol=1e-5 if metric else 5e-4, atol=1e-5 * float(np.ptp(want)))
+    assert ("near_m" in key) != metric and key["short_side"] == 28 and key["source"] == source
+    c.depth.dav2_short_side = 10
+    with pytest.raises(ValueError, match="dav2_short_side"):
+        xconfig.validate(c)

@@ -37,6 +37,10 @@ def write_classifier_index(ctx: Context, sessions, nets, mlp_dirs: dict, grid: P
             "features": c.midas_features,
             "encoder_width": c.midas_encoder_width,
         }
+    elif c.source in ("depth_anything_v2", "depth_anything_v2_metric"):
+        name = "depth_anything_v2_metric_vkitti_vits" if c.source.endswith("metric") else "depth_anything_v2_vits"
+        weights = str(Path(c.dav2_weights).resolve()) if c.dav2_weights else f"registry:{name}"
+        depth_spec = {"source": c.source, "weights": weights, "short_side": c.dav2_short_side}
     else:
         depth_spec = {"source": c.source}
     index_sessions = {}

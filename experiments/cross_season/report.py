@@ -158,6 +158,8 @@ _FONT = {
 _DEPTH_SOURCES = {
     "trained": "placejax depth network",
     "midas": "MiDaS v2.1 small",
+    "depth_anything_v2": "Depth Anything V2 Small (relative)",
+    "depth_anything_v2_metric": "Depth Anything V2 Small (metric, VKITTI)",
     "true": "renderer (true depth)",
 }
 

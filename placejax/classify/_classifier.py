@@ -366,8 +366,9 @@ class PlaceClassifier:
             }
         else:
             raise ValueError(
-                f"the run in {files.workdir} used depth.source={d['source']!r} (rendered depth): it has no depth "
-                "network to estimate depth from a photograph; train with depth.source=trained or midas"
+                f"the run in {files.workdir} used depth.source={d['source']!r}: PlaceClassifier rebuilds only the "
+                "'trained' and 'midas' depth networks (rendered depth has none; Depth Anything V2 is not wired in "
+                "yet); train with depth.source=trained or midas"
             )
         depth_meta.update(near_m=cfg["depth"]["near_m"], far_m=cfg["depth"]["far_m"])
         params = {
