@@ -4,7 +4,7 @@ Public surface:
     Session: the interface every data source satisfies.
     ArraySession: a session held in memory (uint8 ``(N, H, W, 3)`` frames, ``(N, 3)`` poses, ``(3, 3)``
         intrinsics).
-    nclt: the NCLT reader, ``nclt.load_session(root, date, camera=5, ...)``.
+    nclt: the NCLT reader, ``nclt.load_session(root, date, camera=5, ...)`` (imported on first use).
     simcampus: the built-in seasonal campus rendered in JAX, ``simcampus.load_session("WI", ...)`` (imported on
         first use: it brings JAX).
     folder: one's own sessions as folders of images with a pose file (imported on first use).
@@ -15,7 +15,7 @@ Public surface:
     camera: intrinsics under rotation and resizing.
 """
 
-from placejax.data import camera, nclt
+from placejax.data import camera
 from placejax.data.cache import (
     ArrayCache,
     CachedSession,
@@ -30,8 +30,9 @@ from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dat
 from placejax.data.session import ArraySession, Session, session_identity, truncated
 
 # Imported on first attribute access (PEP 562): SimCampus renders with JAX, which the rest of the data layer
-# does not need.
-_LAZY_SUBMODULES = ("export", "folder", "simcampus")
+# does not need; nclt (and the others) are lazy too so that `python -m placejax.data.nclt` does not find its own
+# module already imported by the package (runpy's RuntimeWarning).
+_LAZY_SUBMODULES = ("export", "folder", "nclt", "simcampus")
 
 
 def __getattr__(name: str):
