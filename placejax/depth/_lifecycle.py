@@ -21,7 +21,8 @@ from placejax.depth import _evaluate
 from placejax.depth._train import PRESETS, DepthTrainConfig, TrainedDepth, load_trained, train
 from placejax.weights import _shipped
 
-# Measured on an idle 2-core x86 CPU (README, depth-network section): shown to the user before a first training.
+# Measured on an idle 2-core x86 CPU (placejax/depth/weights/README.md; docs/research-log.md, 2026-12-05): shown
+# to the user before a first training.
 _EXPECTED_MINUTES = {"smoke": 1, "default": 55}
 
 # Presets whose trained network ships inside the package (``placejax/depth/weights/<name>.npz``, its recipe and

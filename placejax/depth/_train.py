@@ -239,9 +239,9 @@ PRESETS = {
     # (placejax/depth/weights); the default depth source of the experiment. Metric log depth: the inverse-depth
     # objective at 64² learnt a ground ramp under a flat sky, with no objects. Trained at the height of SimCampus's
     # robot camera (its trajectories' 1.2-1.5 m), with object pixels weighted 4x, on season-structured looks with
-    # the colour channels in shuffled orders. Chosen on world 1 by experiments.hha_diagnose (README, depth-network
-    # section; 64² without the two look levers until 2026-12-04, then 96² until 2026-12-04's 128² run, 2400 steps
-    # until 2026-12-05).
+    # the colour channels in shuffled orders. Chosen on world 1 by experiments.hha_diagnose (docs/research-log.md;
+    # 64² without the two look levers until 2026-12-04, then 96² until 2026-12-04's 128² run, 2400 steps until
+    # 2026-12-05).
     "default": DepthTrainConfig(
         target="log_metric",
         image_size=128,

@@ -33,7 +33,7 @@ PLACE_WORLD_SEED_BASE = 8_000_000
 MODALITIES = ("rgb", "hha")
 
 # perturb_depth: the depth network's range (it predicts at most 80 m), the spread of its errors (objects off by a
-# median factor of 1.3-1.45 on a world it never saw, see the README's depth section), log-depth blur and the sky
+# median factor of 1.3-1.45 on a world it never saw, see docs/research-log.md), log-depth blur and the sky
 # step's threshold (the experiment's depth.far_as_sky_m is 50 m).
 PERTURB_MAX_DEPTH_M = 80.0
 PERTURB_LOG_SCALE = 0.3  # amplitude of the smooth log-depth error field

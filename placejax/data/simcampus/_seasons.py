@@ -193,11 +193,12 @@ _DESIGNED: dict[str, SeasonStyle] = {
 }
 
 
-# Calibration of the benchmark (README, "Calibrating SimCampus"): each season's colours, light, haze, exposure and
-# noise are pulled towards the mean over the four seasons, keeping this share of their departure from it (1.0: as
-# designed). Chosen against RGB-only measures (experiments.calibrate_world: RGB-Net, RGB and gradient
-# nearest-neighbour) until RGB-Net's cross-season mean lay in the paper's RGB-Net range, then frozen. What a season
-# changes (snow, foliage on or off, leaf and grass colour, sun and sky) and what it keeps are unchanged; only how far.
+# Calibration of the benchmark (docs/research-log.md, 2026-12-02, "Calibrating SimCampus"): each season's colours,
+# light, haze, exposure and noise are pulled towards the mean over the four seasons, keeping this share of their
+# departure from it (1.0: as designed). Chosen against RGB-only measures (experiments.calibrate_world: RGB-Net, RGB
+# and gradient nearest-neighbour) until RGB-Net's cross-season mean lay in the paper's RGB-Net range, then frozen.
+# What a season changes (snow, foliage on or off, leaf and grass colour, sun and sky) and what it keeps are
+# unchanged; only how far.
 SEASON_CONTRAST = 0.6
 
 
