@@ -647,3 +647,23 @@ def test_random_manifests_and_byte_edits_load_identically_or_refuse(tiny, tmp_pa
     assert report["over_base"] < GIB, report
     assert report["refused"] > 0 and report["loaded"] > 0, report  # both outcomes were exercised
     assert sum(report["seconds"].values()) < 120, report
+
+
+def test_artefact_keeps_every_array_shape_and_order(tmp_path):
+    """A 0-d, an empty, a Fortran-ordered and a plain array come back with their shapes, dtypes and values."""
+    from placejax.classify._artefact import read_artefact, write_artefact
+
+    arrays = {
+        "s": np.float32(2.5),
+        "z": np.array(7, np.int64),
+        "e/empty": np.zeros((0, 3), np.float32),
+        "f": np.asfortranarray(np.arange(6.0).reshape(2, 3)),
+        "c/k": np.arange(12, dtype=np.uint8).reshape(3, 4)[:, ::2],
+    }
+    write_artefact(tmp_path / "a.zip", {}, arrays)
+    manifest, back = read_artefact(tmp_path / "a.zip")
+    assert sorted(back) == sorted(arrays)
+    for name, a in arrays.items():
+        assert back[name].shape == np.shape(a) and back[name].dtype == np.asarray(a).dtype, name
+        assert manifest["arrays"][name]["shape"] == list(np.shape(a)), name
+        np.testing.assert_array_equal(back[name], a)

@@ -91,7 +91,8 @@ def write_artefact(path: str | os.PathLike, manifest: dict[str, Any], arrays: di
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+    # np.ascontiguousarray alone would turn a 0-d array into shape (1,)
+    arrays = {k: np.ascontiguousarray(v).reshape(np.shape(v)) for k, v in arrays.items()}
     table = {k: {"shape": list(a.shape), "dtype": a.dtype.str, "sha256": _digest(a)} for k, a in arrays.items()}
     full = {"format": FORMAT, "version": VERSION, **manifest, "arrays": table}
     text = json.dumps(full, indent=2, sort_keys=True).encode()
