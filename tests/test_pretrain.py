@@ -135,6 +135,16 @@ def test_export_round_trip_keeps_the_trunk_and_the_named_heads(tmp_path):
         pretrain.pretrained_vgg16(str(tmp_path / "t.npz"), width=0.125)
 
 
+def test_pretrained_vgg16_refuses_weights_of_other_networks():
+    """Specs the one resolver knows but that name no VGG16 (the depth networks of the registry, the shipped depth
+    network's record) are refused by name, not handed on as VGG16 parameters (the registry's before downloading)."""
+    with pytest.raises(ValueError, match="registry:midas_v21_small_256' is not a VGG16"):
+        pretrain.pretrained_vgg16("registry:midas_v21_small_256")
+    with pytest.raises(ValueError, match="simcampus_depth_default_128' is not a pretrained VGG16 trunk"):
+        pretrain.pretrained_vgg16("shipped:simcampus_depth_default_128", width=0.125)
+    assert set(pretrain.pretrained_vgg16(f"shipped:{pretrain.SHIPPED}", width=0.125)) == {"trunk"}
+
+
 def test_cli_overrides_are_typed_and_cache_folder_follows_the_config(tmp_path):
     from experiments import pretrain_trunk
 

@@ -117,6 +117,8 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
 
     spec = weights or _IMAGENET
     if spec.startswith(_resolve.REGISTRY_PREFIX):
+        if spec != _IMAGENET:  # the registry's other entries are depth networks, not VGG16s
+            raise ValueError(f"{weights!r} is not a VGG16: the registry's VGG16 weights are {_IMAGENET!r}")
         if width != 1.0:  # checked before anything is downloaded
             raise ValueError(f"the registry's ImageNet VGG16 has width 1.0, not {width} (pass other weights' path)")
         return _resolve.resolve(spec).variables["params"]
@@ -131,6 +133,9 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
         if meta.get("config", {}).get("width") != width:
             raise ValueError(f"{weights!r} is a width-{meta.get('config', {}).get('width')} trunk, not width {width}")
         return {"trunk": variables["trunk"]}
+    if spec.startswith(_resolve.SHIPPED_PREFIX) or Path(spec).expanduser().suffix == ".npz":
+        # another network's record (e.g. the shipped depth network): a "params" tree, but not a VGG16's
+        raise ValueError(f"{weights!r} is not a pretrained VGG16 trunk record (it holds {sorted(variables)})")
     return variables["params"]
 
 
