@@ -32,21 +32,6 @@ try:  # the installed distribution's version (pyproject.toml is the one place it
 except _metadata.PackageNotFoundError:  # a source tree that was not installed
     __version__ = "unknown"
 
-_SUBMODULES = (
-    "classify",
-    "data",
-    "depth",
-    "evaluation",
-    "hha",
-    "io",
-    "models",
-    "pretrain",
-    "route",
-    "training",
-    "weights",
-)
-_FROM_CLASSIFY = ("PlaceClassifier", "Prediction")
-
 __all__ = [
     "PlaceClassifier",
     "Prediction",
@@ -62,6 +47,9 @@ __all__ = [
     "training",
     "weights",
 ]
+# A literal list above, so static tools read the surface; the lazy loader below takes its names from it.
+_FROM_CLASSIFY = ("PlaceClassifier", "Prediction")
+_SUBMODULES = tuple(name for name in __all__ if name not in _FROM_CLASSIFY)
 
 if _TYPE_CHECKING:  # what IDEs and type checkers see; at run time the same names load lazily (__getattr__)
     from placejax import classify, data, depth, evaluation, hha, io, models, pretrain, route, training, weights
