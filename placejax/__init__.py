@@ -8,7 +8,7 @@ JAX, Flax or OpenCV until a subpackage is used):
 - `placejax.hha`: depth in metres + intrinsics → uint8 HHA images, jitted and batched.
 - `placejax.depth`: MiDaS preprocessing and inference (`placejax.depth.apply`, jittable), the depth losses,
   the depth-network trainer and its train-once-and-cache lifecycle.
-- `placejax.models`: Flax Linen MiDaS v2.1 small, VGG16 and the fusion MLP.
+- `placejax.models`: Flax Linen MiDaS v2.1 small, Depth Anything V2, VGG16 and the fusion MLP.
 - `placejax.weights`: named weights (`placejax.weights.resolve` for ``registry:NAME``, ``shipped:NAME`` or a
   path), the safe ``torch.save`` reader and the converters.
 - `placejax.pretrain`: the VGG16 trunk pretrained on domain-randomised SimCampus worlds.

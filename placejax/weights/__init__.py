@@ -6,7 +6,8 @@ Public surface:
     WeightsRecord, read_record, load_shipped, shipped_names, shipped_file, run_dir, announce_training: the one
         lifecycle of the networks placejax trains itself (the depth network, the pretrained trunks): trained
         once into the cache, recorded as an ``.npz`` with its ``meta``, shipped, verified, loaded.
-    REGISTRY, load, fetch, cache_dir: official pretrained weights (MiDaS, VGG16), downloaded once and converted.
+    REGISTRY, load, fetch, cache_dir: official pretrained weights (MiDaS, Depth Anything V2, VGG16), downloaded
+        once and converted.
     read_torch_checkpoint and the converters: a torch-free safe reader of ``torch.save`` files → Flax variables.
 """
 
