@@ -134,3 +134,19 @@ def test_apply_bad_input(small):
         depth.apply(variables, np.zeros((32, 32, 3), np.uint8), model=model)
     with pytest.raises(ValueError, match="dtype"):
         depth.apply(variables, np.zeros((1, 32, 32, 3), np.int32), model=model)
+
+
+def test_apply_on_the_shipped_metric_network_gives_log_depth():
+    """The resolver's example: ``depth.apply`` on the shipped network (a log-metric one) returns log depth, and
+    ``depth_from_log`` of it is the metres ``TrainedDepth.predict_metric`` gives (host OpenCV resize there)."""
+    from placejax import weights
+
+    record = weights.resolve("shipped:simcampus_depth_default_128")
+    trained = depth.TrainedDepth.from_record(record)
+    assert trained.metric
+    images = np.random.default_rng(3).integers(0, 256, (2, 40, 56, 3), dtype=np.uint8)
+    log_d = depth.apply(record.variables, images, model=trained.model, size=trained.config.image_size, square=True)
+    got = np.asarray(depth.depth_from_log(log_d))
+    want = trained.predict_metric(images)
+    assert got.shape == want.shape == (2, 40, 56)
+    np.testing.assert_allclose(got, want, rtol=1e-3)

@@ -107,7 +107,8 @@ def apply(
     size: int = 256,
     square: bool = False,
 ) -> jax.Array:
-    """Relative inverse depth of a batch of images: a pure function of arrays, jittable and differentiable.
+    """The MiDaS-style network's output on a batch of images: a pure function of arrays, jittable and
+    differentiable.
 
     The whole MiDaS transform runs in JAX (``jax.jit(placejax.depth.apply)`` works as it is; pass ``model``,
     ``size`` and ``square`` with ``functools.partial`` before ``jit``, as they fix shapes). It computes what
@@ -123,7 +124,10 @@ def apply(
         square: resize to ``size × size`` ignoring the aspect ratio (placejax's trained depth networks).
 
     Returns:
-        float32 ``jax.Array`` ``(N, H, W)`` relative inverse depth (bigger is closer; unknown scale and shift).
+        float32 ``jax.Array`` ``(N, H, W)``, the network's output resized to the images: relative inverse depth
+        (bigger is closer; unknown scale and shift) for MiDaS and inverse-depth networks; log depth for a
+        placejax metric network (``target="log_metric"``, the shipped default: ``placejax.depth.depth_from_log``
+        gives metres, what ``TrainedDepth.predict_metric`` returns).
 
     Raises:
         ValueError: not a batch of RGB images (wrong rank or channel count, an empty batch) or an integer dtype

@@ -81,7 +81,9 @@ def resolve(
     Example::
 
         variables, meta = placejax.weights.resolve("shipped:simcampus_depth_default_128")
-        depth = placejax.depth.apply(variables, rgb_uint8, model=MidasSmall(...), size=128, square=True)
+        model = placejax.depth.TrainedDepth.from_record((variables, meta)).model  # a log-metric network
+        log_depth = placejax.depth.apply(variables, rgb_uint8, model=model, size=128, square=True)
+        depth_m = placejax.depth.depth_from_log(log_depth)
     """
     spec = _spec(spec, default)
     if spec.startswith(REGISTRY_PREFIX):
