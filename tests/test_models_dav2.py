@@ -3,6 +3,7 @@ on random weights written in the official file format, the converter's checks, t
 
 from __future__ import annotations
 
+import functools
 import json
 import subprocess
 import sys
@@ -246,3 +247,123 @@ def test_experiment_depth_source(refs, source):
     c.depth.dav2_short_side = 10
     with pytest.raises(ValueError, match="dav2_short_side"):
         xconfig.validate(c)
+
+
+def _tiny_vgg_mlp_params(num_classes: int, size: int, seed: int) -> dict:
+    """Random VGG16 (1/64 width) and fusion-MLP parameters, as a run's checkpoints hold them (``params`` trees)."""
+    from placejax.models import VGG16, FusionMLP
+
+    rng = np.random.default_rng(seed)
+
+    def fill(module, *dims):
+        shapes = jax.eval_shape(module.init, jax.random.key(0), jax.ShapeDtypeStruct(dims, jnp.float32))["params"]
+        return jax.tree_util.tree_map(lambda s: rng.normal(0.0, 0.1, s.shape).astype(np.float32), shapes)
+
+    vgg = VGG16(num_classes=num_classes, width=1 / 64)
+    return {
+        "rgb": fill(vgg, 1, size, size, 3),
+        "hha": fill(vgg, 1, size, size, 3),
+        "mlp": fill(FusionMLP(num_classes=num_classes, hidden=8), 1, 2 * 64),
+    }
+
+
+@pytest.mark.parametrize("source", ["depth_anything_v2", "depth_anything_v2_metric"])
+def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
+    """PlaceClassifier.from_run on a run made with depth.source=depth_anything_v2[_metric]: its depth and HHA are
+    the experiment's depth stage's on the same frames (the metric model's metres unmapped: beyond far_m), its
+    logits the nets' on the experiment's HHA; save/load predicts identically; bad DAv2 manifest fields are refused.
+
+    The run is described by its index entries (as ``write_classifier_index`` writes them) with tiny random VGG16s
+    and MLP in place of its checkpoints, so no smoke run is needed."""
+    import dataclasses
+    import zipfile
+    from types import SimpleNamespace
+
+    from experiments.cross_season import config as xconfig
+    from experiments.cross_season.depth_hha import depth_source
+    from placejax import hha as _hha
+    from placejax.classify import ArtefactError, PlaceClassifier, _classifier, run_layout
+    from placejax.classify._schema import check_manifest
+    from placejax.data import PlaceGrid
+    from placejax.models import IMAGENET_MEAN_255, IMAGENET_STD_255
+
+    metric = source.endswith("metric")
+    c = xconfig.get_config("default")
+    c.depth.update(source=source, dav2_weights=str(refs / "small_metric.pth"), dav2_short_side=28, batch_size=2)
+    c.depth.update(near_m=1.0, far_m=6.0)
+    c.vgg.update(pretrained=False, weights="", hha_weights="", width=1 / 64)
+    c.mlp.hidden = 8
+    xconfig.validate(c)
+    k = [[30.0, 0.0, 15.5], [0.0, 30.0, 15.5], [0.0, 0.0, 1.0]]
+    rgb = np.random.default_rng(7).integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)
+    # The experiment's path: its depth stage on the cached frames, then HHA with the session's intrinsics.
+    _, fn = depth_source(SimpleNamespace(config=c, progress=False), source)
+    exp_depth = fn(SimpleNamespace(cached=SimpleNamespace(images=rgb)), 0, 3)
+    exp_hha = np.asarray(_hha.encode(exp_depth, np.asarray(k)))
+
+    nets = _tiny_vgg_mlp_params(4, 32, seed=8)
+    files = run_layout.RunFiles(
+        workdir=tmp_path,
+        train_session="WI",
+        config=c.to_dict(),
+        grid=PlaceGrid(0.0, 10.0, 0.0, 10.0, n=2).to_dict(),
+        normalise={"mean": IMAGENET_MEAN_255.tolist(), "std": IMAGENET_STD_255.tolist()},
+        depth={"source": source, "weights": str(refs / "small_metric.pth"), "short_side": 28},
+        rgb_checkpoint=tmp_path / "rgb",
+        hha_checkpoint=tmp_path / "hha",
+        mlp_checkpoint=tmp_path / "mlp",
+        intrinsics=k,
+        image_size=(32, 32),
+        visited_classes=[0, 1, 3],
+        unknown={"msp": {"threshold": -0.5, "target_frr": 0.05}},
+    )
+    monkeypatch.setattr(run_layout, "locate_run", lambda w, s: files)
+    monkeypatch.setattr(_classifier, "_restore_params", lambda ckdir: nets[Path(ckdir).name])
+    clf = PlaceClassifier.from_run(tmp_path, "WI")
+    d = clf.meta["depth"]
+    assert d["kind"] == "depth_anything_v2" and d["head"] == ("metric" if metric else "relative")
+    assert (d["embed_dim"], d["depth"], d["layers"], d["short_side"]) == (384, 12, [2, 5, 8, 11], 28)
+
+    depth = np.asarray(jax.jit(functools.partial(_classifier.stage_depth, clf.spec))(clf.params["depth"], rgb))
+    np.testing.assert_allclose(depth, exp_depth, rtol=1e-5 if metric else 5e-4, atol=1e-5 * float(np.ptp(exp_depth)))
+    if metric:  # metres as the network gives them, not squeezed into [near_m, far_m] = [1, 6]
+        assert depth.max() > 2 * c.depth.far_m and 0.0 < depth.min()
+    else:
+        assert c.depth.near_m - 1e-4 <= depth.min() and depth.max() <= c.depth.far_m + 1e-4
+    out = clf.logits(rgb)
+    diff = np.abs(out["hha_image"].astype(int) - exp_hha.astype(int))
+    assert diff.max() <= 1 and (diff == 0).mean() > 0.99, (diff.max(), (diff == 0).mean())
+    # The nets on the experiment's HHA give the classifier's logits (up to those ±1 HHA values).
+    ref = _classifier.stage_nets(clf.spec, clf.params, jnp.asarray(rgb), jnp.asarray(exp_hha))
+    fused = np.asarray(_classifier.stage_mlp(clf.spec, clf.params, ref))
+    np.testing.assert_allclose(out["rgb"], ref["rgb_logits"], rtol=0, atol=1e-4 * np.abs(ref["rgb_logits"]).max())
+    np.testing.assert_allclose(out["fusion"], fused, rtol=0, atol=1e-2 * np.abs(fused).max())
+
+    path = clf.save(tmp_path / "dav2.placejax")
+    again = PlaceClassifier.load(path)
+    assert again.spec == clf.spec
+    a, b = clf.predict(rgb), again.predict(rgb)
+    for f in dataclasses.fields(a):
+        va, vb = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(va, np.ndarray):
+            np.testing.assert_array_equal(va, vb)
+        else:
+            assert va == vb or (va != va and vb != vb), f.name
+
+    with zipfile.ZipFile(path) as z:
+        manifest = json.loads(z.read("manifest.json"))
+    check_manifest(manifest, "dav2.placejax")  # as written: valid
+    for field, value, message in (
+        ("head", "inverse", "depth.head"),
+        ("layers", [2, 5, 5, 11], "depth.layers"),
+        ("layers", [2, 5, 8, 12], r"depth.layers\[3\]"),
+        ("num_heads", 5, "does not divide"),
+        ("short_side", 4096, "over 4096"),
+        ("short_side", 27, "depth.short_side"),
+        ("max_depth", float("nan"), "depth.max_depth"),
+        ("encoder_width", 1.0, "unknown entries"),
+    ):
+        bad = json.loads(json.dumps(manifest))
+        bad["depth"][field] = value
+        with pytest.raises(ArtefactError, match=message):
+            check_manifest(bad, "dav2.placejax")

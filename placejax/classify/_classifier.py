@@ -19,7 +19,15 @@ from placejax.data import PlaceGrid
 from placejax.data.camera import resize_image
 from placejax.depth import average_views, depth_from_log, far_to_sky, network_size
 from placejax.depth._inference import network_on_images
-from placejax.models import VGG16, FusionMLP, MidasSmall, cpu_compiler_options
+from placejax.models import (
+    VGG16,
+    DepthAnythingV2,
+    FusionMLP,
+    MidasSmall,
+    cpu_compiler_options,
+    dav2_apply,
+    dav2_input_size,
+)
 
 BRANCHES = ("fusion", "rgb", "hha")
 _BOUNDS = ("x_lo", "x_hi", "y_lo", "y_hi")
@@ -89,9 +97,10 @@ class ClassifierSpec:
 
     Attributes:
         image_size: ``(H, W)`` of the images, pixels.
-        depth_model: the depth network (``MidasSmall``).
+        depth_model: the depth network (``MidasSmall``, or ``DepthAnythingV2``: relative or metric head).
         depth_net_size: ``(h, w)`` the images are resized to before the depth network, pixels.
-        near_m, far_m: the percentile mapping of relative inverse depth to metres (relative networks).
+        near_m, far_m: the percentile mapping of relative inverse depth to metres (relative networks; not used
+            for Depth Anything V2's metric head, whose metres go to HHA as they are).
         intrinsics: ``(3, 3)`` pinhole matrix of the training session's images (0-based pixel centres).
         vgg: the VGG16 both branches use.
         mlp: the fusion MLP.
@@ -101,10 +110,12 @@ class ClassifierSpec:
         far_as_sky_m: metric networks: predictions at or beyond this many metres become sky (0 = off).
         flip_average: metric networks: mean log depth of the image and of its mirror image.
         shifts: metric networks: and of the image shifted sideways by ±k pixels for each k.
+        dav2_short_side: Depth Anything V2: the input's short side before rounding to multiples of 14, pixels
+            (``depth_net_size`` is ``dav2_input_size(*image_size, dav2_short_side)``; 0 for other networks).
     """
 
     image_size: tuple[int, int]
-    depth_model: MidasSmall
+    depth_model: MidasSmall | DepthAnythingV2
     depth_net_size: tuple[int, int]
     near_m: float
     far_m: float
@@ -118,6 +129,7 @@ class ClassifierSpec:
     far_as_sky_m: float = 0.0  # metric networks: predictions at or beyond this become sky (0 = off)
     flip_average: bool = False  # metric networks: mean log depth of the image and of its mirror image
     shifts: tuple[int, ...] = ()  # metric networks: and of the image shifted sideways by ±k px for each k
+    dav2_short_side: int = 0  # Depth Anything V2: input short side before rounding to multiples of 14 (0: other)
 
 
 # ---------------------------------------------------------------------------------------------------- stages
@@ -130,8 +142,15 @@ def stage_depth(spec: ClassifierSpec, depth_vars: Any, rgb: jax.Array) -> jax.Ar
     resize back and the percentile mapping to metres (``hha.inverse_depth_to_metric``) — or, for a metric
     log-depth network, ``placejax.depth.depth_from_log`` (of the log depth averaged over mirrored and shifted
     views, ``placejax.depth.average_views``, as ``TrainedDepth.predict_metric(flip_average=, shifts=)``) and
-    ``placejax.depth.far_to_sky``.
+    ``placejax.depth.far_to_sky``. Depth Anything V2 runs through ``placejax.models.dav2_apply`` (the official
+    pre- and post-processing, as the experiment's depth stage); its metric head's metres are used as they are,
+    its relative head's output goes through the percentile mapping.
     """
+    if isinstance(spec.depth_model, DepthAnythingV2):
+        y = dav2_apply(depth_vars, rgb, model=spec.depth_model, short_side=spec.dav2_short_side)
+        if spec.depth_model.head == "metric":
+            return y  # metres in (0, max_depth): no per-image [near, far] guess
+        return _hha.inverse_depth_to_metric(y, near_m=spec.near_m, far_m=spec.far_m)
 
     def network(x):  # [0, 1] images at the input size → the network's output at the input size
         # The same MiDaS transform and network as placejax.depth.apply.
@@ -275,14 +294,24 @@ class PlaceClassifier:
     def _build_spec(meta: dict[str, Any]) -> ClassifierSpec:
         d = meta["depth"]
         image_size = tuple(int(v) for v in meta["image_size"])
-        if d["kind"] == "trained":
-            net_size = network_size(image_size, d["size"], square=True)
+        short_side = 0
+        if d["kind"] == "depth_anything_v2":
+            short_side = int(d["short_side"])
+            net_size = dav2_input_size(*image_size, short_side)
+            depth_model = DepthAnythingV2(
+                **{k: int(d[k]) for k in ("embed_dim", "depth", "num_heads", "features", "pos_grid")},
+                layers=tuple(int(v) for v in d["layers"]),
+                out_channels=tuple(int(v) for v in d["out_channels"]),
+                head=str(d["head"]),
+                max_depth=float(d["max_depth"]),
+            )
         else:
-            net_size = network_size(image_size, d["size"], square=False)
+            net_size = network_size(image_size, d["size"], square=d["kind"] == "trained")
+            depth_model = MidasSmall(features=int(d["features"]), encoder_width=float(d["encoder_width"]))
         vgg = meta["vgg"]
         return ClassifierSpec(
             image_size=image_size,
-            depth_model=MidasSmall(features=int(d["features"]), encoder_width=float(d["encoder_width"])),
+            depth_model=depth_model,
             depth_net_size=net_size,
             near_m=float(d["near_m"]),
             far_m=float(d["far_m"]),
@@ -296,6 +325,7 @@ class PlaceClassifier:
             far_as_sky_m=float(d.get("far_as_sky_m", 0.0)),  # runs from before these settings: off, as they were
             flip_average=bool(d.get("flip_average", False)),
             shifts=tuple(int(k) for k in d.get("shifts", ())),
+            dav2_short_side=short_side,
         )
 
     def _check_params(self) -> None:
@@ -320,6 +350,10 @@ class PlaceClassifier:
             FileNotFoundError / KeyError: see ``locate_run``.
             ValueError: the run used rendered depth (``depth.source=true``): there is no depth network to
                 turn a photograph into depth.
+
+        Runs with ``depth.source=depth_anything_v2`` / ``depth_anything_v2_metric`` rebuild Depth Anything V2
+        Small from the weights the run's depth stage read (its ``depth.dav2_weights`` or the registry's) at its
+        ``depth.dav2_short_side``; the metric model's metres go to HHA without the ``[near_m, far_m]`` mapping.
         """
         files = run_layout.locate_run(workdir, train_session)
         cfg = files.config
@@ -364,11 +398,34 @@ class PlaceClassifier:
                 "size": 256,
                 "source": {"weights": d["weights"]},
             }
+        elif d["source"] in ("depth_anything_v2", "depth_anything_v2_metric"):
+            from placejax.weights import REGISTRY, convert_depth_anything_v2, resolve
+
+            # The registry entry the experiment's depth stage took the architecture (and default weights) from.
+            metric = d["source"] == "depth_anything_v2_metric"
+            name = "depth_anything_v2_metric_vkitti_vits" if metric else "depth_anything_v2_vits"
+            model = DepthAnythingV2.from_encoder(**REGISTRY[name].model_kwargs)
+            convert = functools.partial(convert_depth_anything_v2, model=model)
+            depth_vars = resolve(d["weights"], convert=convert).variables
+            depth_meta = {
+                "kind": "depth_anything_v2",
+                "embed_dim": model.embed_dim,
+                "depth": model.depth,
+                "num_heads": model.num_heads,
+                "layers": [int(v) for v in model.layers],
+                "features": model.features,
+                "out_channels": [int(v) for v in model.out_channels],
+                "pos_grid": model.pos_grid,
+                "head": model.head,
+                "max_depth": float(model.max_depth),
+                "short_side": int(d["short_side"]),
+                "source": {"weights": d["weights"], "registry": name, "depth_source": d["source"]},
+            }
         else:
             raise ValueError(
-                f"the run in {files.workdir} used depth.source={d['source']!r}: PlaceClassifier rebuilds only the "
-                "'trained' and 'midas' depth networks (rendered depth has none; Depth Anything V2 is not wired in "
-                "yet); train with depth.source=trained or midas"
+                f"the run in {files.workdir} used depth.source={d['source']!r}: there is no depth network to turn "
+                "a photograph into depth (PlaceClassifier rebuilds 'trained', 'midas', 'depth_anything_v2' and "
+                "'depth_anything_v2_metric'); train with one of those"
             )
         depth_meta.update(near_m=cfg["depth"]["near_m"], far_m=cfg["depth"]["far_m"])
         params = {

@@ -8,6 +8,7 @@ file and the field (``depth.near_m``, ``normalise.std[1]``, ...). Free-form reco
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
@@ -23,6 +24,12 @@ MAX_HIDDEN = 1 << 16
 MAX_SHIFTS = 16
 MAX_SHIFT_PX = 1024
 MAX_CLASSES = 1 << 20
+# Depth Anything V2 (depth.kind "depth_anything_v2"): the released Large is 1024 wide, 24 blocks, 16 heads, a
+# 37 × 37 position grid; these bounds leave room for other configurations and none for absurd ones.
+MAX_DAV2_EMBED = 2048
+MAX_DAV2_BLOCKS = 48
+MAX_DAV2_HEADS = 64
+MAX_DAV2_POS_GRID = 128
 
 _TOP = {
     "format",
@@ -46,6 +53,21 @@ _TOP = {
 _OPTIONAL_TOP = {"versions", "visited_classes", "config", "source"}
 _DEPTH_REQUIRED = {"kind", "features", "encoder_width", "size", "near_m", "far_m"}
 _DEPTH_OPTIONAL = {"metric", "far_as_sky_m", "flip_average", "shifts", "source"}
+_DAV2_REQUIRED = {
+    "kind",
+    "embed_dim",
+    "depth",
+    "num_heads",
+    "layers",
+    "features",
+    "out_channels",
+    "pos_grid",
+    "head",
+    "max_depth",
+    "short_side",
+    "near_m",
+    "far_m",
+}
 _ARRAY_GROUPS = ("depth", "rgb", "hha", "mlp")
 _TINY = 2.0**-126  # smallest normal float32: the networks and the HHA encoder compute in float32
 
@@ -122,7 +144,6 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
     """
     from placejax.classify import unknown
     from placejax.data import PlaceGrid
-    from placejax.depth import network_size
 
     c = _Checker(source)
     c.obj(m, "(top level)", _TOP - _OPTIONAL_TOP, _OPTIONAL_TOP)
@@ -159,30 +180,10 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
     for i, v in enumerate(c.array(norm["std"], "normalise.std", 3)):
         c.number(v, f"normalise.std[{i}]", positive=True, hi=1e6)
 
-    d = c.obj(m["depth"], "depth", _DEPTH_REQUIRED, _DEPTH_OPTIONAL)
-    if d["kind"] not in ("trained", "midas"):
-        c.fail("depth.kind", f"is {str(d['kind'])[:40]!r}, expected 'trained' or 'midas'")
-    c.integer(d["features"], "depth.features", 1, MAX_FEATURES)
-    c.number(d["encoder_width"], "depth.encoder_width", positive=True, hi=MAX_WIDTH)
-    size = c.integer(d["size"], "depth.size", 32, MAX_DEPTH_NET_SIDE)
-    near = c.number(d["near_m"], "depth.near_m", positive=True, hi=1e6)
-    far = c.number(d["far_m"], "depth.far_m", positive=True, hi=1e6)
-    if not near < far:
-        c.fail("depth.far_m", f"is {far}, not beyond depth.near_m = {near}")
-    for key in ("metric", "flip_average"):
-        if key in d:
-            c.boolean(d[key], f"depth.{key}")
-    if "far_as_sky_m" in d:
-        c.number(d["far_as_sky_m"], "depth.far_as_sky_m", lo=0.0, hi=1e6)
-    if "shifts" in d:
-        for i, s in enumerate(c.array(d["shifts"], "depth.shifts", max_n=MAX_SHIFTS)):
-            c.integer(s, f"depth.shifts[{i}]", -MAX_SHIFT_PX, MAX_SHIFT_PX)
-    if "source" in d and type(d["source"]) is not dict:
-        c.fail("depth.source", f"is a JSON {_json_type(d['source'])}, expected an object")
-    try:
-        network_size((h, w), size, square=d["kind"] == "trained")
-    except ValueError as e:
-        c.fail("image_size", f"does not suit the depth network: {e}")
+    if type(m["depth"]) is dict and m["depth"].get("kind") == "depth_anything_v2":
+        _check_dav2(c, m["depth"], (h, w))
+    else:
+        _check_depth(c, m["depth"], (h, w))
 
     vgg = c.obj(m["vgg"], "vgg", {"width", "pretrained"})
     c.number(vgg["width"], "vgg.width", positive=True, hi=MAX_WIDTH)
@@ -202,3 +203,73 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
     for name in m["arrays"]:
         if name.split("/", 1)[0] not in _ARRAY_GROUPS:
             c.fail(f"arrays[{name[:80]!r}]", f"is not under one of the networks {_ARRAY_GROUPS}")
+
+
+def _check_near_far(c: _Checker, d: dict) -> None:
+    near = c.number(d["near_m"], "depth.near_m", positive=True, hi=1e6)
+    far = c.number(d["far_m"], "depth.far_m", positive=True, hi=1e6)
+    if not near < far:
+        c.fail("depth.far_m", f"is {far}, not beyond depth.near_m = {near}")
+
+
+def _check_dav2(c: _Checker, d: dict, image_size: tuple[int, int]) -> None:
+    """``depth`` of kind ``"depth_anything_v2"``: the architecture, head, input short side and the mapping."""
+    from placejax.models import dav2_input_size
+    from placejax.models._dav2 import PATCH
+
+    c.obj(d, "depth", _DAV2_REQUIRED, {"source"})
+    dim = c.integer(d["embed_dim"], "depth.embed_dim", 1, MAX_DAV2_EMBED)
+    blocks = c.integer(d["depth"], "depth.depth", 1, MAX_DAV2_BLOCKS)
+    heads = c.integer(d["num_heads"], "depth.num_heads", 1, MAX_DAV2_HEADS)
+    if dim % heads:
+        c.fail("depth.num_heads", f"is {heads}, which does not divide depth.embed_dim = {dim}")
+    layers = [
+        c.integer(v, f"depth.layers[{i}]", 0, blocks - 1) for i, v in enumerate(c.array(d["layers"], "depth.layers", 4))
+    ]
+    if any(a >= b for a, b in itertools.pairwise(layers)):
+        c.fail("depth.layers", f"is {layers}, expected 4 increasing block indices")
+    c.integer(d["features"], "depth.features", 2, MAX_FEATURES)
+    for i, v in enumerate(c.array(d["out_channels"], "depth.out_channels", 4)):
+        c.integer(v, f"depth.out_channels[{i}]", 1, MAX_DAV2_EMBED)
+    c.integer(d["pos_grid"], "depth.pos_grid", 1, MAX_DAV2_POS_GRID)
+    if d["head"] not in ("relative", "metric"):
+        c.fail("depth.head", f"is {str(d['head'])[:40]!r}, expected 'relative' or 'metric'")
+    c.number(d["max_depth"], "depth.max_depth", positive=True, hi=1e6)
+    short = c.integer(d["short_side"], "depth.short_side", 2 * PATCH, MAX_DEPTH_NET_SIDE)
+    _check_near_far(c, d)
+    if "source" in d and type(d["source"]) is not dict:
+        c.fail("depth.source", f"is a JSON {_json_type(d['source'])}, expected an object")
+    net = dav2_input_size(*image_size, short)
+    if max(net) > MAX_DEPTH_NET_SIDE:
+        c.fail(
+            "depth.short_side",
+            f"is {short}: image_size {list(image_size)} would reach the depth network at {net[0]}×{net[1]}, over "
+            f"{MAX_DEPTH_NET_SIDE} on a side",
+        )
+
+
+def _check_depth(c: _Checker, d_raw: Any, image_size: tuple[int, int]) -> None:
+    """``depth`` of kind ``"trained"`` or ``"midas"`` (``MidasSmall``-shaped networks)."""
+    from placejax.depth import network_size
+
+    d = c.obj(d_raw, "depth", _DEPTH_REQUIRED, _DEPTH_OPTIONAL)
+    if d["kind"] not in ("trained", "midas"):
+        c.fail("depth.kind", f"is {str(d['kind'])[:40]!r}, expected 'trained', 'midas' or 'depth_anything_v2'")
+    c.integer(d["features"], "depth.features", 1, MAX_FEATURES)
+    c.number(d["encoder_width"], "depth.encoder_width", positive=True, hi=MAX_WIDTH)
+    size = c.integer(d["size"], "depth.size", 32, MAX_DEPTH_NET_SIDE)
+    _check_near_far(c, d)
+    for key in ("metric", "flip_average"):
+        if key in d:
+            c.boolean(d[key], f"depth.{key}")
+    if "far_as_sky_m" in d:
+        c.number(d["far_as_sky_m"], "depth.far_as_sky_m", lo=0.0, hi=1e6)
+    if "shifts" in d:
+        for i, s in enumerate(c.array(d["shifts"], "depth.shifts", max_n=MAX_SHIFTS)):
+            c.integer(s, f"depth.shifts[{i}]", -MAX_SHIFT_PX, MAX_SHIFT_PX)
+    if "source" in d and type(d["source"]) is not dict:
+        c.fail("depth.source", f"is a JSON {_json_type(d['source'])}, expected an object")
+    try:
+        network_size(image_size, size, square=d["kind"] == "trained")
+    except ValueError as e:
+        c.fail("image_size", f"does not suit the depth network: {e}")
