@@ -195,6 +195,11 @@ def test_array_session_satisfies_the_protocol_caches_and_names_bad_input(tmp_pat
     # The cache identity follows the content: other images, another identity; a cut session names the cut.
     other = ArraySession(images[::-1].copy(), poses, k, name="mine")
     assert session_identity(other) != session_identity(s)
+    # ... wherever they differ: frame 1 of 5 is none of the first, middle and last frames a default identity samples
+    edited = images.copy()
+    edited[1, 0, 0, 0] ^= 1
+    assert session_identity(ArraySession(edited, poses, k, name="mine")) != session_identity(s)
+    assert session_identity(ArraySession(images.copy(), poses, k, name="mine")) == session_identity(s)
     assert len(truncated(s, 2)) == 2 and session_identity(truncated(s, 2))["fingerprint"]["truncated"] == 2
     with pytest.raises(ValueError, match=r"images must be uint8 \(N, H, W, 3\)"):
         ArraySession(images.astype(np.float32), poses, k)

@@ -107,8 +107,9 @@ def session_identity(session: Session) -> dict:
 class ArraySession:
     """A session held in memory: frames, poses and intrinsics given as arrays; satisfies :class:`Session`.
 
-    For one's own images already in memory, and for tests. Its cache identity (:func:`session_identity`) hashes
-    the metadata and the first, middle and last images, so other arrays give another cache.
+    For one's own images already in memory, and for tests. Its cache identity (:func:`fingerprint`, read by
+    :func:`session_identity`) hashes the metadata and every frame (they are in memory), so arrays that differ
+    anywhere give another cache.
 
     Args:
         images: uint8 ``(N, H, W, 3)`` upright RGB frames (kept as given, not copied).
@@ -169,6 +170,16 @@ class ArraySession:
         if not -len(self) <= i < len(self):
             raise IndexError(f"frame {i} of session {self.name!r} with {len(self)} frames")
         return self.images[i].copy()
+
+    def fingerprint(self) -> dict:
+        """What identifies this session for cache keys: its name, size and a SHA-256 of every frame, pose,
+        timestamp and the intrinsics (the sampled images of :func:`session_identity`'s default would miss a frame
+        changed between the first, middle and last)."""
+        digest = hashlib.sha256()
+        for a in (self.utimes, self.poses, self.intrinsics, self.images):
+            digest.update(f"{a.dtype.str}{a.shape};".encode())
+            digest.update(np.ascontiguousarray(a).tobytes())
+        return {"type": "ArraySession", "name": self.name, "n": len(self), "content_sha256": digest.hexdigest()}
 
     def __repr__(self) -> str:
         return f"ArraySession({self.name!r}, {len(self)} frames, image_shape={self.image_shape})"
