@@ -1,6 +1,7 @@
 """The NCLT-scale rehearsal: the ``paper`` preset end to end on fake NCLT trees at the real image size and format.
 
     python -m benchmarks.nclt_rehearsal --frames 60 120 [--sessions 4] [--target 26000] [--root DIR]
+        [--depth midas|dav2]
 
 For each ``--frames`` value (images per session, two of them dropped by the ground-truth timeline of the fake
 tree), this writes a fake NCLT tree (``tests/fake_nclt.py``: 1616 × 1232 sideways TIFFs, the real-size U2D map,
@@ -19,7 +20,13 @@ is projected stage by stage from the two sizes: time = fixed + per-frame × fram
 quadratic part of the nearest-neighbour baselines (every test frame against every training frame) is timed on
 its own at ``--nn-frames`` and scaled by the square of the frame ratio.
 
-Prints tables and writes ``benchmarks/results/nclt_rehearsal.json``.
+``--depth dav2`` runs the ``paper_dav2`` preset instead (Depth Anything V2 Small, metric, at the official 518-pixel
+short side, in place of MiDaS), on random weights in the official ``.pth`` layout
+(``tests/torch_refs/make_dav2_reference.py``, needs torch and transformers): the projection of the real run with
+that depth network.
+
+Prints tables and writes ``benchmarks/results/nclt_rehearsal.json`` (``nclt_rehearsal_dav2.json`` with
+``--depth dav2``).
 """
 
 from __future__ import annotations
@@ -172,7 +179,7 @@ def _child(spec_path: Path) -> None:
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
-    cfg = apply_overrides(get_config("paper"), spec["overrides"])
+    cfg = apply_overrides(get_config(spec.get("preset", "paper")), spec["overrides"])
     t0 = time.perf_counter()
     results = run(cfg, spec["workdir"])
     wall = time.perf_counter() - t0
@@ -207,6 +214,20 @@ def _weights(folder: Path) -> tuple[Path, Path]:
     return folder / "midas_random.pt", folder / "vgg16_random.pth"
 
 
+def _dav2_weights(folder: Path) -> Path:
+    """Random Depth Anything V2 Small weights (ViT-S/14, metric head) in the official ``.pth`` layout."""
+    folder.mkdir(parents=True, exist_ok=True)
+    subprocess.run([sys.executable, str(TESTS / "torch_refs" / "make_dav2_reference.py"), str(folder)], check=True)
+    return folder / "small_metric.pth"
+
+
+# --depth: the preset run, the override naming its depth weights, the depth stage's line in the tables.
+DEPTH_NETWORKS = {
+    "midas": ("paper", "depth.midas_weights", "MiDaS v2.1 small → metric depth"),
+    "dav2": ("paper_dav2", "depth.dav2_weights", "Depth Anything V2 Small (metric, 518 short side) → depth"),
+}
+
+
 def _du_mb(path: Path) -> float:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
 
@@ -229,13 +250,15 @@ def _nn_pair_seconds(n: int, cfg: dict) -> float:
 
 
 def _measure(n_frames: int, args, weights: tuple[Path, Path], base: Path) -> dict:
+    """One size: a fake tree of ``n_frames`` per session, the preset run on it in a child; its measurements."""
     sys.path.insert(0, str(TESTS))
     from fake_nclt import REAL_STORED_HW, make_fake_nclt
 
     from experiments.cross_season import get_config
 
     here = base / f"frames{n_frames}"
-    dates = list(get_config("paper").data.sessions)[: args.sessions]
+    preset, weights_key, _ = DEPTH_NETWORKS[args.depth]
+    dates = list(get_config(preset).data.sessions)[: args.sessions]
     t0 = time.perf_counter()
     fake = make_fake_nclt(
         here / "nclt", dates, n_frames=n_frames, stored_hw=REAL_STORED_HW, texture="scene", tiff_compression=1
@@ -245,15 +268,15 @@ def _measure(n_frames: int, args, weights: tuple[Path, Path], base: Path) -> dic
         f"data.nclt_root={fake.root}",
         f"data.sessions={tuple(dates)!r}",
         "data.undistort=True",
-        f"depth.midas_weights={weights[0]}",
+        f"{weights_key}={weights[0]}",
         f"vgg.weights={weights[1]}",
         "progress=False",
         "figures=False",
         *args.set,
     ]
-    spec = {"overrides": overrides, "workdir": str(here / "work"), "out": str(here / "child.json")}
+    spec = {"preset": preset, "overrides": overrides, "workdir": str(here / "work"), "out": str(here / "child.json")}
     (here / "spec.json").write_text(json.dumps(spec))
-    print(f"[{n_frames} frames/session] tree written in {write_s:.1f} s; running the paper preset ...", flush=True)
+    print(f"[{n_frames} frames/session] tree written in {write_s:.1f} s; running the {preset} preset ...", flush=True)
     t0 = time.perf_counter()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
     subprocess.run(
@@ -282,6 +305,12 @@ def main() -> None:
     parser.add_argument("--root", type=Path, default=None, help="folder for trees and work dirs (default: temp)")
     parser.add_argument("--keep", action="store_true", help="keep the trees and work directories")
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides of the paper preset")
+    parser.add_argument(
+        "--depth",
+        choices=sorted(DEPTH_NETWORKS),
+        default="midas",
+        help="depth network: midas (the paper preset) or dav2 (the paper_dav2 preset: Depth Anything V2 Small)",
+    )
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child is not None:
@@ -290,20 +319,24 @@ def main() -> None:
     if len(set(args.frames)) < 2:
         parser.error("--frames needs two or more different sizes (the projection fits a line)")
 
+    name = "nclt_rehearsal" if args.depth == "midas" else f"nclt_rehearsal_{args.depth}"
+    preset, _, depth_what = DEPTH_NETWORKS[args.depth]
     with tempfile.TemporaryDirectory(dir=args.root) as tmp:
         base = Path(tmp)
         t0 = time.perf_counter()
         weights = _weights(base / "weights")
+        if args.depth == "dav2":
+            weights = (_dav2_weights(base / "weights" / "dav2"), weights[1])
         print(f"random official-format weights written in {time.perf_counter() - t0:.1f} s", flush=True)
         sizes = []
         for n in sorted(args.frames):
             sizes.append(_measure(n, args, weights, base))
-            write_json("nclt_rehearsal_partial", {"sizes": sizes})  # nothing measured is lost to a later error
+            write_json(f"{name}_partial", {"sizes": sizes})  # nothing measured is lost to a later error
 
     cfg = sizes[-1]["config"]
     n_sessions = len(cfg["data"]["sessions"])
     rows = []
-    for stage, what in STAGES.items():
+    for stage, what in {**STAGES, "depth": depth_what}.items():
         row = {"stage": stage, "what": what}
         for r in sizes:
             t = r["timings_s"].get(stage)
@@ -314,7 +347,7 @@ def main() -> None:
     cols = [("stage", "stage"), ("what", "what")]
     for r in sizes:
         cols += [(f"s@{r['frames']:g}", f"s @ {r['frames']:g}/session"), (f"img/s@{r['frames']:g}", "images/s")]
-    print(f"\nthe paper preset on {n_sessions} fake NCLT sessions; overrides: {' '.join(sizes[0]['overrides'][2:])}")
+    print(f"\nthe {preset} preset on {n_sessions} fake NCLT sessions; overrides: {' '.join(sizes[0]['overrides'][2:])}")
     print_table(rows, cols)
     mem_rows = [
         {
@@ -389,8 +422,16 @@ def main() -> None:
             f", projected {m['projected']:.0f} MB"
         )
     path = write_json(
-        "nclt_rehearsal",
-        {"sizes": sizes, "stages": rows, "nn_pair_s": nn_s, "nn_frames": args.nn_frames, "projection": projection},
+        name,
+        {
+            "depth": args.depth,
+            "preset": preset,
+            "sizes": sizes,
+            "stages": rows,
+            "nn_pair_s": nn_s,
+            "nn_frames": args.nn_frames,
+            "projection": projection,
+        },
     )
     print(f"wrote {path}")
 
