@@ -30,10 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks import _report
-from placejax.classify import PlaceClassifier
-from placejax.classify import _classifier as C
+from placejax.classify import ClassifierSpec, PlaceClassifier, stage_depth, stage_hha, stage_mlp, stage_nets
 from placejax.data import PlaceGrid
 from placejax.depth import PRESETS
+from placejax.models import cpu_compiler_options
 
 # Everything ``PlaceClassifier`` reads from a run, per size (values as the experiment's presets set them; the
 # built-in depth network's architecture and input size are the default depth preset's).
@@ -87,13 +87,15 @@ def synthetic_classifier(size: str, seed: int = 0) -> PlaceClassifier:
         "unknown": {"score": "msp", "threshold": 0.5, "target_frr": 0.05},
         "config": {},
     }
-    spec = PlaceClassifier._build_spec(meta)
+    spec = ClassifierSpec.from_meta(meta)
     key = jax.random.key(seed)
     k1, k2, k3 = jax.random.split(key, 3)
     h, w = spec.image_size
     depth = jax.jit(spec.depth_model.init)(k1, jnp.zeros((1, *spec.depth_net_size, 3)))
     vgg = jax.jit(spec.vgg.init)(k2, jnp.zeros((1, h, w, 3)))["params"]
-    mlp = jax.jit(spec.mlp.init)(k3, jnp.zeros((1, 2 * C._fc7_width(spec.vgg))))["params"]
+    x = jax.ShapeDtypeStruct((1, h, w, 3), jnp.uint8)
+    fc7 = jax.eval_shape(functools.partial(stage_nets, spec), {"rgb": vgg, "hha": vgg}, x, x)["rgb_fc7"].shape[1]
+    mlp = jax.jit(spec.mlp.init)(k3, jnp.zeros((1, 2 * fc7)))["params"]
     return PlaceClassifier(meta, {"depth": depth, "rgb": vgg, "hha": vgg, "mlp": mlp})
 
 
@@ -112,12 +114,12 @@ def _interleaved(fns: dict, repeats: int) -> dict[str, float]:
 
 def _stage_fns(clf: PlaceClassifier, rgb: np.ndarray) -> dict:
     """Each stage jitted alone on its real input (computed once), blocking until done."""
-    spec, params = clf._spec, clf.params
-    opts = C.cpu_compiler_options("vgg16")
-    depth_fn = jax.jit(functools.partial(C.stage_depth, spec), compiler_options=C.cpu_compiler_options("midas_small"))
-    hha_fn = jax.jit(functools.partial(C.stage_hha, spec))
-    nets_fn = jax.jit(functools.partial(C.stage_nets, spec), compiler_options=opts)
-    mlp_fn = jax.jit(functools.partial(C.stage_mlp, spec))
+    spec, params = clf.spec, clf.params
+    opts = cpu_compiler_options("vgg16")
+    depth_fn = jax.jit(functools.partial(stage_depth, spec), compiler_options=cpu_compiler_options("midas_small"))
+    hha_fn = jax.jit(functools.partial(stage_hha, spec))
+    nets_fn = jax.jit(functools.partial(stage_nets, spec), compiler_options=opts)
+    mlp_fn = jax.jit(functools.partial(stage_mlp, spec))
     x = jnp.asarray(rgb)
     d = jax.block_until_ready(depth_fn(params["depth"], x))
     hh = jax.block_until_ready(hha_fn(d))

@@ -7,7 +7,10 @@ Public surface:
     Prediction: what ``PlaceClassifier.predict`` returns.
     forward, ClassifierSpec: the classifier end to end as a pure, jittable function of arrays
         (``forward(spec, params, rgb_uint8)``: uint8 ``(N, H, W, 3)`` → logits ``(N, C)`` as ``jax.Array``s);
-        ``PlaceClassifier`` wraps it (``clf.spec``, ``clf.params``).
+        ``PlaceClassifier`` wraps it (``clf.spec``, ``clf.params``); ``ClassifierSpec.from_meta`` builds a spec
+        from a classifier's manifest.
+    stage_depth, stage_hha, stage_nets, stage_mlp: ``forward``'s stages, each pure and jittable on its own
+        (uint8 RGB → metric depth → uint8 HHA → both VGG16s' logits and fc7 → fused logits).
     ArtefactError: a classifier file that is corrupt, truncated or of another format.
     unknown: unseen-place scores, thresholds and their evaluation.
     run_layout: where a finished ``experiments.cross_season`` run keeps its checkpoints, caches and index.
@@ -17,6 +20,27 @@ Command: ``python -m placejax.classify MODEL IMAGE... [--json] [--figure out.png
 
 from placejax.classify import run_layout, unknown
 from placejax.classify._artefact import ArtefactError
-from placejax.classify._classifier import ClassifierSpec, PlaceClassifier, Prediction, forward
+from placejax.classify._classifier import (
+    ClassifierSpec,
+    PlaceClassifier,
+    Prediction,
+    forward,
+    stage_depth,
+    stage_hha,
+    stage_mlp,
+    stage_nets,
+)
 
-__all__ = ["ArtefactError", "ClassifierSpec", "PlaceClassifier", "Prediction", "forward", "run_layout", "unknown"]
+__all__ = [
+    "ArtefactError",
+    "ClassifierSpec",
+    "PlaceClassifier",
+    "Prediction",
+    "forward",
+    "run_layout",
+    "stage_depth",
+    "stage_hha",
+    "stage_mlp",
+    "stage_nets",
+    "unknown",
+]

@@ -131,6 +131,47 @@ class ClassifierSpec:
     shifts: tuple[int, ...] = ()  # metric networks: and of the image shifted sideways by ±k px for each k
     dav2_short_side: int = 0  # Depth Anything V2: input short side before rounding to multiples of 14 (0: other)
 
+    @classmethod
+    def from_meta(cls, meta: dict[str, Any]) -> ClassifierSpec:
+        """The spec a classifier file's manifest describes (``PlaceClassifier.meta``: ``image_size``, ``depth``,
+        ``intrinsics``, ``vgg``, ``num_classes``, ``mlp_hidden``, ``normalise``); e.g. to build parameters of the
+        right shapes with ``jax.eval_shape`` before any exist."""
+        d = meta["depth"]
+        image_size = tuple(int(v) for v in meta["image_size"])
+        short_side = 0
+        if d["kind"] == "depth_anything_v2":
+            short_side = int(d["short_side"])
+            net_size = dav2_input_size(*image_size, short_side)
+            depth_model = DepthAnythingV2(
+                **{k: int(d[k]) for k in ("embed_dim", "depth", "num_heads", "features", "pos_grid")},
+                layers=tuple(int(v) for v in d["layers"]),
+                out_channels=tuple(int(v) for v in d["out_channels"]),
+                head=str(d["head"]),
+                max_depth=float(d["max_depth"]),
+            )
+        else:
+            net_size = network_size(image_size, d["size"], square=d["kind"] == "trained")
+            depth_model = MidasSmall(features=int(d["features"]), encoder_width=float(d["encoder_width"]))
+        vgg = meta["vgg"]
+        return cls(
+            image_size=image_size,
+            depth_model=depth_model,
+            depth_net_size=net_size,
+            near_m=float(d["near_m"]),
+            far_m=float(d["far_m"]),
+            intrinsics=tuple(tuple(float(v) for v in row) for row in meta["intrinsics"]),
+            vgg=VGG16(num_classes=int(meta["num_classes"]), width=float(vgg["width"])),
+            mlp=FusionMLP(num_classes=int(meta["num_classes"]), hidden=int(meta["mlp_hidden"])),
+            mean=tuple(float(v) for v in meta["normalise"]["mean"]),
+            std=tuple(float(v) for v in meta["normalise"]["std"]),
+            features_float16=bool(vgg["pretrained"]),
+            depth_metric=bool(d.get("metric", False)),
+            far_as_sky_m=float(d.get("far_as_sky_m", 0.0)),  # runs from before these settings: off, as they were
+            flip_average=bool(d.get("flip_average", False)),
+            shifts=tuple(int(k) for k in d.get("shifts", ())),
+            dav2_short_side=short_side,
+        )
+
 
 # ---------------------------------------------------------------------------------------------------- stages
 
@@ -285,48 +326,10 @@ class PlaceClassifier:
         self.meta = meta
         self.params = jax.tree_util.tree_map(jnp.asarray, params)
         self.grid = PlaceGrid.from_dict(meta["grid"], source="classifier grid")
-        self._spec = self._build_spec(meta)
+        self._spec = ClassifierSpec.from_meta(meta)
         self._check_params()
 
     # ----------------------------------------------------------------------------------------------- building
-
-    @staticmethod
-    def _build_spec(meta: dict[str, Any]) -> ClassifierSpec:
-        d = meta["depth"]
-        image_size = tuple(int(v) for v in meta["image_size"])
-        short_side = 0
-        if d["kind"] == "depth_anything_v2":
-            short_side = int(d["short_side"])
-            net_size = dav2_input_size(*image_size, short_side)
-            depth_model = DepthAnythingV2(
-                **{k: int(d[k]) for k in ("embed_dim", "depth", "num_heads", "features", "pos_grid")},
-                layers=tuple(int(v) for v in d["layers"]),
-                out_channels=tuple(int(v) for v in d["out_channels"]),
-                head=str(d["head"]),
-                max_depth=float(d["max_depth"]),
-            )
-        else:
-            net_size = network_size(image_size, d["size"], square=d["kind"] == "trained")
-            depth_model = MidasSmall(features=int(d["features"]), encoder_width=float(d["encoder_width"]))
-        vgg = meta["vgg"]
-        return ClassifierSpec(
-            image_size=image_size,
-            depth_model=depth_model,
-            depth_net_size=net_size,
-            near_m=float(d["near_m"]),
-            far_m=float(d["far_m"]),
-            intrinsics=tuple(tuple(float(v) for v in row) for row in meta["intrinsics"]),
-            vgg=VGG16(num_classes=int(meta["num_classes"]), width=float(vgg["width"])),
-            mlp=FusionMLP(num_classes=int(meta["num_classes"]), hidden=int(meta["mlp_hidden"])),
-            mean=tuple(float(v) for v in meta["normalise"]["mean"]),
-            std=tuple(float(v) for v in meta["normalise"]["std"]),
-            features_float16=bool(vgg["pretrained"]),
-            depth_metric=bool(d.get("metric", False)),
-            far_as_sky_m=float(d.get("far_as_sky_m", 0.0)),  # runs from before these settings: off, as they were
-            flip_average=bool(d.get("flip_average", False)),
-            shifts=tuple(int(k) for k in d.get("shifts", ())),
-            dav2_short_side=short_side,
-        )
 
     def _check_params(self) -> None:
         """Every network's parameters have exactly the shapes its module expects (a mismatched file fails here)."""
