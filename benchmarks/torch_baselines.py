@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-# (kind, repeats, kernel, stride, out channels) of tf_efficientnet_lite3, as in placejax.models._midas.
+# (kind, repeats, kernel, stride, out channels) of tf_efficientnet_lite3, as in placejax.models.MidasSmall.
 _LITE3 = (
     ("ds", 1, 3, 1, 24),
     ("ir", 3, 3, 2, 32),
