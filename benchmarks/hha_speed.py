@@ -1,6 +1,6 @@
 """HHA encoding speed: placejax's jitted batched encoder against the plain NumPy implementation, same run.
 
-    python -m benchmarks.hha_speed [--repeats 5] [--stream 256]
+    python -m benchmarks.hha_speed [--repeats 5] [--stream 256] [--quick]
 
 Prints a table (images/s, ms/image, first-call compile time, peak memory) and writes
 ``benchmarks/results/hha_speed.json``. Inputs are ray-cast ground/wall scenes with holes-free metric depth.
@@ -35,16 +35,21 @@ def scenes(h: int, w: int, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarra
     return np.stack(out), k
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per configuration (median reported)")
     parser.add_argument("--stream", type=int, default=256, help="images streamed in the bounded-memory check")
-    args = parser.parse_args()
+    parser.add_argument(
+        "--quick", action="store_true", help="256x256, batches 1 and 2, 1 repeat: checks the script runs"
+    )
+    args = parser.parse_args(argv)
+    sizes, batches = (SIZES[:1], (1, 2)) if args.quick else (SIZES, BATCHES)
+    repeats, n_stream = (1, 64) if args.quick else (args.repeats, args.stream)
 
     rows = []
-    for h, w in SIZES:
-        depth, k = scenes(h, w, max(BATCHES))
-        base_s, _ = median_seconds(lambda d=depth[0], k=k: hha.encode_reference(d, k), max(1, args.repeats // 2))
+    for h, w in sizes:
+        depth, k = scenes(h, w, max(batches))
+        base_s, _ = median_seconds(lambda d=depth[0], k=k: hha.encode_reference(d, k), max(1, repeats // 2))
         rows.append(
             {
                 "size": f"{h}x{w}",
@@ -56,10 +61,10 @@ def main() -> None:
                 "vs_common_python": COMMON_PYTHON_S[(h, w)] / base_s,
             }
         )
-        for b in BATCHES:
+        for b in batches:
             batch = depth[:b]
             compile_s, _ = median_seconds(lambda x=batch, k=k: jax.block_until_ready(hha.encode(x, k)), 1)
-            med, times = median_seconds(lambda x=batch, k=k: jax.block_until_ready(hha.encode(x, k)), args.repeats)
+            med, times = median_seconds(lambda x=batch, k=k: jax.block_until_ready(hha.encode(x, k)), repeats)
             rows.append(
                 {
                     "size": f"{h}x{w}",
@@ -79,10 +84,10 @@ def main() -> None:
     h, w = SIZES[0]
     depth, k = scenes(h, w, 8, seed=1)
     rss = []
-    for i, _ in enumerate(hha.encode_stream((depth[j % 8] for j in range(args.stream)), k, batch_size=32)):
+    for i, _ in enumerate(hha.encode_stream((depth[j % 8] for j in range(n_stream)), k, batch_size=32)):
         if i % 32 == 31:
             rss.append(current_rss_mb())
-    stream = {"images": args.stream, "rss_mb_after_each_batch": rss, "growth_mb": rss[-1] - rss[0]}
+    stream = {"images": n_stream, "rss_mb_after_each_batch": rss, "growth_mb": rss[-1] - rss[0]}
 
     print_table(
         rows,
@@ -99,10 +104,10 @@ def main() -> None:
         ],
     )
     print(
-        f"\nstreamed {args.stream} images of {h}x{w} in batches of 32: resident memory "
+        f"\nstreamed {n_stream} images of {h}x{w} in batches of 32: resident memory "
         f"{rss[0]:.0f} → {rss[-1]:.0f} MiB (growth {stream['growth_mb']:+.0f} MiB)"
     )
-    path = write_json("hha_speed", {"rows": rows, "stream": stream, "repeats": args.repeats})
+    path = write_json("hha_speed", {"rows": rows, "stream": stream, "repeats": repeats})
     print(f"wrote {path}")
 
 

@@ -5,7 +5,7 @@ Reports the median wall-clock frames/s over runs (the target), the best run, and
 second (less sensitive to other processes sharing the cores). Prints a table and writes
 ``benchmarks/results/simcampus_speed.json``.
 
-    python -m benchmarks.simcampus_speed [--runs 7]
+    python -m benchmarks.simcampus_speed [--runs 7] [--quick]
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import numpy as np
 
 from placejax import io
 from placejax.data import simcampus
-from placejax.data.simcampus import _render, season_scene
+from placejax.data.simcampus import render_batch, season_scene
 
 # (H, W), frames per call, target frames/s; baseline frames per call (it is 10-25x slower). The batch sizes
 # are the sessions' defaults (`SimCampusSession` picks ~2**18 pixels per call: intermediates stay in cache).
@@ -44,30 +44,34 @@ def _time(fn, runs: int, calls: int = 1) -> tuple[list[float], list[float]]:
     return wall, cpu
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "simcampus_speed.json")
-    args = ap.parse_args()
+    ap.add_argument("--quick", action="store_true", help="64x64 only, 1 run: checks the script (figures mean nothing)")
+    args = ap.parse_args(argv)
+    cases = CASES[:1] if args.quick else CASES
+    runs = 1 if args.quick else args.runs
 
     session = simcampus.load_session("SU", image_size=(64, 64))
     geo, look = season_scene(session.world, "SU")
     rows = []
-    for hw, batch, target, base_batch in CASES:
+    for hw, batch, target, base_batch in cases:
         kmat = simcampus.intrinsics(hw)
         # Consecutive frames of the drive: the workload of an experiment.
         idx = np.arange(batch) * 7 % len(session)
 
-        def call(n, budget, idx=idx, hw=hw, kmat=kmat):
+        def call(n, budget=None, idx=idx, hw=hw, kmat=kmat):  # budget None: the renderer's own culling budget
             poses = jnp.asarray(session.poses6[idx[:n]], jnp.float32)
             ks = jnp.asarray(np.broadcast_to(kmat, (n, 3, 3)), jnp.float32)
             ids = jnp.arange(n, dtype=jnp.int32)
-            return lambda: _render.render_batch(geo, look, poses, ks, ids, hw=hw, budget=budget)
+            kw = {} if budget is None else {"budget": budget}
+            return lambda: render_batch(geo, look, poses, ks, ids, hw=hw, **kw)
 
         # One run renders 64 frames (several calls), so that a run is long enough to time.
         calls = max(1, 64 // batch)
-        fast, fast_cpu = _time(call(batch, (_render.K_BOX, _render.K_CYL, _render.K_ELL)), args.runs, calls)
-        slow, _ = _time(call(base_batch, NO_CULLING), max(3, args.runs // 2))
+        fast, fast_cpu = _time(call(batch), runs, calls)
+        slow, _ = _time(call(base_batch, NO_CULLING), 1 if args.quick else max(3, runs // 2))
         fps = batch * calls / statistics.median(fast)
         base_fps = base_batch / statistics.median(slow)
         rows.append(
@@ -103,7 +107,7 @@ def main() -> None:
         )
     result = {
         "benchmark": "simcampus_speed",
-        "runs": args.runs,
+        "runs": runs,
         "jax": jax.__version__,
         "devices": [str(d) for d in jax.devices()],
         "cpu_count": os.cpu_count(),

@@ -1,6 +1,6 @@
 """Why a from-scratch VGG16 at 1/8 width did not learn the many-class place pretext: the diagnosis, re-runnable.
 
-    python -m experiments.pretrain_diagnose [--steps 300] [--lrs 3e-4,1e-3]
+    python -m experiments.pretrain_diagnose [--steps 300] [--lrs 3e-4,1e-3] [--quick]
 
 1. Activation and gradient scales per layer of the He-initialised net on one batch (healthy: activation std
    ~1 at every conv, gradient/weight norm ratios of the same order in every layer).
@@ -78,22 +78,28 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m experiments.pretrain_diagnose", description=__doc__)
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--lrs", default="3e-4,1e-3")
+    parser.add_argument(
+        "--quick", action="store_true", help="16 frames of 2 worlds, 3 steps, one rate, 64² only: checks the script"
+    )
     args = parser.parse_args(argv)
-    f = place_frames(0, 256, (64, 64), n_worlds=4, grid=10, headings=4)
+    frames_per_world, n_worlds, memorise_steps = (16, 2, 3) if args.quick else (256, 4, 150)
+    steps = 3 if args.quick else args.steps
+    lrs = [float(v) for v in args.lrs.split(",")][: 1 if args.quick else None]
+    f = place_frames(0, frames_per_world, (64, 64), n_worlds=n_worlds, grid=10, headings=4)
     rgb, labels = f["image"], f["label"]
     print(f"{len(rgb)} frames, {np.unique(labels).size} classes ({len(rgb) / np.unique(labels).size:.1f} per class)")
     print("1. scales at initialisation (64², 1/8 width):")
     _scales(rgb, labels)
-    print(
-        f"2. memorising 64 frames, lr 1e-3, 150 steps: training accuracy {_fit(rgb[:64], labels[:64], 1e-3, 150):.3f}"
-    )
+    memorised = _fit(rgb[:64], labels[:64], 1e-3, memorise_steps)
+    print(f"2. memorising {len(rgb[:64])} frames, lr 1e-3, {memorise_steps} steps: training accuracy {memorised:.3f}")
     rgb48 = np.asarray(jax.image.resize(rgb.astype(np.float32), (len(rgb), 48, 48, 3), "linear"))
     rgb48 = rgb48.clip(0, 255).astype(np.uint8)
-    for lr in (float(v) for v in args.lrs.split(",")):
-        for name, x in (("64²", rgb), ("48²", rgb48)):
+    sizes = (("64²", rgb),) if args.quick else (("64²", rgb), ("48²", rgb48))
+    for lr in lrs:
+        for name, x in sizes:
             print(
-                f"3. many-class pretext, {name}, lr {lr:g}, {args.steps} steps: training accuracy "
-                f"{_fit(x, labels, lr, args.steps):.3f}"
+                f"3. many-class pretext, {name}, lr {lr:g}, {steps} steps: training accuracy "
+                f"{_fit(x, labels, lr, steps):.3f}"
             )
     print(f"4. trunk map before fc6: 48² → {trunk_map_size(48)}, 64² → {trunk_map_size(64)}")
     return 0

@@ -5,7 +5,7 @@ over the 10 x 10 grid of all sessions' viewpoints: within a session (every 10th 
 be accurate; trained on one season and tested on another it should drop clearly. Prints the 4 x 4 top-1
 matrix and writes ``runs/simcampus_sanity.json``. A check of the benchmark, not a result of the method.
 
-    python -m experiments.simcampus_sanity [--frame-spacing 2.0] [--size 32]
+    python -m experiments.simcampus_sanity [--frame-spacing 2.0] [--size 32] [--out runs/simcampus_sanity.json]
 """
 
 from __future__ import annotations
@@ -40,13 +40,13 @@ def nn_predict(train_x, train_y, test_x, chunk: int = 512) -> np.ndarray:
     return np.concatenate(out)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--world-seed", type=int, default=0)
     ap.add_argument("--frame-spacing", type=float, default=2.0)
     ap.add_argument("--size", type=int, default=32)
     ap.add_argument("--out", type=Path, default=Path("runs") / "simcampus_sanity.json")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     sessions = {
         s: simcampus.load_session(

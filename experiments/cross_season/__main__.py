@@ -29,6 +29,7 @@ def _help_epilog() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line (module docstring); returns the exit status (130 after Ctrl-C: rerun to resume)."""
     parser = argparse.ArgumentParser(
         prog="python -m experiments.cross_season",
         description=(

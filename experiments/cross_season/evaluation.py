@@ -14,6 +14,62 @@ from experiments.cross_season.depth_hha import depth_and_hha_caches, has_true_de
 from placejax.evaluation import frame_gains, gain_intervals, mean_sd, softmax, top1
 
 
+def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumbs: dict) -> dict[str, Any]:
+    """Scores every method of every seed's ``runs`` (``fusion.train_and_predict``) on every ordered session pair.
+
+    Args:
+        ctx: the run context (``config.seed``, ``config.n_seeds``, the ablations, the ``evaluate`` timer).
+        sessions: every session, labelled.
+        runs: per seed, ``(nets, outputs, fused, mlp_dirs)``.
+        thumbs: :func:`baseline_features`.
+
+    Returns:
+        The scoring part of ``results.json``: ``pairs`` (one row per cross-session pair: each method's mean, sd and
+        per-seed top-1, ceilings, baselines, unseen-place columns, gains with intervals), ``same_session`` (rows of
+        a session tested on itself), ``mean`` and ``mean_sd_over_seeds`` per method, ``gains`` (mean gains),
+        ``ceilings_and_baselines`` (means) and ``unknown`` (means of the unseen-place columns). Accuracies are
+        fractions.
+    """
+    config = ctx.config
+    fused = runs[0][2]  # the first seed's fusion: the unseen-place columns
+    with ctx.timed("evaluate"):
+        pairs = []
+        for s in sessions:
+            for t in sessions:
+                row: dict[str, Any] = {"train": s.name, "test": t.name, "n_test": len(t)}
+                per_seed = [method_logits(r, s.name, t.name, config) for r in runs]
+                for m in per_seed[0]:
+                    accs = [top1(logits[m], t.labels) for logits in per_seed]
+                    row[m], row[f"{m}_sd"] = mean_sd(accs)
+                    row[f"{m}_per_seed"] = accs
+                row.update(pair_ceilings_and_baselines(s, t, thumbs))
+                if t.name == s.name:
+                    row["same_session"] = True
+                else:
+                    row.update(_unknown_columns(fused, s, t))
+                    row["_correct"] = {
+                        m: np.stack([np.argmax(lg[m], 1) == t.labels for lg in per_seed]) for m in per_seed[0]
+                    }
+                pairs.append(row)
+    cross = [p for p in pairs if p["train"] != p["test"]]
+    methods = [k for k in ("ours", "rgb_net", "hha_net", "depth1_net", "average") if k in cross[0]]
+    gains = _gain_intervals(cross, config.seed)
+    return {
+        "pairs": cross,
+        "same_session": [p for p in pairs if p["train"] == p["test"]],
+        "mean": {m: float(np.mean([p[m] for p in cross])) for m in methods},
+        "mean_sd_over_seeds": {
+            m: mean_sd([np.mean([p[f"{m}_per_seed"][k] for p in cross]) for k in range(config.n_seeds)])[1]
+            for m in methods
+        },
+        "gains": gains,
+        "ceilings_and_baselines": {
+            k: float(np.mean([p[k] for p in cross])) for k in ("seen_class_fraction", "heading_ceiling", *thumbs)
+        },
+        "unknown": _unknown_summary(cross),
+    }
+
+
 def method_logits(run, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
     """Logits (or averaged probabilities) of every method of one seed's run on one pair."""
     nets, outputs, fused, _ = run
@@ -81,6 +137,7 @@ def pair_ceilings_and_baselines(s: SessionData, t: SessionData, thumbs: dict) ->
 
 
 def nets_modalities(nets: dict, session: str) -> list[str]:
+    """The modalities of the nets trained on ``session`` (``nets``: (session, modality) → net), in training order."""
     return [m for (s, m) in nets if s == session]
 
 
@@ -114,59 +171,3 @@ def _unknown_summary(cross: list[dict]) -> dict:
         vals = [p[k] for p in cross if p[k] is not None]
         mean[k], n[k] = (float(np.mean(vals)) if vals else None), len(vals)
     return {"score": unknown.DEFAULT_SCORE, "target_frr": unknown.DEFAULT_TARGET_FRR, "mean": mean, "n_pairs": n}
-
-
-def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumbs: dict) -> dict[str, Any]:
-    """Scores every method of every seed's ``runs`` (``fusion.train_and_predict``) on every ordered session pair.
-
-    Args:
-        ctx: the run context (``config.seed``, ``config.n_seeds``, the ablations, the ``evaluate`` timer).
-        sessions: every session, labelled.
-        runs: per seed, ``(nets, outputs, fused, mlp_dirs)``.
-        thumbs: :func:`baseline_features`.
-
-    Returns:
-        The scoring part of ``results.json``: ``pairs`` (one row per cross-session pair: each method's mean, sd and
-        per-seed top-1, ceilings, baselines, unseen-place columns, gains with intervals), ``same_session`` (rows of
-        a session tested on itself), ``mean`` and ``mean_sd_over_seeds`` per method, ``gains`` (mean gains),
-        ``ceilings_and_baselines`` (means) and ``unknown`` (means of the unseen-place columns). Accuracies are
-        fractions.
-    """
-    config = ctx.config
-    fused = runs[0][2]  # the first seed's fusion: the unseen-place columns
-    with ctx.timed("evaluate"):
-        pairs = []
-        for s in sessions:
-            for t in sessions:
-                row: dict[str, Any] = {"train": s.name, "test": t.name, "n_test": len(t)}
-                per_seed = [method_logits(r, s.name, t.name, config) for r in runs]
-                for m in per_seed[0]:
-                    accs = [top1(logits[m], t.labels) for logits in per_seed]
-                    row[m], row[f"{m}_sd"] = mean_sd(accs)
-                    row[f"{m}_per_seed"] = accs
-                row.update(pair_ceilings_and_baselines(s, t, thumbs))
-                if t.name == s.name:
-                    row["same_session"] = True
-                else:
-                    row.update(_unknown_columns(fused, s, t))
-                    row["_correct"] = {
-                        m: np.stack([np.argmax(lg[m], 1) == t.labels for lg in per_seed]) for m in per_seed[0]
-                    }
-                pairs.append(row)
-    cross = [p for p in pairs if p["train"] != p["test"]]
-    methods = [k for k in ("ours", "rgb_net", "hha_net", "depth1_net", "average") if k in cross[0]]
-    gains = _gain_intervals(cross, config.seed)
-    return {
-        "pairs": cross,
-        "same_session": [p for p in pairs if p["train"] == p["test"]],
-        "mean": {m: float(np.mean([p[m] for p in cross])) for m in methods},
-        "mean_sd_over_seeds": {
-            m: mean_sd([np.mean([p[f"{m}_per_seed"][k] for p in cross]) for k in range(config.n_seeds)])[1]
-            for m in methods
-        },
-        "gains": gains,
-        "ceilings_and_baselines": {
-            k: float(np.mean([p[k] for p in cross])) for k in ("seen_class_fraction", "heading_ceiling", *thumbs)
-        },
-        "unknown": _unknown_summary(cross),
-    }

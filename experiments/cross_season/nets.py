@@ -202,6 +202,7 @@ def train_classifier(
 
 
 def features_prepare(b: dict) -> dict:
+    """A batch of cached features or embeddings → the training engine's ``{"x", "label", "valid"}`` (float32 x)."""
     return {"x": np.asarray(b["image"], np.float32), "label": b["label"], "valid": b["valid"]}
 
 

@@ -1,0 +1,252 @@
+"""Every command-line script runs on a tiny setting and writes its output: ``python -m`` as a user types it.
+
+The experiments' diagnostics, ``python -m placejax.data.simcampus`` and every benchmark are run in a subprocess,
+so that a refactor of what they import cannot break them silently. The benchmarks run from a copy of the
+``benchmarks`` package in a temporary folder, so that their ``benchmarks/results/*.json`` land there and never over
+a developer's own measurements. Each check compares the output with something the test computes itself where the
+script's figures allow it (a mean with its rows, a matrix with its diagonal); timings are only checked to exist.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import jax
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SEASONS = ("WI", "SP", "SU", "AU")
+
+
+def _run(args: list[str], *, cwd: Path, pythonpath: Path = REPO, timeout: float = 600) -> str:
+    """Runs ``python ARGS`` in ``cwd`` and returns its stdout; fails with the tail of stderr."""
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(pythonpath),
+        "XLA_FLAGS": "",  # one host device, as a user's shell has (the suite forces two)
+        "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir,  # the suite's compiled programs
+    }
+    done = subprocess.run(
+        [sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=False
+    )
+    assert done.returncode == 0, f"{' '.join(args)} failed:\n{done.stderr[-3000:]}"
+    return done.stdout
+
+
+@pytest.fixture
+def bench(tmp_path) -> Path:
+    """A copy of the ``benchmarks`` package (without results) in a temporary folder: run scripts from here."""
+    shutil.copytree(
+        REPO / "benchmarks", tmp_path / "benchmarks", ignore=shutil.ignore_patterns("results", "__pycache__")
+    )
+    (tmp_path / "tests").symlink_to(REPO / "tests")  # nclt_rehearsal writes its fake tree with tests' helpers
+    return tmp_path
+
+
+def _bench(root: Path, name: str, *args: str, result: str | None = None) -> tuple[str, dict]:
+    """Runs ``python -m benchmarks.NAME ARGS`` from the copy; its stdout and ``results/RESULT.json`` (default NAME)."""
+    out = _run(["-m", f"benchmarks.{name}", *args], cwd=root, pythonpath=root)
+    return out, json.loads((root / "benchmarks" / "results" / f"{result or name}.json").read_text())
+
+
+# ---------------------------------------------------------------------------------------------------- experiments
+
+
+@pytest.mark.slow
+def test_calibrate_world(tmp_path):
+    """RGB-only calibration on 10 frames per season: 12 pairs, the mean row is the mean of the pairs, and the seen-
+    class ceiling is recomputed here from the cached poses and the saved grid."""
+    from placejax.classify import run_layout
+    from placejax.data import PlaceGrid, open_array_cache
+
+    work = tmp_path / "calib"
+    out = _run(
+        [
+            "-m",
+            "experiments.calibrate_world",
+            "--workdir",
+            str(work),
+            "--preset",
+            "smoke",
+            "n_seeds=1",
+            "data.max_frames=10",
+            "train.epochs=2",
+            "devices=1",
+            "progress=False",
+        ],
+        cwd=tmp_path,
+    )
+    cal = json.loads((work / "calibration.json").read_text())
+    assert len(cal["pairs"]) == 12 and "| **mean** |" in out
+    for k in ("seen_class_fraction", "heading_ceiling", "nn_rgb", "nn_gradient", "rgb_net"):
+        assert cal["mean"][k] == pytest.approx(np.mean([p[k] for p in cal["pairs"]]))
+        assert all(0.0 <= p[k] <= 1.0 for p in cal["pairs"])
+    grid = PlaceGrid.load(work / "grid.json")
+    labels = {}
+    for s in SEASONS:
+        (frames,) = run_layout.cache_folders(work, s, "frames")
+        labels[s] = grid.label(open_array_cache(frames).extras["poses"])
+    for p in cal["pairs"]:
+        seen = np.isin(labels[p["test"]], np.unique(labels[p["train"]])).mean()
+        assert p["seen_class_fraction"] == pytest.approx(seen)
+
+
+@pytest.mark.slow
+def test_hha_diagnose_on_a_run_whose_predicted_depth_is_the_rendered_one(tmp_path):
+    """A work directory laid out as ``placejax.classify.run_layout`` says (frames, rendered depth, and as the
+    "trained" depth the same rendered depth): every "predicted" figure equals its "rendered" counterpart and the
+    depth error table is all zeros."""
+    import re
+
+    from placejax.classify import run_layout
+    from placejax.data import PlaceGrid, build_array_cache, cache_session, simcampus
+
+    work = tmp_path / "run"
+    poses = []
+    for s in SEASONS:
+        session = simcampus.load_session(s, image_size=(32, 32), frame_spacing=40.0, max_frames=12)
+        cached = cache_session(session, work / run_layout.CACHE_DIR, image_size=(32, 32), progress=False)
+        poses.append(cached.poses)
+        depth = session.depths(np.arange(len(session))).astype(np.float32)
+        for source in ("true", "trained"):
+            build_array_cache(
+                work / run_layout.CACHE_DIR,
+                run_layout.cache_name(s, "depth", source),
+                len(session),
+                lambda a, b, depth=depth: depth[a:b],
+                (32, 32),
+                np.float32,
+                key={"kind": "depth", "source": source, "session": s},
+                progress=False,
+            )
+    PlaceGrid.fit(poses, n=3).save(work / "grid.json")
+    out = _run(["-m", "experiments.hha_diagnose", str(work)], cwd=tmp_path)
+    rows = {m[1].strip(): float(m[2]) for m in re.finditer(r"^(\S.*?)\s+(\d+\.\d)$", out, re.M)}
+    assert rows["predicted"] == rows["rendered, as is (sky at 1000 m)"]
+    table = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line[:2] in SEASONS}
+    assert set(table) == set(SEASONS)
+    # Every region's error is zero (NaN where a session's frames have none of that region).
+    assert all(float(v) == 0.0 or np.isnan(float(v)) for row in table.values() for v in row), table
+    assert all(float(row[0]) == 0.0 for row in table.values())  # all pixels
+
+
+@pytest.mark.slow
+def test_pretrain_diagnose_quick(tmp_path):
+    """``--quick``: every numbered section is printed, training accuracies are fractions."""
+    out = _run(["-m", "experiments.pretrain_diagnose", "--quick"], cwd=tmp_path)
+    for section in ("1. scales at initialisation", "2. memorising", "3. many-class pretext, 64²", "4. trunk map"):
+        assert section in out, out
+    accs = [float(line.rsplit(" ", 1)[1]) for line in out.splitlines() if "training accuracy" in line]
+    assert len(accs) == 2 and all(0.0 <= a <= 1.0 for a in accs)  # memorising, and the pretext at 64²
+
+
+@pytest.mark.slow
+def test_simcampus_sanity(tmp_path):
+    """16² renders every 40 m: the 4 × 4 matrix is complete, and its two means are those of its diagonal and of
+    the rest."""
+    out_json = tmp_path / "sanity.json"
+    out = _run(
+        ["-m", "experiments.simcampus_sanity", "--size", "16", "--frame-spacing", "40", "--out", str(out_json)],
+        cwd=tmp_path,
+    )
+    r = json.loads(out_json.read_text())
+    assert len(r["top1"]) == 16 and all(0.0 <= v <= 1.0 for v in r["top1"].values())
+    assert r["mean_within"] == pytest.approx(np.mean([r["top1"][f"{s}->{s}"] for s in SEASONS]))
+    assert r["mean_cross"] == pytest.approx(np.mean([v for k, v in r["top1"].items() if k[:2] != k[-2:]]))
+    assert "mean within-session" in out
+
+
+@pytest.mark.slow
+def test_simcampus_picture(tmp_path):
+    """The README picture at 32² of a given frame: a PNG of the figure's size (10 × 5.2 in at 80 dpi)."""
+    png = tmp_path / "seasons.png"
+    out = _run(["-m", "placejax.data.simcampus", str(png), "--size", "32", "--frame", "0"], cwd=tmp_path)
+    image = cv2.imread(str(png))
+    assert image is not None and image.shape == (416, 800, 3), None if image is None else image.shape
+    assert "SU frame 0" in out
+
+
+# ---------------------------------------------------------------------------------------------------- benchmarks
+
+
+@pytest.mark.slow
+def test_benchmark_hha_speed(bench):
+    out, r = _bench(bench, "hha_speed", "--quick")
+    assert [row["batch"] for row in r["rows"]] == [1, 1, 2]  # the NumPy baseline, then placejax at 1 and 2
+    assert r["stream"]["images"] == 64 and "implementation" in out
+
+
+@pytest.mark.slow
+def test_benchmark_simcampus_speed(bench):
+    out, r = _bench(bench, "simcampus_speed", "--quick")
+    (case,) = r["cases"]
+    assert case["size"] == "64x64" and case["fps_median"] > 0 and "64x64" in out
+
+
+@pytest.mark.slow
+def test_benchmark_training_step(bench):
+    out, r = _bench(bench, "training_step", "--repeats", "1", "--steps", "1")
+    assert {"vgg_step_1dev", "mlp_step", "train_dataset_batch"} <= {row["case"] for row in r["rows"]}
+    assert all(row["ms"] > 0 for row in r["rows"]) and "median ms" in out
+
+
+@pytest.mark.slow
+def test_benchmark_data_pipeline(bench):
+    out, r = _bench(bench, "data_pipeline", "--frames", "2", "--repeats", "1", "--batch", "64")
+    assert {row["case"] for row in r["results"]} >= {"nclt_image", "cache_build", "train_batches_augmented"}
+    assert r["meta"]["frames"] == 2 and "cache_build" in out
+
+
+@pytest.mark.slow
+def test_benchmark_route_speed(bench):
+    out, r = _bench(bench, "route_speed", "--repeats", "1", "--frames", "40", "--stream-frames", "5", "--n", "3")
+    assert r["cells"] == 9 and len(r["rows"]) == 5 and "frames/s" in out
+
+
+@pytest.mark.slow
+def test_benchmark_inference_speed(bench):
+    out, r = _bench(bench, "inference_speed", "--only", "builtin", "--no-torch", "--repeats", "1", "--batch", "2")
+    assert [row["batch"] for row in r["rows"]] == [1, 2]
+    for row in r["rows"]:
+        shares = [row[f"share_{k}"] for k in ("depth", "hha", "nets", "mlp")]
+        assert sum(shares) == pytest.approx(1.0) and row["images_per_s"] > 0
+    assert "images/s" in out
+
+
+@pytest.mark.slow
+def test_benchmark_models_speed(bench):
+    out, r = _bench(
+        bench, "models_speed", "--only", "midas", "--no-torch", "--repeats", "1", result="models_speed_midas"
+    )
+    assert {row["batch"] for row in r["rows"]} == {1, 8} and "midas" in out
+
+
+@pytest.mark.slow
+def test_benchmark_nclt_rehearsal(bench):
+    out, r = _bench(
+        bench,
+        "nclt_rehearsal",
+        "--frames",
+        "4",
+        "5",
+        "--sessions",
+        "2",
+        "--nn-frames",
+        "20",
+        "--target",
+        "100",
+        "--set",
+        "n_seeds=1",
+        "train.epochs=1",
+        "train.batch_size=2",
+        "mlp.epochs=1",
+        "mlp.batch_size=2",
+    )
+    assert [s["frames"] for s in r["sizes"]] == [4, 5] and "images/s" in out
