@@ -13,6 +13,8 @@ Public surface:
         (uint8 RGB → metric depth → uint8 HHA → both VGG16s' logits and fc7 → fused logits).
     ArtefactError: a classifier file that is corrupt, truncated or of another format.
     unknown: unseen-place scores, thresholds and their evaluation.
+    Tracker, TrackStep: a ``PlaceClassifier`` followed by the route filter (`placejax.route`), one image and the
+        distance travelled at a time (``Tracker(clf, temperature=T).step(rgb_uint8, moved_m)``).
     run_layout: where a finished ``experiments.cross_season`` run keeps its checkpoints, caches and index.
 
 Command: ``python -m placejax.classify MODEL IMAGE... [--json] [--figure out.png]``.
@@ -30,12 +32,15 @@ from placejax.classify._classifier import (
     stage_mlp,
     stage_nets,
 )
+from placejax.classify._track import Tracker, TrackStep
 
 __all__ = [
     "ArtefactError",
     "ClassifierSpec",
     "PlaceClassifier",
     "Prediction",
+    "TrackStep",
+    "Tracker",
     "forward",
     "run_layout",
     "stage_depth",
