@@ -667,3 +667,34 @@ def test_artefact_keeps_every_array_shape_and_order(tmp_path):
         assert back[name].shape == np.shape(a) and back[name].dtype == np.asarray(a).dtype, name
         assert manifest["arrays"][name]["shape"] == list(np.shape(a)), name
         np.testing.assert_array_equal(back[name], a)
+
+
+def _nesting(obj) -> int:
+    """Nesting depth of a parsed JSON value (1 for a flat list or object), recursively: the independent count."""
+    if isinstance(obj, dict):
+        return 1 + max((_nesting(v) for v in obj.values()), default=0)
+    if isinstance(obj, list):
+        return 1 + max((_nesting(v) for v in obj), default=0)
+    return 0
+
+
+def test_manifest_depth_scan_is_exact_and_linear():
+    """The manifest's nesting is counted outside strings (brackets and escaped quotes inside them do not count),
+    as the parsed value's own depth; and in linear time on unterminated strings full of escaped quotes, which the
+    first scan retried at every quote (quadratic: 40,000 pairs took a minute, 16 MiB would take days)."""
+    import time
+
+    from placejax.classify._artefact import _json_depth
+
+    for text in (
+        '{"a": [1, {"b": "]]]}}"}], "c": "\\"[[[\\\\"}',
+        '[[["x\\\\\\"]"], []], {"k\\\\": [[[]]]}]',
+        '{"a": "\\\\", "b": [["\\u005b"]]}',
+        "[]",
+        '"[{"',
+    ):
+        assert _json_depth(text.encode()) == _nesting(json.loads(text)), text
+    start = time.perf_counter()
+    assert _json_depth(b'"' + b'\\"' * 200_000) == 0
+    assert _json_depth(b'[{"' + b"\\\\\\x" * 100_000) == 2
+    assert time.perf_counter() - start < 10  # the first scan: about 20 minutes for the first text alone
