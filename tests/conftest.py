@@ -50,3 +50,15 @@ def smoke_depth_run(tmp_path_factory) -> Path:
     workdir = tmp_path_factory.mktemp("smoke_depth_run")
     depth.train(depth.PRESETS["smoke"], workdir, progress=False)
     return workdir
+
+
+# Fixtures that train a network or run the experiment end to end (a minute or more each, built once per module or
+# session). Every test that uses one, directly or through another fixture, is marked `slow`, so that the fast inner
+# loop (`pytest -m "not slow"`) leaves it out; CI runs everything.
+SLOW_FIXTURES = frozenset({"smoke", "smoke_run", "smoke_depth_run"})
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if SLOW_FIXTURES.intersection(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)

@@ -8,6 +8,11 @@ import textwrap
 import time
 from pathlib import Path
 
+import pytest
+
+# Several processes per test, each starting JAX and waiting on the others: not for the fast inner loop.
+pytestmark = pytest.mark.slow
+
 REPO = Path(__file__).resolve().parents[1]
 
 _CHILD = textwrap.dedent(
