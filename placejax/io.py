@@ -30,7 +30,9 @@ from typing import IO, Any
 import numpy as np
 
 __all__ = [
+    "NPZ_MAX_BYTES",
     "NPZ_META_KEY",
+    "NpzError",
     "atomic_write",
     "file_sha256",
     "read_npz",
@@ -116,12 +118,74 @@ def write_npz(
         (np.savez_compressed if compressed else np.savez)(f, **arrays)
 
 
-def read_npz(source: str | os.PathLike | IO[bytes]) -> tuple[dict[str, np.ndarray], dict[str, Any] | None]:
+NPZ_MAX_BYTES = 4 << 30
+"""Default budget of `read_npz`: the arrays of one ``.npz`` may hold at most this many bytes (4 GiB)."""
+_NPZ_MAX_EXPANSION = 64  # deflate expands real weights 1-3x; a bomb expands ~1000x
+_NPZ_EXPANSION_FREE = 1 << 20
+
+
+class NpzError(ValueError):
+    """An ``.npz`` file that is not a plain, bounded numpy archive; the message names the file and the limit."""
+
+
+def _check_npz(source: str | os.PathLike | IO[bytes], max_bytes: int) -> None:
+    # Checked from the zip directory and each member's .npy header before numpy allocates anything: zipfile
+    # stops a member at its declared size, so the declared sizes bound the decompressed bytes, and a header whose
+    # shape needs more bytes than its member holds is refused instead of allocated.
+    import zipfile
+
+    name = getattr(source, "name", source) if not isinstance(source, str | os.PathLike) else os.fspath(source)
+    try:
+        zf = zipfile.ZipFile(source)
+    except (zipfile.BadZipFile, OSError) as e:
+        raise NpzError(f"{name}: not an .npz archive ({e})") from e
+    with zf:
+        infos = zf.infolist()
+        declared = sum(i.file_size for i in infos)
+        packed = sum(i.compress_size for i in infos)
+        if declared > max_bytes:
+            raise NpzError(f"{name}: members declare {declared} bytes, over the budget of {max_bytes} (max_bytes=)")
+        if declared > _NPZ_EXPANSION_FREE + _NPZ_MAX_EXPANSION * packed:
+            raise NpzError(f"{name}: members expand {declared} / {packed} bytes, over {_NPZ_MAX_EXPANSION}x")
+        for i in infos:
+            if i.flag_bits & 0x1 or i.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+                raise NpzError(f"{name}: member {i.filename!r} is encrypted or not stored/deflated")
+            if not i.filename.endswith(".npy"):
+                continue
+            with zf.open(i) as f:
+                try:
+                    version = np.lib.format.read_magic(f)
+                    read_header = {(1, 0): np.lib.format.read_array_header_1_0}.get(
+                        version, np.lib.format.read_array_header_2_0
+                    )
+                    shape, _, dtype = read_header(f)
+                except (ValueError, SyntaxError) as e:
+                    raise NpzError(f"{name}: member {i.filename!r} has a bad .npy header ({e})") from e
+                if dtype.hasobject:
+                    raise NpzError(f"{name}: member {i.filename!r} holds Python objects")
+                need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if need > i.file_size:
+                    raise NpzError(
+                        f"{name}: member {i.filename!r} declares shape {shape} ({need} bytes) in {i.file_size} bytes"
+                    )
+    if hasattr(source, "seek"):
+        source.seek(0)
+
+
+def read_npz(
+    source: str | os.PathLike | IO[bytes], *, max_bytes: int = NPZ_MAX_BYTES
+) -> tuple[dict[str, np.ndarray], dict[str, Any] | None]:
     """``(arrays, meta)`` of an ``.npz`` (a path or a binary file object); ``meta`` is None when it has none.
 
     The one reader of placejax's npz records: ``placejax.weights.read_record`` (weights records: the shipped
-    depth network and trunks, exported ones) builds on it.
+    depth network and trunks, exported ones) builds on it. A file from elsewhere is read within a budget checked
+    before anything is allocated: at most ``max_bytes`` of arrays, deflate expanding at most 64x, no encrypted
+    or otherwise compressed members, no Python objects, and every ``.npy`` header's shape within its member.
+
+    Raises:
+        NpzError: the file breaks one of those rules (the message names the file and the limit).
     """
+    _check_npz(source, max_bytes)
     with np.load(source) as z:
         meta = json.loads(bytes(z[NPZ_META_KEY]).decode()) if NPZ_META_KEY in z.files else None
         arrays = {k: np.asarray(z[k]) for k in z.files if k != NPZ_META_KEY}

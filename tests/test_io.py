@@ -43,3 +43,66 @@ def test_json_bytes_are_deterministic(tmp_path):
     with pytest.raises(ValueError, match="mode"):
         with io.atomic_write(tmp_path / "c", "a"):
             pass
+
+
+# --- read_npz's budget: every case is refused from the zip directory and the .npy headers, before numpy allocates.
+
+
+def _zip(path, members, compression=None):
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", compression or zipfile.ZIP_DEFLATED) as z:
+        for name, data in members.items():
+            z.writestr(name, data)
+    return path
+
+
+def _npy_header(shape, dtype="<f4") -> bytes:
+    import io as _io
+
+    buf = _io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": dtype, "fortran_order": False, "shape": shape})
+    return buf.getvalue()
+
+
+def test_read_npz_round_trip_within_the_budget(tmp_path):
+    arrays = {"a": np.arange(12, dtype=np.float32).reshape(3, 4), "b": np.zeros((), np.int64)}
+    io.write_npz(tmp_path / "ok.npz", arrays, meta={"x": 1})
+    got, meta = io.read_npz(tmp_path / "ok.npz")
+    assert meta == {"x": 1}
+    for k, v in arrays.items():
+        np.testing.assert_array_equal(got[k], v)
+        assert got[k].shape == v.shape
+    with pytest.raises(io.NpzError, match=r"ok\.npz.*budget of 10"):
+        io.read_npz(tmp_path / "ok.npz", max_bytes=10)
+
+
+def test_read_npz_refuses_a_deflate_bomb(tmp_path):
+    bomb = _npy_header((64 << 20,), "|u1") + bytes(64 << 20)  # 64 MiB of zeros deflate to ~64 KB
+    path = _zip(tmp_path / "bomb.npz", {"w.npy": bomb})
+    assert path.stat().st_size < 200_000
+    with pytest.raises(io.NpzError, match=r"bomb\.npz: members expand .* over 64x"):
+        io.read_npz(path)
+
+
+def test_read_npz_refuses_a_header_larger_than_its_member(tmp_path):
+    path = _zip(tmp_path / "huge.npz", {"w.npy": _npy_header((1 << 20, 1 << 20)) + bytes(16)})
+    with pytest.raises(io.NpzError, match=r"huge\.npz: member 'w\.npy' declares shape \(1048576, 1048576\)"):
+        io.read_npz(path)
+
+
+def test_read_npz_refuses_objects_bad_headers_and_other_compressions(tmp_path):
+    import zipfile
+
+    path = _zip(tmp_path / "obj.npz", {"w.npy": _npy_header((1,), "|O") + bytes(8)})
+    with pytest.raises(io.NpzError, match=r"obj\.npz: member 'w\.npy' holds Python objects"):
+        io.read_npz(path)
+    path = _zip(tmp_path / "junk.npz", {"w.npy": b"\x93NUMPY\x01\x00\x10\x00{not a dict}    \n"})
+    with pytest.raises(io.NpzError, match=r"junk\.npz: member 'w\.npy' has a bad \.npy header"):
+        io.read_npz(path)
+    path = _zip(tmp_path / "bz.npz", {"w.npy": _npy_header((2,)) + bytes(8)}, zipfile.ZIP_BZIP2)
+    with pytest.raises(io.NpzError, match=r"bz\.npz: member 'w\.npy' is encrypted or not stored/deflated"):
+        io.read_npz(path)
+    (tmp_path / "text.npz").write_text("hello")
+    with pytest.raises(io.NpzError, match=r"text\.npz: not an \.npz archive"):
+        io.read_npz(tmp_path / "text.npz")
