@@ -47,6 +47,7 @@ def _public_objects() -> list[tuple[str, object]]:
     return out
 
 
+@pytest.mark.slow
 def test_dir_lists_the_surface_and_subpackages_load_lazily():
     listed = set(dir(placejax))
     assert {"PlaceClassifier", "Prediction", "__version__", *SUBPACKAGES} <= listed
@@ -153,6 +154,7 @@ def test_public_functions_taking_arrays_give_shapes():
     assert not lacking, f"public callables taking arrays whose docstring gives no shape: {lacking}"
 
 
+@pytest.mark.slow
 def test_api_reference_builds_and_fails_on_a_broken_reference(tmp_path, monkeypatch):
     """``docs/build_api.py`` renders every public docstring without a warning, and a docstring naming a
     ``placejax.…`` object that does not exist fails it (pdoc alone would leave it as plain text)."""

@@ -124,6 +124,7 @@ def test_interrupted_build_resumes_to_identical_cache(tmp_path):
     assert not any(p.name.endswith(".partial") for p in root.iterdir())
 
 
+@pytest.mark.slow
 def test_sigkilled_build_resumes_to_identical_cache(tmp_path):
     """A real kill -9 half-way through a session cache build, then a rerun in this process."""
     fake = make_fake_nclt(tmp_path / "nclt", ["2012-01-22"], n_frames=12)

@@ -372,6 +372,7 @@ def _colliding_int_keys(n: int) -> bytes:
     return pickle.EMPTY_DICT + pickle.MARK + b"".join(p_int(k * ((1 << 61) - 1)) + pickle.NONE for k in range(1, n + 1))
 
 
+@pytest.mark.slow
 def test_cost_per_byte_and_key_hashing_are_bounded(tmp_path):
     """The files of the issue, rebuilt small: each ends in a library error naming the file, in a child limited to
     +768 MiB of address space and 15 s of CPU, within a few seconds."""
@@ -684,6 +685,7 @@ torch.save({"w": torch.zeros(3, dtype=torch.complex128)}, f"{out}/complex_legacy
 """
 
 
+@pytest.mark.slow
 def test_real_torch_files_of_unsupported_kinds_are_named(tmp_path):
     # torch comes with the test install (the fixtures extra), as for every test that writes real torch files.
     subprocess.run([sys.executable, "-c", _REAL_UNSUPPORTED, str(tmp_path)], check=True, timeout=120)
@@ -821,6 +823,7 @@ def _corpus(marker: Path) -> dict[str, tuple[bytes, str]]:
     }
 
 
+@pytest.mark.slow
 def test_corpus_of_bypass_techniques_runs_nothing(tmp_path):
     markers = tmp_path / "markers"
     markers.mkdir()

@@ -358,6 +358,7 @@ CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", CASES)
 def test_crafted_classifier_files_are_refused_by_name(outcomes, case):
     """Each file of the issue: an ArtefactError naming the file and what is wrong, in well under a second of
@@ -397,6 +398,7 @@ def test_crafted_images_are_refused_before_decoding(outcomes, name):
     assert got["seconds"] < 5 and got["over_base"] < 256 << 20, got  # nothing near 20000² × 3 bytes
 
 
+@pytest.mark.slow
 def test_the_command_prints_one_line_and_exits_2(tiny, tmp_path):
     """``python -m placejax.classify`` itself, in a fresh process: no traceback, exit 2, one line."""
     bad = with_manifest(tiny, tmp_path / "bad.placejax", lambda mf: {**mf, "image_size": [20000, 20000]})
@@ -416,6 +418,7 @@ def test_the_command_prints_one_line_and_exits_2(tiny, tmp_path):
 # ---------------------------------------------------------------------------------------------------- contract
 
 
+@pytest.mark.slow
 def test_valid_files_load_identically_and_old_ones_still_read(tiny, tiny_clf, tmp_path):
     """The file round-trips; a version-1 file (before the manifest checksum) is still read, identically."""
     params = tiny_params()
@@ -478,6 +481,7 @@ def test_non_finite_outputs_are_rejected_never_known(tiny_clf):
 # ---------------------------------------------------------------------------------------------------- HHA
 
 
+@pytest.mark.slow
 def test_hha_integer_depth_must_convert_exactly():
     k = np.array([[20.0, 0, 7.5], [0, 20.0, 5.5], [0, 0, 1]])
     mm = np.full((12, 16), 2000, np.int64)
@@ -639,6 +643,7 @@ print(json.dumps({"over_base": over, "seconds": times, **counts}))
 """
 
 
+@pytest.mark.slow
 def test_random_manifests_and_byte_edits_load_identically_or_refuse(tiny, tmp_path):
     """Hypothesis, in a child: random manifests (with a matching checksum) and random byte edits or cuts of a
     valid file either load a classifier identical to the original (same meta, same parameters) or raise an

@@ -389,6 +389,7 @@ def test_whole_config_is_validated_before_any_stage(tmp_path):
         validate(get_config(preset), 2)
 
 
+@pytest.mark.slow
 def test_bad_overrides_are_explained():
     cfg = get_config("smoke")
     with pytest.raises(ValueError, match=r"unknown config key 'train\.epoch'.*train\.epochs"):

@@ -64,6 +64,7 @@ def test_preprocess_uses_cv2_bicubic_and_float_input():
         preprocess(img.astype(np.int32))
 
 
+@pytest.mark.slow
 def test_predict_matches_original_model_end_to_end():
     """At 256×256 the resizes are identities, so predict on the de-normalised fixture input must reproduce the
     original PyTorch output."""
@@ -90,6 +91,7 @@ def small():
     return model, jax.tree_util.tree_map_with_path(fill, shapes)
 
 
+@pytest.mark.slow
 def test_predict_batch_equals_loop_output_size_and_no_retrace(small):
     model, variables = small
     rng = np.random.default_rng(1)
@@ -112,6 +114,7 @@ def test_predict_bad_input(small):
         predict(variables, np.zeros((2, 32, 32), np.uint8), model=model)
 
 
+@pytest.mark.slow
 def test_apply_matches_the_host_path_and_jit_equals_eager(small):
     """``depth.apply`` (the MiDaS transform in JAX) against ``depth.predict`` (OpenCV resize on the host): the
     same numbers to float rounding, resized (45×70 → 64×…) and at the network size; jitted == eager."""
@@ -136,6 +139,7 @@ def test_apply_bad_input(small):
         depth.apply(variables, np.zeros((1, 32, 32, 3), np.int32), model=model)
 
 
+@pytest.mark.slow
 def test_apply_on_the_shipped_metric_network_gives_log_depth():
     """The resolver's example: ``depth.apply`` on the shipped network (a log-metric one) returns log depth, and
     ``depth_from_log`` of it is the metres ``TrainedDepth.predict_metric`` gives (host OpenCV resize there)."""

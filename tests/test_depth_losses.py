@@ -28,6 +28,7 @@ LOSSES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(LOSSES))
 def test_invariant_to_scale_and_shift_of_prediction(batch, name):
     pred, target, mask = batch
@@ -56,6 +57,7 @@ def test_masked_pixels_are_ignored(batch, name):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(LOSSES))
 def test_jit_equals_eager(batch, name):
     pred, target, mask = batch
@@ -94,6 +96,7 @@ def test_trimmed_mae_matches_a_numpy_oracle(batch):
     assert float(L.ssi_trimmed_mae(pred, target, mask)) < float(L.ssi_trimmed_mae(pred, target, mask, trim=0.0))
 
 
+@pytest.mark.slow
 def test_empty_mask_gives_zero_and_finite_gradients(batch):
     pred, target, _ = batch
     empty = jnp.zeros_like(pred)
@@ -194,6 +197,7 @@ def _plane_depth(normal, distance, kmat, hw):
     return distance / (normal[0] * xbar + normal[1] * ybar + normal[2])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("normal", [(0.0, 0.0, 1.0), (0.2, -0.3, 0.9), (0.5, 0.1, 0.8), (0.0, -0.6, 0.8)])
 def test_window_normals_of_a_plane_are_its_normal(normal):
     """Analytic: every window of a plane's depth map fits that plane, whatever the depth's scale."""
@@ -210,6 +214,7 @@ def test_window_normals_of_a_plane_are_its_normal(normal):
     np.testing.assert_allclose(scaled, got, atol=2e-5)
 
 
+@pytest.mark.slow
 def test_window_normals_agree_with_the_hha_encoders_normals():
     """Independent check: on a rendered SimCampus frame (everything within range, so every window is full) the
     normals are the HHA encoder's 7×7 normals, up to its orientation convention."""
@@ -225,6 +230,7 @@ def test_window_normals_agree_with_the_hha_encoders_normals():
     assert np.quantile(cos, 0.01) > 0.999, np.quantile(cos, [0.0, 0.01, 0.5])
 
 
+@pytest.mark.slow
 def test_normal_loss_prices_orientation_not_scale_and_only_on_full_surface_windows():
     """1 − cos of the window normals: 0 for the target at any scale, > 0 for a wall drawn as a slope; windows
     touching a non-surface pixel do not count, and uniform weights change nothing."""

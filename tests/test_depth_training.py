@@ -52,6 +52,7 @@ def test_resumed_training_equals_uninterrupted(uninterrupted, tmp_path):
     assert np.mean(moved) > 0.9
 
 
+@pytest.mark.slow
 def test_depth_network_trains_on_the_engine_and_its_loss_falls(tmp_path):
     """The one engine with the depth objective (object pixels weighted, as in the default network): BatchNorm
     statistics move, the loss falls on a fixed batch."""
@@ -229,6 +230,7 @@ def test_camera_height_range_reaches_the_rendered_poses_and_the_fingerprint():
             dataclasses.replace(CFG, camera_height_m=bad)
 
 
+@pytest.mark.slow
 def test_camera_tilt_follows_the_terrain_like_the_robot_and_reaches_the_frames_and_the_fingerprint():
     """``camera_tilt="terrain"`` poses each training camera on the ground's slope as SimCampus's sessions pose the
     robot's (pitch and roll from the slope along and across the heading, 0.5° wobble); ``"random"`` keeps the
@@ -285,6 +287,7 @@ def _check_look_share(name: str):
             dataclasses.replace(CFG, **{name: bad})
 
 
+@pytest.mark.slow
 def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerprint():
     """``muted_look`` keeps ``random_look``'s geometry-free fields but desaturates its colours and draws them to
     one palette (over many keys: much lower saturation and spread between surfaces); ``muted_share`` picks it per
@@ -314,6 +317,7 @@ def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerpri
     _check_look_share("muted_share")
 
 
+@pytest.mark.slow
 def test_structured_looks_share_a_colour_per_kind_of_surface_and_reach_the_frames_and_the_fingerprint():
     """``structured_look`` keeps ``random_look``'s sun direction, haze distance, noise and window grids and the
     colours of the kinds it leaves wild (signs, props); roofs, crowns and conifers each share one colour up to the
@@ -389,6 +393,7 @@ def _option_keeps_old_fingerprint_and_refuses(name: str, on: float, bad_values: 
             dataclasses.replace(CFG, **{name: bad})
 
 
+@pytest.mark.slow
 def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_and_the_fingerprint():
     """``permute_channels`` gives each image one of the six channel orders (every pixel alike), uniformly, for a
     ``share`` of the images; the objective trains on exactly those images (its loss equals the plain objective's
@@ -425,6 +430,7 @@ def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_
     _option_keeps_old_fingerprint_and_refuses("colour_augment", 1.0, (-0.1, 1.5, "all", True))
 
 
+@pytest.mark.slow
 def test_look_consistency_pairs_each_view_in_two_looks_and_adds_their_gap_to_the_loss():
     """``paired_looks`` renders frames 2k and 2k+1 as one view (same depth, sky, objects) in two looks; the
     config's ``look_consistency`` turns it on and reads the pairs as one element (``image`` / ``image_b``); the
@@ -577,6 +583,7 @@ def test_shifts_are_checked_with_a_clear_error():
         depth.average_views(lambda v: v[..., 0], x, shifts=(6,))
 
 
+@pytest.mark.slow
 def test_normal_weight_adds_the_window_normal_term_and_reaches_the_fingerprint():
     """``normal_weight`` adds weight × ``normal_loss`` (reported as the ``normals`` metric) to the metric objective
     and nothing else; 0 keeps the old fingerprint; negative, non-finite or inverse-depth uses are refused by

@@ -517,6 +517,7 @@ def test_own_data_doc_example_runs(tmp_path):
         assert done.returncode == 0, f"docs/own-data.md block failed:\n{code}\n--- stderr ---\n{done.stderr[-4000:]}"
 
 
+@pytest.mark.slow
 def test_own_data_doc_commands_exist():
     """Every ``python -m MODULE`` of docs/own-data.md's bash blocks is a module, and its options parse."""
     import importlib.util

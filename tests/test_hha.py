@@ -332,6 +332,7 @@ _jit_encode_full = jax.jit(hha.encode_full)
 _vmap_encode = jax.vmap(hha.encode)
 
 
+@pytest.mark.slow
 def test_callers_jit_and_vmap_equal_eager_with_missing_pixels():
     depth, holed, k = _scene_with_holes()
     eager = np.asarray(hha.encode(holed, k))

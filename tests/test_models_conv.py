@@ -20,6 +20,7 @@ from placejax.models._conv import DepthwiseConv, FewChannelConv
         ((8, 8), 4, 2, 1, 1, True),
     ],
 )
+@pytest.mark.slow
 def test_few_channel_conv_equals_nn_conv(hw, cin, features, k, stride, bias):
     x = jax.random.normal(jax.random.key(0), (2, *hw, cin))
     ref_model = nn.Conv(features, (k, k), strides=(stride, stride), padding="SAME", use_bias=bias)
@@ -45,6 +46,7 @@ def test_few_channel_conv_equals_nn_conv(hw, cin, features, k, stride, bias):
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-4 * float(jnp.abs(a).max()))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("k", "stride", "hw"), [(3, 1, (8, 8)), (5, 2, (9, 12)), (3, 2, (16, 15))])
 def test_depthwise_conv_equals_grouped_nn_conv(k, stride, hw):
     c = 6

@@ -56,6 +56,7 @@ def _rel(out, ref, scale=None) -> float:
     return float(np.abs(np.asarray(out) - ref).max() / scale)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["tiny_relative", "tiny_metric"])
 def test_parity_two_sizes_layer_by_layer(refs, case):
     variables, ref = _load(refs, case)
@@ -162,6 +163,7 @@ def test_batch_equals_loop_and_jit_equals_eager():
         np.testing.assert_allclose(single[0], batched[i], rtol=0, atol=1e-5 * float(np.ptp(batched)))
 
 
+@pytest.mark.slow
 def test_dav2_apply_is_the_official_pipeline(refs):
     """uint8 RGB → normalise → bicubic to the 14-multiple size → network → bilinear (aligned corners) back."""
     model = MODELS["tiny_metric"]
@@ -218,6 +220,7 @@ def test_configs_and_unknown_encoder():
         DepthAnythingV2.from_encoder("vitg")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("source", ["depth_anything_v2", "depth_anything_v2_metric"])
 def test_experiment_depth_source(refs, source):
     """depth.source=depth_anything_v2[_metric]: the metric model's metres go to HHA as they are, the relative
@@ -267,6 +270,7 @@ def _tiny_vgg_mlp_params(num_classes: int, size: int, seed: int) -> dict:
     }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("source", ["depth_anything_v2", "depth_anything_v2_metric"])
 def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
     """PlaceClassifier.from_run on a run made with depth.source=depth_anything_v2[_metric]: its depth and HHA are

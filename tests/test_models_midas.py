@@ -86,6 +86,7 @@ def test_parity_non_square(fixture_io, fixture_variables):
     assert _rel_err(out, ref) <= 1e-4
 
 
+@pytest.mark.slow
 def test_folded_batch_norm_parity(fixture_io, fixture_variables):
     """The inference fast path (BatchNorms folded into the encoder convs) against the original model's output."""
     folded = fold_batch_norm(fixture_variables)
@@ -107,6 +108,7 @@ def test_folded_batch_norm_parity(fixture_io, fixture_variables):
     assert "batch_stats" in fixture_variables and "bn1" in fixture_variables["params"]["encoder"]["blocks_1_0"]
 
 
+@pytest.mark.slow
 def test_fold_batch_norm_matches_unfolded_and_is_inference_only():
     model = MidasSmall(features=8, encoder_width=0.25)
     x = jax.random.normal(jax.random.key(2), (2, 64, 64, 3))
@@ -154,6 +156,7 @@ def test_converter_fails_loudly(fixture_state_dict):
     assert "scratch.output_conv.0.bias" in msg and "(32,)" in msg
 
 
+@pytest.mark.slow
 def test_train_mode_updates_batch_stats():
     # (batch == loop for the network is checked through placejax.depth.predict in test_depth_inference.py.)
     model = MidasSmall(features=8, encoder_width=0.25)

@@ -35,6 +35,7 @@ def vgg16_reference(tmp_path_factory):
     return out / "vgg16.pth", dict(np.load(out / "vgg16_reference.npz"))
 
 
+@pytest.mark.slow
 def test_parity_with_torch_vgg16_file(vgg16_reference):
     path, ref = vgg16_reference
     state_dict = read_torch_checkpoint(path)
@@ -161,6 +162,7 @@ def tiny_vgg():
     return model, jax.tree.map(fill, shapes)
 
 
+@pytest.mark.slow
 def test_any_input_size_and_split_equals_full(tiny_vgg):
     model, variables = tiny_vgg
     for size in ((32, 32), (64, 48)):

@@ -99,6 +99,7 @@ def test_batch_equals_loop(sessions):
     np.testing.assert_array_equal(s.images([42, 7]), batch["rgb"][[4, 0]])
 
 
+@pytest.mark.slow
 def test_jit_equals_eager():
     """The hit stage (culling, intersections, terrain march) jitted equals the same maths run op by op."""
     geo, _ = _seasons.build_scene(simcampus.make_world(0), "SU")
@@ -304,6 +305,7 @@ def test_trajectory_follows_spec(sessions):
         assert np.abs(p[:, 4]).mean() > np.deg2rad(0.3)  # the terrain tilts the camera a little
 
 
+@pytest.mark.slow
 def test_depth_training_frames():
     # The evaluation size and batch, so that the hit stage's executable is shared with the other tests.
     a = simcampus.depth_training_frames(0, BATCH, HW, batch_size=BATCH, progress=False)
