@@ -378,6 +378,7 @@ def test_crafted_classifier_files_are_refused_by_name(outcomes, case):
     assert cli[case]["over_base"] < GIB
 
 
+@pytest.mark.slow
 def test_crafted_files_cover_the_issue(outcomes):
     files, imgs, *_ = outcomes
     assert set(files) == set(CASES) and len(imgs) == 7
@@ -388,6 +389,7 @@ def test_crafted_files_cover_the_issue(outcomes):
     "name",
     ["png_20000.png", "jpeg_20000.jpg", "png_65535.png", "png_empty.png", "png_damaged.png", "notes.txt", "exr.exr"],
 )
+@pytest.mark.slow
 def test_crafted_images_are_refused_before_decoding(outcomes, name):
     _, imgs, _, _, cli = outcomes
     path, expect = imgs[name]

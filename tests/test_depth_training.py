@@ -609,6 +609,7 @@ def test_normal_weight_adds_the_window_normal_term_and_reaches_the_fingerprint()
 # ------------------------------------------------------------------------------------------- the shipped network
 
 
+@pytest.mark.slow
 def test_shipped_default_network_is_the_presets_and_reaches_its_recorded_quick_check(tmp_path):
     """The file in ``placejax/depth/weights`` was trained with the default preset's current config, loads into
     its architecture, reproduces the AbsRel / δ1 recorded at export on the evaluation campus, beats both trivial

@@ -507,6 +507,7 @@ OWN_DATA = REPO / "docs" / "own-data.md"
 _FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.MULTILINE | re.DOTALL)
 
 
+@pytest.mark.slow
 def test_own_data_doc_example_runs(tmp_path):
     blocks = [body for kind, body in _FENCE.findall(OWN_DATA.read_text()) if kind == "python"]
     assert blocks

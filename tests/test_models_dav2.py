@@ -82,6 +82,7 @@ def test_parity_two_sizes_layer_by_layer(refs, case):
             assert 0.0 <= float(out.min()) and float(out.max()) <= model.max_depth
 
 
+@pytest.mark.slow
 def test_parity_released_small_architecture(refs):
     """ViT-S/14 with the 37² position grid and the Small head, metric (80 m), at a 3×4 patch grid."""
     sd = read_torch_checkpoint(refs / "small_metric.pth")
@@ -97,6 +98,7 @@ def test_parity_released_small_architecture(refs):
     assert n + dropped == sum(v.size for v in sd.values()) == 24_785_089
 
 
+@pytest.mark.slow
 def test_registry_loads_official_format_and_refuses_truncated(refs, tmp_path, monkeypatch):
     monkeypatch.setenv("PLACEJAX_CACHE", str(tmp_path / "cache"))
     for name, repo, head, max_depth in (
@@ -122,6 +124,7 @@ def test_registry_loads_official_format_and_refuses_truncated(refs, tmp_path, mo
         load("depth_anything_v2_vits", cut)
 
 
+@pytest.mark.slow
 def test_converter_fails_loudly(refs):
     sd = read_torch_checkpoint(refs / "tiny_relative.pth")
     sd = dict(sd)

@@ -10,6 +10,7 @@ from benchmarks.nclt_rehearsal import images_per_frame, project
 from placejax.data import nclt
 
 
+@pytest.mark.slow
 def test_real_size_tree_reads_back(tmp_path):
     """Two 1616 × 1232 sideways TIFFs, the real-size U2D map and 100 Hz ground truth: the reader returns the
     upright 1232-wide × 1616-tall frames (undistorted by the identity map) and their poses."""

@@ -89,6 +89,7 @@ def test_ensure_trained_reuses_the_cached_run(smoke_run, monkeypatch):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", [pretrain.SHIPPED, pretrain.SHIPPED_HHA, pretrain.SHIPPED_HHA_PREDICTED])
 def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall(name):
     params, meta = pretrain.load_shipped(name)

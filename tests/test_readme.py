@@ -178,6 +178,7 @@ def test_help_shows_every_presets_values():
             assert f"{name}={node!r}" in block, (key, name, block)
 
 
+@pytest.mark.slow
 def test_the_test_command_keeps_a_group_on_one_worker(tmp_path):
     """The README's ``--dist loadgroup`` sends every test of an ``xdist_group`` to one worker, so a module fixture
     (a smoke run of minutes) is built once. pytest 9.2 with pytest-xdist 3.8 broke this silently (xdist renames
