@@ -77,7 +77,7 @@ def test_reused_not_rebuilt_and_keyed_by_settings(tmp_path):
     reads = s.reads
     c2 = cache_session(s, tmp_path, image_size=(6, 4), progress=False)
     assert c2.path == c1.path
-    assert s.reads == reads + 3  # only the identity probe (first, middle, last image), no rebuild
+    assert s.reads == reads  # no rebuild: an ArraySession's identity hashes its frames in memory, not via image()
     c3 = cache_session(s, tmp_path, image_size=(5, 5), progress=False)
     assert c3.path != c1.path and c3.image_shape == (5, 5)
     # Same name and settings but other content (a regenerated session): a new cache, the old one not read.
