@@ -158,6 +158,21 @@ class GroundTruth(NamedTuple):
     n_conflicting_rows: int
 
 
+def _read_pose_csv(path: Path, what: str) -> np.ndarray:
+    """The float64 ``(rows, 7)`` table of an NCLT pose CSV (utime, x, y, z, roll, pitch, yaw), rows as written."""
+    if not path.is_file():
+        raise NcltFormatError(f"{path}: {what} CSV not found")
+    if path.stat().st_size == 0:
+        raise NcltFormatError(f"{path}: {what} CSV is empty")
+    try:
+        table = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2)
+    except ValueError as e:
+        raise NcltFormatError(f"{path}: malformed {what} CSV ({e})") from None
+    if table.shape[1] != 7:
+        raise NcltFormatError(f"{path}: expected 7 columns (utime, x, y, z, roll, pitch, yaw), got {table.shape[1]}")
+    return table
+
+
 def read_ground_truth(path: str | os.PathLike) -> GroundTruth:
     """Reads ``groundtruth_<date>.csv``: headerless ``utime, x, y, z, roll, pitch, yaw`` (µs, m, rad, NED).
 
@@ -170,16 +185,7 @@ def read_ground_truth(path: str | os.PathLike) -> GroundTruth:
             utimes that are not non-negative integers below 2**53).
     """
     path = Path(path)
-    if not path.is_file():
-        raise NcltFormatError(f"{path}: ground-truth CSV not found")
-    if path.stat().st_size == 0:
-        raise NcltFormatError(f"{path}: ground-truth CSV is empty")
-    try:
-        table = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2)
-    except ValueError as e:
-        raise NcltFormatError(f"{path}: malformed ground-truth CSV ({e})") from None
-    if table.shape[1] != 7:
-        raise NcltFormatError(f"{path}: expected 7 columns (utime, x, y, z, roll, pitch, yaw), got {table.shape[1]}")
+    table = _read_pose_csv(path, "ground-truth")
     n_rows = len(table)
     finite = np.isfinite(table).all(axis=1)
     table = table[finite]
@@ -236,16 +242,7 @@ def read_odometry(path: str | os.PathLike) -> Odometry:
             non-negative integers below 2**53, no row without NaN).
     """
     path = Path(path)
-    if not path.is_file():
-        raise NcltFormatError(f"{path}: odometry CSV not found")
-    if path.stat().st_size == 0:
-        raise NcltFormatError(f"{path}: odometry CSV is empty")
-    try:
-        table = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2)
-    except ValueError as e:
-        raise NcltFormatError(f"{path}: malformed odometry CSV ({e})") from None
-    if table.shape[1] != 7:
-        raise NcltFormatError(f"{path}: expected 7 columns (utime, x, y, z, roll, pitch, yaw), got {table.shape[1]}")
+    table = _read_pose_csv(path, "odometry")
     table = table[np.isfinite(table).all(axis=1)]
     if len(table) == 0:
         raise NcltFormatError(f"{path}: no odometry row without NaN")
