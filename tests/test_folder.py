@@ -178,6 +178,29 @@ def test_session_reads_back_what_was_written(tmp_path):
     np.testing.assert_array_equal(first.depths(range(4)), s.depths(range(4)))
 
 
+def test_batches_from_a_folder_equal_those_of_the_same_frames_in_memory(tmp_path):
+    """The pipelines do not care where frames came from: a folder session's cache gives the same training and
+    evaluation batches (order, images, labels, indices) as an in-memory session of the same frames."""
+    from placejax.data import ArraySession, eval_dataset, train_dataset
+
+    d, images, _, _, utimes = _session(tmp_path / "a", n=11)
+    fs = folder.load_session(d)
+    mem = ArraySession(images, fs.poses, fs.intrinsics, name="a", utimes=utimes)
+    c_f = cache_session(fs, tmp_path / "cf", progress=False)
+    c_m = cache_session(mem, tmp_path / "cm", progress=False)
+    labels = (np.arange(11) * 3 % 4).astype(np.int32)
+    for make in (
+        lambda c: train_dataset(c, labels, batch_size=3, seed=5, num_epochs=2, drop_remainder=False),
+        lambda c: eval_dataset(c, labels, batch_size=4),
+    ):
+        a, b = list(make(c_f)), list(make(c_m))
+        assert len(a) == len(b) > 0
+        for x, y in zip(a, b, strict=True):
+            assert x.keys() == y.keys()
+            for key in x:
+                np.testing.assert_array_equal(x[key], y[key])
+
+
 def test_kitti_copy_reads_back_the_same_poses(tmp_path):
     d, *_ = _session(tmp_path / "tum")
     kitti = tmp_path / "kitti"
