@@ -14,6 +14,7 @@ import cv2
 import jax
 import numpy as np
 import pytest
+from predictions import assert_same_predictions
 
 from experiments.cross_season import apply_overrides, get_config, run
 from experiments.cross_season.context import Context
@@ -217,12 +218,7 @@ def test_save_load_predict_is_identical(clf, experiment_outputs, tmp_path):
     again = PlaceClassifier.load(path)
     images = experiment_outputs[TEST]["images"][:9]
     a, b = clf.predict(images), again.predict(images)
-    for f in dataclasses.fields(a):
-        va, vb = getattr(a, f.name), getattr(b, f.name)
-        if isinstance(va, np.ndarray):
-            np.testing.assert_array_equal(va, vb)
-        else:
-            assert va == vb or (va != va and vb != vb), f.name
+    assert_same_predictions(a, b)
     with zipfile.ZipFile(path) as z:
         manifest = json.loads(z.read("manifest.json"))
     assert manifest["format"] == "placejax.PlaceClassifier" and manifest["train_session"] == TRAIN

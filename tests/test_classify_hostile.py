@@ -305,7 +305,7 @@ def run_child(script: str, *args: str, cpu_s: int = 120, timeout: float = 600) -
     run = subprocess.run(
         [sys.executable, "-c", cap + script, *args], capture_output=True, text=True, timeout=timeout, env=env
     )
-    assert run.returncode == 0, (run.returncode, run.stderr[-4000:])  # -24: SIGXCPU, the cap was reached
+    assert run.returncode == 0, (run.returncode, run.stderr[-4000:])  # -24 (SIGXCPU) or -9: the CPU cap was reached
     return run.stdout
 
 

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from predictions import assert_same_predictions
 
 from placejax.models import DAV2_CONFIGS, DepthAnythingV2, dav2_apply, dav2_input_size, resize
 from placejax.models._dav2 import interpolate_pos_embed
@@ -282,7 +283,6 @@ def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
 
     The run is described by its index entries (as ``write_classifier_index`` writes them) with tiny random VGG16s
     and MLP in place of its checkpoints, so no smoke run is needed."""
-    import dataclasses
     import zipfile
     from types import SimpleNamespace
 
@@ -350,12 +350,7 @@ def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
     again = PlaceClassifier.load(path)
     assert again.spec == clf.spec
     a, b = clf.predict(rgb), again.predict(rgb)
-    for f in dataclasses.fields(a):
-        va, vb = getattr(a, f.name), getattr(b, f.name)
-        if isinstance(va, np.ndarray):
-            np.testing.assert_array_equal(va, vb)
-        else:
-            assert va == vb or (va != va and vb != vb), f.name
+    assert_same_predictions(a, b)
 
     with zipfile.ZipFile(path) as z:
         manifest = json.loads(z.read("manifest.json"))
