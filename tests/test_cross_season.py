@@ -160,7 +160,9 @@ def test_frozen_trunk_features_are_cached_once_and_reused(smoke, monkeypatch):
 
     monkeypatch.setattr(nets, "map_batches", no_trunk)
     for modality in ("rgb", "hha"):
-        trunk = nets.pretrained_vgg(ctx, modality_weights(cfg.vgg, modality))["trunk"]
+        trunk = nets.pretrained_vgg(
+            ctx, modality_weights(modality, weights=cfg.vgg.weights, hha_weights=cfg.vgg.hha_weights)
+        )["trunk"]
         cached = nets.conv_features(ctx, sessions, modality, trunk)
         assert {s.name for s in sessions} == set(cached)
         assert np.asarray(cached["WI"].data).shape == (len(sessions[0]), 7, 7, 64)

@@ -274,8 +274,9 @@ def test_perturbed_depth_has_only_near_surfaces_and_sky():
 
 
 def test_modality_weights_picks_the_hha_trunk_for_the_hha_net_only():
-    vgg = {"weights": "shipped:rgb", "hha_weights": "shipped:hha"}
-    assert pretrain.modality_weights(vgg, "rgb") == pretrain.modality_weights(vgg, "depth1") == "shipped:rgb"
-    assert pretrain.modality_weights(vgg, "hha") == "shipped:hha"
-    for older in ({"weights": "shipped:rgb", "hha_weights": ""}, {"weights": "shipped:rgb"}):
-        assert pretrain.modality_weights(older, "hha") == "shipped:rgb"
+    both = {"weights": "shipped:rgb", "hha_weights": "shipped:hha"}
+    assert pretrain.modality_weights("rgb", **both) == pretrain.modality_weights("depth1", **both) == "shipped:rgb"
+    assert pretrain.modality_weights("hha", **both) == "shipped:hha"
+    # no HHA trunk of its own ("" or left out, as older runs' configs do): the HHA net reads the RGB trunk's weights
+    assert pretrain.modality_weights("hha", weights="shipped:rgb", hha_weights="") == "shipped:rgb"
+    assert pretrain.modality_weights("hha", weights="shipped:rgb") == "shipped:rgb"

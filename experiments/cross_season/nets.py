@@ -86,7 +86,9 @@ def _vgg_key(ctx: Context, modality: str) -> dict:
     c = ctx.config.vgg
     out = {k: v for k, v in c.to_dict().items() if k not in ("weights", "hha_weights")}
     if c.pretrained:
-        out["weights"] = weights_identity(modality_weights(c, modality), "vgg16_imagenet")
+        out["weights"] = weights_identity(
+            modality_weights(modality, weights=c.weights, hha_weights=c.hha_weights), "vgg16_imagenet"
+        )
     return out
 
 
@@ -144,7 +146,10 @@ def conv_features(ctx: Context, sessions: list[SessionData], modality: str, trun
                 "images": s.cached.key if modality == "rgb" else s.hha.key,
                 "vgg": {
                     "width": c.vgg.width,
-                    "weights": weights_identity(modality_weights(c.vgg, modality), "vgg16_imagenet"),
+                    "weights": weights_identity(
+                        modality_weights(modality, weights=c.vgg.weights, hha_weights=c.vgg.hha_weights),
+                        "vgg16_imagenet",
+                    ),
                 },
             },
             chunk=c.eval.batch_size,
@@ -227,7 +232,7 @@ def train_nets(
         mi = MODALITIES.index(modality)
         pretrained = None
         if cfg.vgg.pretrained:
-            weights = modality_weights(cfg.vgg, modality)
+            weights = modality_weights(modality, weights=cfg.vgg.weights, hha_weights=cfg.vgg.hha_weights)
             if weights not in trunks:
                 trunks[weights] = pretrained_vgg(ctx, weights)
             pretrained = trunks[weights]

@@ -629,5 +629,7 @@ def _plain(tree: Any) -> Any:
 def _pretrained_trunk(vgg_cfg: dict, modality: str) -> dict:
     from placejax.pretrain import modality_weights, pretrained_vgg16
 
-    params = pretrained_vgg16(modality_weights(vgg_cfg, modality), vgg_cfg["width"])
+    # older runs' configs have no hha_weights: their HHA net read vgg.weights
+    weights = modality_weights(modality, weights=vgg_cfg["weights"], hha_weights=vgg_cfg.get("hha_weights", ""))
+    params = pretrained_vgg16(weights, vgg_cfg["width"])
     return jax.tree_util.tree_map(np.asarray, _plain(params["trunk"]))

@@ -139,15 +139,27 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
     return variables["params"]
 
 
-def modality_weights(vgg: Any, modality: str) -> str:
-    """The pretrained weights (``pretrained_vgg16``'s ``weights``) of the trunk that reads ``modality``'s images:
-    ``vgg["hha_weights"]`` for the HHA net when it is set, else ``vgg["weights"]`` (RGB and the 1-channel depth
-    ablation). ``vgg`` is the experiment's ``vgg`` config section (a mapping; older runs' configs have no
-    ``hha_weights`` and read ``weights`` for every modality)."""
-    hha_weights = vgg.get("hha_weights", "")
+def modality_weights(modality: str, *, weights: str, hha_weights: str = "") -> str:
+    """The pretrained weights (``pretrained_vgg16``'s ``weights``) of the trunk that reads ``modality``'s images.
+
+    Args:
+        modality: the net's input, ``"rgb"``, ``"hha"`` or ``"depth1"`` (the 1-channel depth ablation).
+        weights: the weights of the RGB trunk (a ``pretrained_vgg16`` spec: ``registry:NAME``, ``shipped:NAME`` or
+            a path); the 1-channel depth net reads them too.
+        hha_weights: the HHA net's own trunk, same form; ``""`` (the default, and what older runs recorded by
+            leaving it out) means the HHA net reads ``weights`` as well.
+
+    Returns:
+        ``hha_weights`` for the HHA net when it is set, else ``weights``.
+
+    >>> modality_weights("hha", weights="shipped:rgb", hha_weights="shipped:hha")
+    'shipped:hha'
+    >>> modality_weights("depth1", weights="shipped:rgb", hha_weights="shipped:hha")
+    'shipped:rgb'
+    """
     if modality == "hha" and hha_weights:
         return hha_weights
-    return vgg["weights"]
+    return weights
 
 
 def heldout_report(trunk_params, cfg: PretrainConfig, *, n_worlds: int = 2) -> dict:
