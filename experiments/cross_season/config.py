@@ -76,6 +76,11 @@ HELP: dict[str, str] = {
     "train.warmup_steps": "linear warmup steps",
     "train.weight_decay": "L2 / decoupled weight decay",
     "train.save_every": "steps between orbax checkpoints (changes no result)",
+    "train.jitter_copies": "with vgg.pretrained: jittered copies per training frame whose cached features the head "
+    "also trains on (0 = off; docs/lookup-gap.md)",
+    "train.jitter_shift": "jittered copies: largest shift, fraction of the image (placejax.data.ViewJitter)",
+    "train.jitter_zoom": "jittered copies: zoom drawn from U(1, 1 + zoom)",
+    "train.jitter_colour": "jittered copies, RGB only: brightness, contrast and saturation magnitude",
     "train.shuffle_labels": "control: train every net and MLP on its session's labels permuted across frames",
     "mlp.hidden": "hidden units of the fusion MLP (1024 in the paper)",
     "mlp.dropout": "dropout on the MLP hidden layer",
@@ -167,6 +172,12 @@ def _base() -> ml_collections.ConfigDict:
         # made the default run write ~10 GB and spend ~100 of its ~345 s nets stage on checkpoints.
         save_every=1000,
         shuffle_labels=False,
+        # Jittered copies of the training frames for heads on cached frozen-trunk features (docs/lookup-gap.md);
+        # the magnitudes are common fine-tuning values set before any run, not tuned.
+        jitter_copies=0,
+        jitter_shift=0.08,
+        jitter_zoom=0.15,
+        jitter_colour=0.2,
     )
     c.mlp = dict(
         hidden=1024,
@@ -286,7 +297,7 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
         v = get(c, key)
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             errors.append(f"{key}={v!r}: expected a positive int")
-    for key in ("train.warmup_steps", "mlp.warmup_steps", "data.max_frames", "devices"):
+    for key in ("train.warmup_steps", "mlp.warmup_steps", "data.max_frames", "devices", "train.jitter_copies"):
         v = get(c, key)
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             errors.append(f"{key}={v!r}: expected an int >= 0")
@@ -359,6 +370,15 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
             errors.append(f"depth.trained_preset={c.depth.trained_preset!r}: expected one of {sorted(DEPTH_PRESETS)}")
     if c.vgg.pretrained and not c.vgg.weights and c.vgg.width != 1.0:
         errors.append("vgg.pretrained with the registry's ImageNet weights needs vgg.width=1.0 (or vgg.weights=PATH)")
+    if get(c, "train.jitter_copies") and not c.vgg.pretrained:
+        errors.append("train.jitter_copies needs vgg.pretrained=True (the copies' frozen-trunk features are cached)")
+    from placejax.data import ViewJitter
+
+    try:
+        ViewJitter(shift=c.train.jitter_shift, zoom=c.train.jitter_zoom, brightness=c.train.jitter_colour)
+        ViewJitter(contrast=c.train.jitter_colour, saturation=c.train.jitter_colour)
+    except ValueError as e:
+        errors.append(f"train.jitter_*: {e}")
     if c.vgg.hha_weights and not c.vgg.pretrained:
         errors.append("vgg.hha_weights needs vgg.pretrained=True (it is the HHA net's frozen trunk)")
     if n_devices:

@@ -21,8 +21,13 @@ def weights_identity(path: str, registry_name: str) -> dict:
 
 
 def results_only(section: ml_collections.ConfigDict) -> dict:
-    """A config section without the keys that change no result (checkpoint intervals), for cache keys."""
-    return {k: v for k, v in section.to_dict().items() if k != "save_every"}
+    """A config section without the keys that change no result, for cache keys: checkpoint intervals, and the
+    ``jitter_*`` magnitudes when ``jitter_copies`` is 0 (so runs without copies keep the keys they had before the
+    copies existed)."""
+    out = {k: v for k, v in section.to_dict().items() if k != "save_every"}
+    if not out.get("jitter_copies", 1):
+        out = {k: v for k, v in out.items() if not k.startswith("jitter_")}
+    return out
 
 
 def params_digest(params: Any) -> str:

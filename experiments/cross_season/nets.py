@@ -116,8 +116,26 @@ class TrainedNet:
     key: dict
 
 
-def conv_features(ctx: Context, sessions: list[SessionData], modality: str, trunk_params: dict):
-    """Frozen ImageNet conv features of every session for one modality, cached as float16."""
+def modality_jitter(config: ml_collections.ConfigDict, modality: str):
+    """The ``train.jitter_*`` settings as a :class:`placejax.data.ViewJitter` for one modality: shift and zoom for
+    every modality, colour (brightness, contrast, saturation) for RGB only — an HHA pixel's channels are
+    measurements, not colours."""
+    from placejax.data import ViewJitter
+
+    t = config.train
+    colour = t.jitter_colour if modality == "rgb" else 0.0
+    return ViewJitter(shift=t.jitter_shift, zoom=t.jitter_zoom, brightness=colour, contrast=colour, saturation=colour)
+
+
+def conv_features(
+    ctx: Context, sessions: list[SessionData], modality: str, trunk_params: dict, *, jitter: bool = False
+):
+    """Frozen conv features of every session for one modality, cached as float16.
+
+    With ``jitter``, the features of ``train.jitter_copies`` jittered copies of every frame instead
+    (``placejax.data.jittered_copies`` with seed 0, whatever the run's seed: the copies are data, shared by every
+    seed's net), ``(copies · N, ...)``, copy-major.
+    """
     model = _vgg(ctx, 2)
     c = ctx.config
     fn = jax.jit(
@@ -125,36 +143,54 @@ def conv_features(ctx: Context, sessions: list[SessionData], modality: str, trun
         compiler_options=cpu_compiler_options("vgg16"),  # YNNPACK convs on CPU: ~1.8x faster; {} elsewhere
     )
     p = replicate(trunk_params, ctx.local_mesh)
+    copies = c.train.jitter_copies if jitter else 1
+    view_jitter = modality_jitter(c, modality) if jitter else None
     out = {}
     for s in sessions:
         images = modality_images(s, modality)
+        n = len(s)
 
         def run(x, modality=modality):
             return map_batches(lambda b: fn(p, jnp.asarray(network_input(b, modality))), x, c.eval.batch_size)
 
+        def compute(a, b, images=images, run=run, n=n):
+            if view_jitter is None:
+                return run(np.asarray(images[a:b]))
+            from placejax.data import jittered_copies
+
+            # Rows a..b of the copy-major (copies · N) array, copy by copy.
+            parts = []
+            for copy in range(a // n, (b - 1) // n + 1):
+                lo, hi = max(a, copy * n) - copy * n, min(b, (copy + 1) * n) - copy * n
+                views = jittered_copies(np.asarray(images[lo:hi]), view_jitter, 1, seed=0, start=lo, first_copy=copy)[0]
+                parts.append(run(views))
+            return np.concatenate(parts)
+
         shape = jax.eval_shape(fn, trunk_params, jax.ShapeDtypeStruct((1, *images.shape[1:]), jnp.float32)).shape
+        key = {
+            "kind": "vgg_conv_features",
+            "modality": modality,
+            "images": s.cached.key if modality == "rgb" else s.hha.key,
+            "vgg": {
+                "width": c.vgg.width,
+                "weights": weights_identity(
+                    modality_weights(modality, weights=c.vgg.weights, hha_weights=c.vgg.hha_weights), "vgg16_imagenet"
+                ),
+            },
+        }
+        if view_jitter is not None:
+            key["jitter"] = {"copies": copies, "seed": 0, **dataclasses.asdict(view_jitter)}
         out[s.name] = build_array_cache(
             ctx.cache_root,
-            cache_name(s.name, "features", modality),
-            len(s),
-            lambda a, b, images=images, run=run: run(np.asarray(images[a:b])),
+            cache_name(s.name, "features", f"{modality}-jitter" if jitter else modality),
+            copies * n,
+            compute,
             shape[1:],
             np.float16,  # halves a multi-GB cache at full width; features are post-ReLU averages
-            key={
-                "kind": "vgg_conv_features",
-                "modality": modality,
-                "images": s.cached.key if modality == "rgb" else s.hha.key,
-                "vgg": {
-                    "width": c.vgg.width,
-                    "weights": weights_identity(
-                        modality_weights(modality, weights=c.vgg.weights, hha_weights=c.vgg.hha_weights),
-                        "vgg16_imagenet",
-                    ),
-                },
-            },
+            key=key,
             chunk=c.eval.batch_size,
             progress=ctx.progress,
-            desc=f"conv features {s.name} {modality}",
+            desc=f"conv features {s.name} {modality}" + (" jittered" if jitter else ""),
         )
     return out
 
@@ -239,6 +275,11 @@ def train_nets(
         if pretrained is not None:
             with ctx.timed("features"):
                 feats = conv_features(ctx, sessions, modality, pretrained["trunk"])
+                jittered = (
+                    conv_features(ctx, sessions, modality, pretrained["trunk"], jitter=True)
+                    if cfg.train.jitter_copies
+                    else None
+                )
 
             def inputs(s, feats=feats):
                 return feats[s.name].data
@@ -270,13 +311,18 @@ def train_nets(
                             cls[layer] = pretrained["classifier"][layer]
                     params = {"classifier": cls}
                 folder = ctx.workdir / NETS_DIR / f"{name}-{cache_digest(net_key)}"
+                frames, frame_labels = inputs(s), labels
+                if pretrained is not None and jittered is not None:
+                    # The originals and their jittered copies (copy-major), every copy with its frame's label.
+                    frames = np.concatenate([np.asarray(frames), np.asarray(jittered[s.name].data)])
+                    frame_labels = np.tile(labels, cfg.train.jitter_copies + 1)
                 state = train_classifier(
                     ctx,
                     name,
                     fn,
                     params,
-                    inputs(s),
-                    labels,
+                    frames,
+                    frame_labels,
                     prepare,
                     cfg.train,
                     seed=cfg.seed + si,

@@ -12,6 +12,7 @@ Public surface:
     PlaceGrid: the n × n place classes over all sessions' viewpoints.
     cache_session, build_array_cache, ...: atomic, resumable on-disk caches.
     train_dataset, eval_dataset, Augment: grain pipelines, sharded by JAX process.
+    ViewJitter, jittered_copies: fixed jittered copies of frames (for heads on cached frozen-trunk features).
     camera: intrinsics under rotation and resizing.
 """
 
@@ -26,6 +27,7 @@ from placejax.data.cache import (
     open_session_cache,
 )
 from placejax.data.grid import PlaceGrid
+from placejax.data.jitter import ViewJitter, jittered_copies, jittered_view
 from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dataset
 from placejax.data.session import ArraySession, Session, session_identity, truncated
 
@@ -56,12 +58,15 @@ __all__ = [
     "FrameSource",
     "PlaceGrid",
     "Session",
+    "ViewJitter",
     "build_array_cache",
     "cache_session",
     "camera",
     "eval_dataset",
     "export",
     "folder",
+    "jittered_copies",
+    "jittered_view",
     "nclt",
     "open_array_cache",
     "open_session_cache",
