@@ -478,7 +478,7 @@ def test_non_finite_outputs_are_rejected_never_known(tiny_clf):
         [[3.0, 0.0, 0.0, 0.0], [np.nan, 0.0, 0.0, 0.0], [np.inf, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, -np.inf]]
     )
     for branch in ("fusion", "rgb", "hha"):
-        pred = tiny_clf._prediction(logits.astype(np.float32), branch)
+        pred = tiny_clf.prediction_from_outputs({branch: logits.astype(np.float32)}, branch)
         assert pred.rejected.tolist()[1:] == [True, True, True], (branch, pred.rejected)
         # the finite row follows the threshold rule (fusion: score > threshold; single networks: never rejected)
         assert pred.rejected[0] == (branch == "fusion" and pred.unknown_score[0] > tiny_clf.threshold)

@@ -345,6 +345,13 @@ class _FakeClassifier:
         z = batch.reshape(len(batch), -1).astype(np.float64) @ self.w
         return {"fusion": z, "rgb": 2 * z, "hha": -z}
 
+    def prediction_from_outputs(self, outputs, branch):
+        """A stand-in for PlaceClassifier's per-frame verdict: the largest logit as a score, threshold 0."""
+        from types import SimpleNamespace
+
+        score = outputs[branch].max(axis=1)
+        return SimpleNamespace(unknown_score=score, rejected=score > 0.0)
+
 
 def test_tracker_is_classifier_then_calibration_then_filter():
     from placejax.classify._track import Tracker
@@ -361,6 +368,11 @@ def test_tracker_is_classifier_then_calibration_then_filter():
     assert [s.label for s in steps] == cells.argmax(axis=1).tolist()
     np.testing.assert_allclose([s.unknown for s in steps], unknown, atol=1e-6)
     assert [s.frame_label for s in steps] == probs.argmax(axis=1).tolist()
+    # The per-frame unseen-place verdict rides along, from the same outputs.
+    score = fake.logits(images)["rgb"].max(axis=1)
+    np.testing.assert_allclose([s.frame_unknown_score for s in steps], score, rtol=1e-6)
+    assert [s.frame_rejected for s in steps] == (score > 0).tolist()
+    assert np.isnan(tracker.step_probabilities(probs[0], 1.0).frame_unknown_score)
     tracker.reset()
     np.testing.assert_allclose(tracker.step(images[0], 0.0).belief, want[0], atol=1e-6)
     with pytest.raises(ValueError, match=r"one uint8 RGB image \(H, W, 3\)"):

@@ -147,3 +147,62 @@ def test_feature_score_rejects_bad_names_and_shapes():
     with pytest.raises(ValueError, match="share D"):
         unknown.knn_distance(np.zeros((3, 2)), np.zeros((1, 3)), 1)
     assert set(unknown.FEATURE_SCORES) == {f"knn{k}" for k in unknown.KNN_KS} | {"mahalanobis"}
+
+
+# ---------------------------------------------------------------------------------------------------- classifier
+
+
+@pytest.fixture(scope="module")
+def tiny_feature_clfs(tmp_path_factory):
+    """Tiny classifiers (random networks, ``tests/test_classify_hostile``) using each kind of feature score, fitted on
+    the fused embeddings of 24 random images (spread out), saved and loaded back."""
+    from test_classify_hostile import tiny_meta, tiny_params
+
+    from placejax.classify import PlaceClassifier
+
+    rng = np.random.default_rng(7)
+    base = PlaceClassifier(tiny_meta(), tiny_params())
+    train = rng.integers(0, 256, (24, 32, 32, 3), dtype=np.uint8)
+    # Random tiny networks give nearly the same embedding to every image: spread the reference around it.
+    emb = base.logits(train)["embedding"] + 0.05 * rng.normal(size=(24, 128)).astype(np.float32)
+    labels = np.arange(24) % 4
+    out = {}
+    for score in ("knn5", "mahalanobis"):
+        model, thr = unknown.fit_feature_detector(score, emb, labels)
+        meta = tiny_meta()
+        meta["unknown"] = {"score": score, "threshold": thr, "target_frr": 0.05, "all_scores": {}}
+        clf = PlaceClassifier(meta, {**tiny_params(), "unknown": model})
+        path = clf.save(tmp_path_factory.mktemp(score) / "clf.placejax")
+        out[score] = (PlaceClassifier.load(path), model, thr, path)
+    return out
+
+
+@pytest.mark.parametrize("score", ["knn5", "mahalanobis"])
+def test_classifier_rejects_by_the_feature_score_of_its_fused_embedding(tiny_feature_clfs, score):
+    clf, model, thr, _ = tiny_feature_clfs[score]
+    images = np.random.default_rng(8).integers(0, 256, (5, 32, 32, 3), dtype=np.uint8)
+    outputs = clf.logits(images)
+    assert outputs["embedding"].shape == (5, 128)  # [fc7_rgb, fc7_hha], 64 each at width 1/64
+    want = unknown.feature_score(score, model, outputs["embedding"])
+    pred = clf.predict(images)
+    np.testing.assert_allclose(pred.unknown_score, want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(pred.rejected, want > thr)
+    assert pred.unknown_kind == score == clf.unknown_kind and pred.threshold == pytest.approx(thr)
+    assert "held-out" in clf.describe()
+    rec = pred.records()[0]
+    assert rec["unknown_kind"] == score and rec["threshold"] == pytest.approx(thr)
+
+
+def test_classifier_refuses_feature_arrays_that_do_not_fit(tiny_feature_clfs):
+    from test_classify_hostile import tiny_meta, tiny_params
+
+    from placejax.classify import ArtefactError, PlaceClassifier
+
+    meta = tiny_meta()
+    meta["unknown"] = {"score": "knn5", "threshold": 0.5, "target_frr": 0.05, "all_scores": {}}
+    with pytest.raises(ArtefactError, match="columns"):
+        PlaceClassifier(meta, {**tiny_params(), "unknown": {"reference": np.zeros((10, 7), np.float32)}})
+    with pytest.raises(ArtefactError, match="needs arrays"):
+        PlaceClassifier(meta, tiny_params())  # a feature score without its reference
+    with pytest.raises(ArtefactError, match="but the score is 'msp'"):
+        PlaceClassifier(tiny_meta(), {**tiny_params(), "unknown": {"reference": np.zeros((10, 128), np.float32)}})

@@ -108,7 +108,12 @@ def main(argv: list[str] | None = None) -> int:
     records = pred.records()
     if args.json:
         doc = {
-            "model": {"path": args.model, "description": clf.describe(), "train_session": clf.meta["train_session"]},
+            "model": {
+                "path": args.model,
+                "description": clf.describe(),
+                "train_session": clf.meta["train_session"],
+                "unknown": {k: clf.meta["unknown"][k] for k in ("score", "threshold", "target_frr")},
+            },
             "images": [{"image": p, **r} for p, r in zip(args.images, records, strict=True)],
         }
         print(json.dumps(doc, indent=2))

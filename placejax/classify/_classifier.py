@@ -246,13 +246,15 @@ def forward(spec: ClassifierSpec, params: dict, rgb: jax.Array) -> dict[str, jax
         rgb: uint8 ``(N, H, W, 3)`` RGB at ``spec.image_size``.
 
     Returns:
-        ``jax.Array``s: ``"fusion"``, ``"rgb"`` and ``"hha"`` logits, float32 ``(N, C)``, and ``"hha_image"``,
-        the uint8 ``(N, H, W, 3)`` HHA image the HHA-Net saw.
+        ``jax.Array``s: ``"fusion"``, ``"rgb"`` and ``"hha"`` logits, float32 ``(N, C)``, ``"embedding"``, the
+        fused embedding ``[fc7_rgb, fc7_hha]`` float32 ``(N, D)`` the MLP read (the feature-space unseen-place
+        scores' input), and ``"hha_image"``, the uint8 ``(N, H, W, 3)`` HHA image the HHA-Net saw.
     """
     hha = stage_hha(spec, stage_depth(spec, params["depth"], rgb))
     nets = stage_nets(spec, params, rgb, hha)
     fused = stage_mlp(spec, params, nets)
-    return {"fusion": fused, "rgb": nets["rgb_logits"], "hha": nets["hha_logits"], "hha_image": hha}
+    emb = jnp.concatenate([nets["rgb_fc7"], nets["hha_fc7"]], axis=1)
+    return {"fusion": fused, "rgb": nets["rgb_logits"], "hha": nets["hha_logits"], "embedding": emb, "hha_image": hha}
 
 
 @functools.lru_cache(maxsize=8)
@@ -328,6 +330,7 @@ class PlaceClassifier:
         self.grid = PlaceGrid.from_dict(meta["grid"], source="classifier grid")
         self._spec = ClassifierSpec.from_meta(meta)
         self._check_params()
+        self._check_unknown()
 
     # ----------------------------------------------------------------------------------------------- building
 
@@ -344,6 +347,39 @@ class PlaceClassifier:
                     f"{name} parameters do not fit the {name} network of this classifier: missing {missing}, "
                     f"unexpected {extra}, wrong shape/dtype {[(k, have[k], want_flat[k]) for k in wrong]}"
                 )
+
+    def _check_unknown(self) -> None:
+        """The unseen-place score's arrays (feature scores) fit the score and the fused embedding's width."""
+        score = self.meta["unknown"]["score"]
+        arrays = {k: np.asarray(v) for k, v in self.params.get("unknown", {}).items()}
+        width = 2 * _fc7_width(self._spec.vgg)
+        if score not in unknown.FEATURE_SCORES:
+            if arrays:
+                raise _artefact.ArtefactError(f"unknown-place arrays {sorted(arrays)} but the score is {score!r}")
+            return
+        if score == "mahalanobis":
+            want = {"means": 2, "classes": 1, "basis": 2, "variances": 1, "floor": 0, "shrinkage": 0}
+        else:
+            want = {"reference": 2}
+        if set(arrays) != set(want) or any(arrays[k].ndim != n for k, n in want.items()):
+            have = {k: list(v.shape) for k, v in arrays.items()}
+            raise _artefact.ArtefactError(f"the {score} score needs arrays {want} (name: rank), got {have}")
+        for k, a in arrays.items():
+            if a.ndim == 2 and a.shape[1] != width:
+                raise _artefact.ArtefactError(f"unknown/{k} has {a.shape[1]} columns, the fused embedding {width}")
+            if not np.isfinite(a).all():
+                raise _artefact.ArtefactError(f"unknown/{k} holds values that are not finite")
+        if score == "mahalanobis":
+            ok = (
+                len(arrays["classes"]) == len(arrays["means"])
+                and len(arrays["variances"]) == len(arrays["basis"])
+                and (arrays["variances"] > 0).all()
+                and float(arrays["floor"]) > 0
+            )
+            if not ok:
+                raise _artefact.ArtefactError("the mahalanobis arrays do not fit together (counts or variances ≤ 0)")
+        elif len(arrays["reference"]) < unknown._knn_k(score):
+            raise _artefact.ArtefactError(f"the {score} score needs at least its k reference embeddings")
 
     @classmethod
     def from_run(cls, workdir: str | os.PathLike, train_session: str) -> PlaceClassifier:
@@ -440,7 +476,16 @@ class PlaceClassifier:
         if cfg["vgg"]["pretrained"]:
             for m in ("rgb", "hha"):  # the HHA net may read its own trunk (vgg.hha_weights)
                 params[m] = {"trunk": _pretrained_trunk(cfg["vgg"], m), "classifier": params[m]["classifier"]}
-        thr = files.unknown.get(unknown.DEFAULT_SCORE, {})
+        score = unknown.DEFAULT_SCORE
+        thr = files.unknown.get(score, {})
+        if score in unknown.FEATURE_SCORES:
+            if files.embeddings is None or not Path(files.embeddings).is_file() or "threshold" not in thr:
+                raise FileNotFoundError(
+                    f"the run in {files.workdir} has no training embeddings or no {score} threshold for "
+                    f"{train_session} (a run older than the feature-space unseen-place scores): rerun it"
+                )
+            with np.load(files.embeddings) as z:
+                params["unknown"] = unknown.fit_feature_model(score, z["embeddings"], z["labels"])
         meta = {
             "train_session": train_session,
             "num_classes": PlaceGrid.from_dict(files.grid).num_classes,
@@ -453,7 +498,7 @@ class PlaceClassifier:
             "grid": files.grid,
             "visited_classes": files.visited_classes,
             "unknown": {
-                "score": unknown.DEFAULT_SCORE,
+                "score": score,
                 "threshold": float(thr.get("threshold", float("nan"))),
                 "target_frr": float(thr.get("target_frr", float("nan"))),
                 "all_scores": files.unknown,
@@ -493,6 +538,8 @@ class PlaceClassifier:
         meta = {k: v for k, v in manifest.items() if k not in ("format", "version", "arrays", "versions")}
         try:
             params = {name: _artefact.unflatten(flat, name) for name in ("depth", "rgb", "hha", "mlp")}
+            if any(k.startswith("unknown/") for k in flat):  # a feature-space unseen-place score's arrays
+                params["unknown"] = _artefact.unflatten(flat, "unknown")
             return cls(meta, params)
         except (KeyError, TypeError, ValueError) as e:  # ArtefactError is a ValueError
             raise _artefact.ArtefactError(f"{path}: {e}") from None
@@ -568,14 +615,32 @@ class PlaceClassifier:
         """
         if branch not in BRANCHES:
             raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
-        out = self.logits(rgb_uint8_batch)
-        return self._prediction(out[branch], branch)
+        return self.prediction_from_outputs(self.logits(rgb_uint8_batch), branch)
 
-    def _prediction(self, logits: np.ndarray, branch: str) -> Prediction:
+    @property
+    def unknown_kind(self) -> str:
+        """The unseen-place score this classifier uses (one of ``unknown.ALL_SCORES``)."""
+        return str(self.meta["unknown"]["score"])
+
+    def unknown_scores(self, outputs: dict[str, np.ndarray], branch: str = "fusion") -> np.ndarray:
+        """The unseen-place score (:attr:`unknown_kind`) of :meth:`logits`' ``outputs``, float32 ``(N,)``: of the
+        branch's logits for a logit score, of the fused ``embedding`` for a feature score."""
+        kind = self.unknown_kind
+        if kind in unknown.FEATURE_SCORES:
+            model = {k: np.asarray(v) for k, v in self.params["unknown"].items()}
+            return unknown.feature_score(kind, model, np.asarray(outputs["embedding"], np.float32))
+        return np.asarray(unknown.unknown_score(outputs[branch], kind))
+
+    def prediction_from_outputs(self, outputs: dict[str, np.ndarray], branch: str = "fusion") -> Prediction:
+        """:meth:`predict` of outputs :meth:`logits` already computed (e.g. the streaming ``Tracker``'s)."""
+        if branch not in BRANCHES:
+            raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
+        logits = outputs[branch]
         probs = np.asarray(jax.nn.softmax(jnp.asarray(logits, jnp.float32), axis=-1))
         label = probs.argmax(axis=1).astype(np.int32)
-        kind = self.meta["unknown"]["score"]
-        score = np.asarray(unknown.unknown_score(logits, kind))
+        kind = self.unknown_kind
+        with np.errstate(invalid="ignore", over="ignore"):
+            score = self.unknown_scores(outputs, branch)
         thr = self.threshold if branch == "fusion" else float("nan")
         # Fail closed: a NaN or infinite logit, probability or score never counts as a known place (a NaN
         # score is never above a threshold, so it is rejected here explicitly, whatever the branch).
@@ -604,6 +669,7 @@ class PlaceClassifier:
             f"place classifier: trained on session {m['train_session']}, {m['num_classes']} places "
             f"({self.grid.n}×{self.grid.n} grid), images {self.image_size[0]}×{self.image_size[1]}, depth "
             f"{m['depth']['kind']}, unknown if {m['unknown']['score']} score > {self.threshold:.4g}"
+            f"{' (threshold on held-out training frames)' if self.unknown_kind in unknown.FEATURE_SCORES else ''}"
         )
 
 

@@ -68,7 +68,7 @@ _DAV2_REQUIRED = {
     "near_m",
     "far_m",
 }
-_ARRAY_GROUPS = ("depth", "rgb", "hha", "mlp")
+_ARRAY_GROUPS = ("depth", "rgb", "hha", "mlp", "unknown")  # unknown: a feature-space unseen-place score
 _TINY = 2.0**-126  # smallest normal float32: the networks and the HHA encoder compute in float32
 
 
@@ -191,8 +191,8 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
     c.integer(m["mlp_hidden"], "mlp_hidden", 1, MAX_HIDDEN)
 
     u = c.obj(m["unknown"], "unknown", {"score", "threshold", "target_frr"}, {"all_scores"})
-    if u["score"] not in unknown.SCORES:
-        c.fail("unknown.score", f"is {str(u['score'])[:40]!r}, expected one of {unknown.SCORES}")
+    if u["score"] not in unknown.ALL_SCORES:
+        c.fail("unknown.score", f"is {str(u['score'])[:40]!r}, expected one of {unknown.ALL_SCORES}")
     for key in ("threshold", "target_frr"):
         # NaN means "not fitted" (written as NaN by the run); infinities would make rejection all or nothing.
         if type(u[key]) not in (int, float) or math.isinf(u[key]):

@@ -1,7 +1,9 @@
 """Tracking a robot's place along its route: a `PlaceClassifier` feeding a `placejax.route.RouteFilter`.
 
 Each new image is classified, its logits turned into calibrated probabilities (``softmax(logits / T)``), and the
-route filter steps with them and the distance travelled since the previous image (``docs/route.md``).
+route filter steps with them and the distance travelled since the previous image (``docs/route.md``). Each step
+also carries the classifier's per-frame unseen-place score and verdict (the score chosen on world 1,
+``PlaceClassifier.unknown_kind``) beside the route's unknown state.
 """
 
 from __future__ import annotations
@@ -24,6 +26,10 @@ class TrackStep:
         unknown: float, probability of "none of the known places" (0 without the unknown state).
         belief: float32 ``(S,)`` the whole belief (cells, then the unknown state if any).
         frame_label: int, what the classifier says of this image alone (for comparison).
+        frame_unknown_score: float, the classifier's per-frame unseen-place score of this image
+            (``PlaceClassifier.unknown_kind``; NaN from :meth:`Tracker.step_probabilities`, which has no image).
+        frame_rejected: bool, that score above the classifier's threshold ("I don't know this place" from this
+            image alone, as ``PlaceClassifier.predict`` says it).
     """
 
     label: int
@@ -31,6 +37,8 @@ class TrackStep:
     unknown: float
     belief: np.ndarray
     frame_label: int
+    frame_unknown_score: float = float("nan")
+    frame_rejected: bool = False
 
 
 class Tracker:
@@ -76,8 +84,10 @@ class Tracker:
         x = np.asarray(rgb_uint8)
         if x.ndim != 3:
             raise ValueError(f"Tracker takes one uint8 RGB image (H, W, 3) at a time, got shape {x.shape}")
-        logits = self.classifier.logits(x[None])[self.branch][0]
-        return route.calibrated_probabilities(logits, self.temperature)
+        return self._probabilities(self.classifier.logits(x[None]))
+
+    def _probabilities(self, outputs: dict) -> np.ndarray:
+        return route.calibrated_probabilities(outputs[self.branch][0], self.temperature)
 
     def step(self, rgb_uint8, moved_m: float) -> TrackStep:
         """Classifies the image and advances the route filter.
@@ -89,7 +99,15 @@ class Tracker:
         Returns:
             A :class:`TrackStep`.
         """
-        return self.step_probabilities(self.probabilities(rgb_uint8), moved_m)
+        x = np.asarray(rgb_uint8)
+        if x.ndim != 3:
+            raise ValueError(f"Tracker takes one uint8 RGB image (H, W, 3) at a time, got shape {x.shape}")
+        outputs = self.classifier.logits(x[None])
+        frame = self.classifier.prediction_from_outputs(outputs, self.branch)
+        step = self.step_probabilities(self._probabilities(outputs), moved_m)
+        return dataclasses.replace(
+            step, frame_unknown_score=float(frame.unknown_score[0]), frame_rejected=bool(frame.rejected[0])
+        )
 
     def step_probabilities(self, probabilities, moved_m: float) -> TrackStep:
         """`step` for an image already classified: calibrated probabilities float ``(K,)``."""

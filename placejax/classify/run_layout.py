@@ -13,6 +13,8 @@ Work directory::
     nets/<train>-<modality>-<hash>/   orbax checkpoints of each place classifier (NETS_DIR)
     mlp/<train>-<hash>/               orbax checkpoints of each fusion MLP (MLP_DIR)
     cache/<name>-<16 hex digits>/     one array cache per session and stage (CACHE_DIR; names: cache_name)
+    unknown/<train>.npz               the training session's fused embeddings and labels (UNKNOWN_DIR): what the
+                                      feature-space unseen-place scores are fitted on
 
 ``classifiers.json``::
 
@@ -26,7 +28,9 @@ Work directory::
             | {"source": "true"},
      "sessions": {"WI": {"rgb": "nets/...", "hha": "nets/...", "mlp": "mlp/...",     # relative to the workdir
                          "intrinsics": [[3x3]], "image_size": [H, W], "visited_classes": [...],
-                         "unknown": {"msp": {"threshold": t, "target_frr": 0.05}, ...}}}}
+                         "unknown": {"msp": {"threshold": t, "target_frr": 0.05}, ...,   # every score
+                                     "knn5": {"threshold": t, "target_frr": 0.05, "held_out": {...}}, ...},
+                         "embeddings": "unknown/WI.npz"}}}   # optional: embeddings (N, D) float32, labels (N,)
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ __all__ = [
     "INDEX_NAME",
     "MLP_DIR",
     "NETS_DIR",
+    "UNKNOWN_DIR",
     "RunFiles",
     "cache_folders",
     "cache_name",
@@ -61,6 +66,8 @@ NETS_DIR = "nets"
 """The work directory's folder of place-classifier checkpoints."""
 MLP_DIR = "mlp"
 """The work directory's folder of fusion-MLP checkpoints."""
+UNKNOWN_DIR = "unknown"
+"""The work directory's folder of the training sessions' fused embeddings (the feature scores' reference)."""
 CACHE_STAGES = ("frames", "depth", "hha", "features", "outputs")
 """The stages :func:`cache_name` names a cache of."""
 _FORMAT = "placejax.cross_season.classifiers"
@@ -137,6 +144,7 @@ class RunFiles:
     image_size: tuple[int, int]
     visited_classes: list[int]
     unknown: dict[str, dict[str, float]]
+    embeddings: Path | None = None  # npz: "embeddings" (N, D) float32, "labels" (N,) int; None in older runs
 
 
 def write_run_index(workdir: str | os.PathLike, index: dict[str, Any]) -> Path:
@@ -193,4 +201,5 @@ def locate_run(workdir: str | os.PathLike, train_session: str) -> RunFiles:
         image_size=(int(s["image_size"][0]), int(s["image_size"][1])),
         visited_classes=[int(k) for k in s.get("visited_classes", [])],
         unknown=s.get("unknown", {}),
+        embeddings=workdir / s["embeddings"] if "embeddings" in s else None,
     )

@@ -42,6 +42,7 @@ __all__ = [
     "auroc",
     "detection_metrics",
     "feature_score",
+    "fit_feature_detector",
     "fit_feature_model",
     "fit_mahalanobis",
     "fit_threshold",
@@ -380,3 +381,13 @@ def held_out_feature_scores(score: str, embeddings, labels, folds=None) -> np.nd
     if np.isnan(out).any():
         raise ValueError("the folds do not hold out every frame")
     return out
+
+
+def fit_feature_detector(
+    score: str, embeddings, labels, *, target_frr: float = DEFAULT_TARGET_FRR, folds=None
+) -> tuple[dict[str, np.ndarray], float]:
+    """A feature score ready for new images: ``(model, threshold)``, the model fitted on every training frame
+    (:func:`fit_feature_model`), the threshold on held-out scores (:func:`held_out_feature_scores`,
+    :func:`fit_threshold` at ``target_frr``). ``embeddings`` float ``(N, D)`` in time order, ``labels`` int ``(N,)``."""
+    held = held_out_feature_scores(score, embeddings, labels, folds)
+    return fit_feature_model(score, embeddings, labels), fit_threshold(held, target_frr)
