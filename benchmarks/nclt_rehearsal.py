@@ -1,7 +1,7 @@
 """The NCLT-scale rehearsal: the ``paper`` preset end to end on fake NCLT trees at the real image size and format.
 
     python -m benchmarks.nclt_rehearsal --frames 60 120 [--sessions 4] [--target 26000] [--root DIR]
-        [--depth midas|dav2]
+        [--depth midas|dav2] [--quick]
 
 For each ``--frames`` value (images per session, two of them dropped by the ground-truth timeline of the fake
 tree), this writes a fake NCLT tree (``tests/fake_nclt.py``: 1616 × 1232 sideways TIFFs, the real-size U2D map,
@@ -25,14 +25,25 @@ short side, in place of MiDaS), on random weights in the official ``.pth`` layou
 (``tests/torch_refs/make_dav2_reference.py``, needs torch and transformers): the projection of the real run with
 that depth network.
 
+``--quick`` is a smoke run of this script, not a measurement: tiny trees (40 × 32 stored images), 32² images, VGG16 at
+width 1/16, one epoch of batch 4, two sessions of 6 and 8 frames (``QUICK_OVERRIDES``, ``QUICK_DEFAULTS``; the
+official-format MiDaS file is still the full-size one). It runs every step above in about half a minute and its
+projection is computed the same way, but the output and the record say that its numbers are NOT a projection of
+the real run.
+
+Every size must leave each training run at least one whole batch: a session's kept frames × epochs must reach the
+batch size of the nets and of the MLP (``check_batch_sizes``); sizes too small for the preset's batches stop with
+a message before anything is written.
+
 Prints tables and writes ``benchmarks/results/nclt_rehearsal.json`` (``nclt_rehearsal_dav2.json`` with
-``--depth dav2``).
+``--depth dav2``, ``nclt_rehearsal_quick.json`` / ``nclt_rehearsal_dav2_quick.json`` with ``--quick``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import resource
 import shutil
@@ -64,6 +75,52 @@ STAGES = {
     "baselines": "nearest-neighbour thumbnails",
     "evaluate": "accuracies, NN baselines, ceilings",
 }
+
+
+# Frames a fake tree drops per session (tests/fake_nclt.py defaults: one before the ground truth, one in its gap).
+DROPPED_FRAMES = 2
+
+# --quick: a smoke run of the whole script on tiny trees and networks (about half a minute on 2 cores). Its
+# numbers measure nothing about the paper preset; they only show that every step runs and writes its record.
+QUICK_STORED_HW = (40, 32)  # stored sideways (rows, columns); upright 32 wide × 40 tall
+QUICK_VGG_WIDTH = 0.0625
+QUICK_OVERRIDES = (
+    "data.image_size=(32, 32)",
+    "depth.batch_size=8",
+    f"vgg.width={QUICK_VGG_WIDTH}",
+    "grid.n=3",
+    "train.epochs=1",
+    "train.batch_size=4",
+    "mlp.hidden=16",
+    "mlp.epochs=1",
+    "mlp.batch_size=4",
+    "eval.batch_size=4",
+)
+QUICK_DEFAULTS = {"frames": [6, 8], "sessions": 2, "nn_frames": 64}
+FULL_DEFAULTS = {"frames": [60, 120], "sessions": 4, "nn_frames": 4000}
+QUICK_NOTE = (
+    "QUICK SMOKE RUN (--quick): tiny images and networks; these numbers are NOT a projection of the real run "
+    "(drop --quick to measure the paper preset)"
+)
+
+
+def check_batch_sizes(cfg: dict, kept_frames: int) -> list[str]:
+    """What stops a run of ``cfg`` whose sessions keep ``kept_frames`` frames from training, as messages.
+
+    A training run draws whole batches (the last partial one is dropped) from ``epochs`` passes over one session's
+    frames, so the nets (``train``) and the fusion MLP (``mlp``) each need ``kept_frames × epochs ≥ batch_size``.
+    """
+    problems = []
+    for section in ("train", "mlp"):
+        batch, epochs = cfg[section]["batch_size"], cfg[section]["epochs"]
+        if kept_frames * epochs < batch:
+            need = math.ceil(batch / epochs)
+            problems.append(
+                f"{section}.batch_size={batch} exceeds the {kept_frames} kept frames × {section}.epochs={epochs} "
+                f"of a session: it needs --frames {need + DROPPED_FRAMES} or more (keeping {need}), or a batch "
+                f"size of at most {kept_frames * epochs} (--set {section}.batch_size=N)"
+            )
+    return problems
 
 
 def images_per_frame(stage: str, cfg: dict) -> float:
@@ -201,8 +258,8 @@ def _child(spec_path: Path) -> None:
 # ---------------------------------------------------------------------------------------------------- the parent
 
 
-def _weights(folder: Path) -> tuple[Path, Path]:
-    """Random MiDaS v2.1 small and VGG16 (width 1.0) files in the official formats."""
+def _weights(folder: Path, vgg_width: float = 1.0) -> tuple[Path, Path]:
+    """Random MiDaS v2.1 small (full size) and VGG16 (at ``vgg_width``) files in the official formats."""
     sys.path.insert(0, str(TESTS))
     from midas_recipe import recipe_state_dict
 
@@ -210,7 +267,7 @@ def _weights(folder: Path) -> tuple[Path, Path]:
     npz = folder / "midas_recipe_state_dict.npz"
     np.savez(npz, **recipe_state_dict(with_num_batches_tracked=True))
     script = TESTS / "torch_refs" / "make_random_official_weights.py"
-    subprocess.run([sys.executable, str(script), str(folder), str(npz), "1.0"], check=True)
+    subprocess.run([sys.executable, str(script), str(folder), str(npz), str(vgg_width)], check=True)
     return folder / "midas_random.pt", folder / "vgg16_random.pth"
 
 
@@ -249,6 +306,11 @@ def _nn_pair_seconds(n: int, cfg: dict) -> float:
     return t
 
 
+def _size_overrides(args) -> list[str]:
+    """The overrides that shape the run (``--quick``'s, then ``--set``'s), as opposed to paths and output ones."""
+    return [*(QUICK_OVERRIDES if args.quick else ()), *args.set]
+
+
 def _measure(n_frames: int, args, weights: tuple[Path, Path], base: Path) -> dict:
     """One size: a fake tree of ``n_frames`` per session, the preset run on it in a child; its measurements."""
     sys.path.insert(0, str(TESTS))
@@ -260,8 +322,9 @@ def _measure(n_frames: int, args, weights: tuple[Path, Path], base: Path) -> dic
     preset, weights_key, _ = DEPTH_NETWORKS[args.depth]
     dates = list(get_config(preset).data.sessions)[: args.sessions]
     t0 = time.perf_counter()
+    stored_hw = QUICK_STORED_HW if args.quick else REAL_STORED_HW
     fake = make_fake_nclt(
-        here / "nclt", dates, n_frames=n_frames, stored_hw=REAL_STORED_HW, texture="scene", tiff_compression=1
+        here / "nclt", dates, n_frames=n_frames, stored_hw=stored_hw, texture="scene", tiff_compression=1
     )
     write_s = time.perf_counter() - t0
     overrides = [
@@ -272,7 +335,7 @@ def _measure(n_frames: int, args, weights: tuple[Path, Path], base: Path) -> dic
         f"vgg.weights={weights[1]}",
         "progress=False",
         "figures=False",
-        *args.set,
+        *_size_overrides(args),
     ]
     spec = {"preset": preset, "overrides": overrides, "workdir": str(here / "work"), "out": str(here / "child.json")}
     (here / "spec.json").write_text(json.dumps(spec))
@@ -298,10 +361,10 @@ def _measure(n_frames: int, args, weights: tuple[Path, Path], base: Path) -> dic
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", type=int, nargs="+", default=[60, 120], help="images per session, per size")
-    parser.add_argument("--sessions", type=int, default=4, help="the first N sessions of the paper preset")
+    parser.add_argument("--frames", type=int, nargs="+", default=None, help="images per session, per size (60 120)")
+    parser.add_argument("--sessions", type=int, default=None, help="the first N sessions of the paper preset (4)")
     parser.add_argument("--target", type=int, default=26_000, help="frames per session of the projected run")
-    parser.add_argument("--nn-frames", type=int, default=4000, help="session size of the timed NN-baseline pair")
+    parser.add_argument("--nn-frames", type=int, default=None, help="session size of the timed NN-baseline pair (4000)")
     parser.add_argument("--root", type=Path, default=None, help="folder for trees and work dirs (default: temp)")
     parser.add_argument("--keep", action="store_true", help="keep the trees and work directories")
     parser.add_argument("--set", nargs="*", default=[], help="extra key=value overrides of the paper preset")
@@ -311,20 +374,42 @@ def main() -> None:
         default="midas",
         help="depth network: midas (the paper preset) or dav2 (the paper_dav2 preset: Depth Anything V2 Small)",
     )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="a smoke run of this script (tiny trees, images and networks; defaults --frames 6 8 --sessions 2 "
+        "--nn-frames 64): its numbers are not a projection of the real run",
+    )
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child is not None:
         _child(args.child)
         return
+    for key, value in (QUICK_DEFAULTS if args.quick else FULL_DEFAULTS).items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
     if len(set(args.frames)) < 2:
         parser.error("--frames needs two or more different sizes (the projection fits a line)")
 
-    name = "nclt_rehearsal" if args.depth == "midas" else f"nclt_rehearsal_{args.depth}"
+    from experiments.cross_season import apply_overrides, get_config
+
     preset, _, depth_what = DEPTH_NETWORKS[args.depth]
+    cfg = apply_overrides(get_config(preset), _size_overrides(args)).to_dict()
+    for n in sorted(set(args.frames)):
+        if n < DROPPED_FRAMES + 2:
+            parser.error(f"--frames {n}: a fake session drops {DROPPED_FRAMES} frames and needs 2 left; use 4 or more")
+        problems = check_batch_sizes(cfg, n - DROPPED_FRAMES)
+        if problems:
+            parser.error(f"--frames {n} is too small for the run's batches:\n  " + "\n  ".join(problems))
+
+    name = "nclt_rehearsal" if args.depth == "midas" else f"nclt_rehearsal_{args.depth}"
+    name += "_quick" if args.quick else ""
+    if args.quick:
+        print(QUICK_NOTE, flush=True)
     with tempfile.TemporaryDirectory(dir=args.root) as tmp:
         base = Path(tmp)
         t0 = time.perf_counter()
-        weights = _weights(base / "weights")
+        weights = _weights(base / "weights", QUICK_VGG_WIDTH if args.quick else 1.0)
         if args.depth == "dav2":
             weights = (_dav2_weights(base / "weights" / "dav2"), weights[1])
         print(f"random official-format weights written in {time.perf_counter() - t0:.1f} s", flush=True)
@@ -396,6 +481,8 @@ def main() -> None:
         args.target,
         quadratic={"evaluate": nn_at_largest},
     )
+    if args.quick:
+        print(f"\n{QUICK_NOTE}: the projection's arithmetic on the quick run's numbers, for checking the script only")
     print(
         f"\nprojection to {n_sessions} × {args.target} frames on this machine "
         f"(NN baselines: {nn_s:.2f} s per pair at {args.nn_frames} frames, ×{n_pairs} pairs, quadratic)"
@@ -426,6 +513,8 @@ def main() -> None:
         {
             "depth": args.depth,
             "preset": preset,
+            "quick": args.quick,
+            **({"note": QUICK_NOTE} if args.quick else {}),
             "sizes": sizes,
             "stages": rows,
             "nn_pair_s": nn_s,
@@ -433,6 +522,8 @@ def main() -> None:
             "projection": projection,
         },
     )
+    if args.quick:
+        print(QUICK_NOTE)
     print(f"wrote {path}")
 
 
