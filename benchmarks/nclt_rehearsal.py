@@ -25,11 +25,11 @@ short side, in place of MiDaS), on random weights in the official ``.pth`` layou
 (``tests/torch_refs/make_dav2_reference.py``, needs torch and transformers): the projection of the real run with
 that depth network.
 
-``--quick`` is a smoke run of this script, not a measurement: tiny trees (40 × 32 stored images), 32² images, VGG16 at
-width 1/16, one epoch of batch 4, two sessions of 6 and 8 frames (``QUICK_OVERRIDES``, ``QUICK_DEFAULTS``; the
-official-format MiDaS file is still the full-size one). It runs every step above in about half a minute and its
-projection is computed the same way, but the output and the record say that its numbers are NOT a projection of
-the real run.
+``--quick`` is a smoke run of this script, not a measurement: tiny trees (40 × 32 stored images), 32² images, VGG16
+at width 1/16, one epoch of batch 4, two sessions of 6 and 8 frames (``QUICK_OVERRIDES``, ``QUICK_DEFAULTS``; the
+official-format MiDaS file is still the full-size one). It runs every step above in about 40 s (2 shared cores,
+JAX compilation cache warm) and computes its projection the same way, but the output and the record say that its
+numbers are NOT a projection of the real run.
 
 Every size must leave each training run at least one whole batch: a session's kept frames × epochs must reach the
 batch size of the nets and of the MLP (``check_batch_sizes``); sizes too small for the preset's batches stop with
@@ -80,7 +80,7 @@ STAGES = {
 # Frames a fake tree drops per session (tests/fake_nclt.py defaults: one before the ground truth, one in its gap).
 DROPPED_FRAMES = 2
 
-# --quick: a smoke run of the whole script on tiny trees and networks (about half a minute on 2 cores). Its
+# --quick: a smoke run of the whole script on tiny trees and networks (~40 s on 2 cores, compiled programs cached). Its
 # numbers measure nothing about the paper preset; they only show that every step runs and writes its record.
 QUICK_STORED_HW = (40, 32)  # stored sideways (rows, columns); upright 32 wide × 40 tall
 QUICK_VGG_WIDTH = 0.0625
