@@ -454,6 +454,26 @@ def test_results_and_table_carry_the_unknown_columns(smoke_run):
     assert jax.tree_util.tree_leaves(index["sessions"][TRAIN]["unknown"])
 
 
+def test_from_run_uses_the_score_chosen_on_world_1(smoke_run, clf, experiment_outputs):
+    """The classifier rejects by ``unknown.DEFAULT_SCORE`` (k-NN of the fused embedding since issue 39), with the
+    held-out threshold of the run's index and the reference of the run's saved training embeddings."""
+    _, workdir, _ = smoke_run
+    entry = json.loads((workdir / "classifiers.json").read_text())["sessions"][TRAIN]
+    assert clf.unknown_kind == unknown.DEFAULT_SCORE in unknown.FEATURE_SCORES
+    assert clf.threshold == entry["unknown"][unknown.DEFAULT_SCORE]["threshold"]
+    assert entry["unknown"][unknown.DEFAULT_SCORE]["held_out"]["folds"] == unknown.HELD_OUT_FOLDS
+    saved = np.load(workdir / entry["embeddings"])
+    want = unknown.fit_feature_model(unknown.DEFAULT_SCORE, saved["embeddings"], saved["labels"])
+    for k, v in want.items():
+        np.testing.assert_array_equal(np.asarray(clf.params["unknown"][k]), v)
+    # The training frames are memorised: near their own reference embedding (up to the ±1 HHA rounding), kept.
+    pred = clf.predict(experiment_outputs[TRAIN]["images"][:4])
+    assert np.all(pred.unknown_score < 0.5 * clf.threshold) and not pred.rejected.any(), (
+        pred.unknown_score,
+        clf.threshold,
+    )
+
+
 def test_top_level_name_is_lazy():
     import subprocess
     import sys

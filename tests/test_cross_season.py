@@ -602,3 +602,56 @@ def test_smoke_route_columns(smoke):
     table = (workdir / "table.md").read_text()
     assert "| train | test | Ours | Ours + route | gain | RGB-Net | RGB-Net + route | gain |" in table
     assert "timings_s" in results and results["timings_s"]["route"] > 0
+
+
+def test_smoke_unknown_feature_score_columns(smoke):
+    """Every per-frame unseen-place score has its AUROC and rejection shares in every pair; a feature score's are
+    recomputed here from the run's saved training embeddings (unknown/<train>.npz, the first seed's fused fc7), the
+    cached fc7 outputs on the test session and placejax.classify.unknown, threshold held out as the index says."""
+    from placejax.classify import unknown
+
+    workdir, results = smoke
+    u = results["unknown"]
+    assert u["scores"] == list(unknown.ALL_SCORES)
+    for p in results["pairs"]:
+        for score in unknown.ALL_SCORES:
+            for what in ("auroc", "rejected_seen", "rejected_unseen"):
+                v = p[f"unknown_{score}_{what}"]
+                assert v is None or 0.0 <= v <= 1.0, (score, what, v)
+    index = json.loads((workdir / run_layout.INDEX_NAME).read_text())
+    grid = PlaceGrid.load(workdir / "grid.json")
+    labels = {s: _session_labels(workdir, grid, s, "64x64") for s in SEASONS}
+    p = results["pairs"][0]
+    s, t = p["train"], p["test"]
+    entry = index["sessions"][s]
+    saved = np.load(workdir / entry["embeddings"])
+    emb, train_labels = saved["embeddings"], saved["labels"]
+    np.testing.assert_array_equal(train_labels, labels[s])
+
+    def fc7_on(test: str, modality: str) -> np.ndarray:
+        # The first seed's net: the cache whose fc7 on the training session is the saved embedding's half.
+        half = slice(0, emb.shape[1] // 2) if modality == "rgb" else slice(emb.shape[1] // 2, None)
+        for d in run_layout.cache_folders(workdir, s, "outputs", f"{s}-{modality}"):
+            own = np.asarray(open_array_cache(d).data)[:, results["num_classes"] :]
+            if np.array_equal(own, emb[:, half]):
+                key = open_array_cache(d).key["user"]["net"]
+                for e in run_layout.cache_folders(workdir, test, "outputs", f"{s}-{modality}"):
+                    if open_array_cache(e).key["user"]["net"] == key:
+                        return np.asarray(open_array_cache(e).data)[:, results["num_classes"] :]
+        raise AssertionError(f"no cached {modality} outputs match the saved embeddings")
+
+    emb_t = np.concatenate([fc7_on(t, "rgb"), fc7_on(t, "hha")], axis=1)
+    unseen = ~np.isin(labels[t], np.unique(labels[s]))
+    checked = 0
+    for score in unknown.FEATURE_SCORES:
+        if p[f"unknown_{score}_auroc"] is None:
+            continue
+        model, thr = unknown.fit_feature_detector(score, emb, train_labels)
+        assert entry["unknown"][score]["threshold"] == pytest.approx(thr, rel=1e-6)
+        values = unknown.feature_score(score, model, emb_t)
+        assert p[f"unknown_{score}_auroc"] == pytest.approx(unknown.auroc(values, unseen), abs=1e-9)
+        assert p[f"unknown_{score}_rejected_seen"] == pytest.approx(np.mean(values[~unseen] > thr), abs=1e-9)
+        checked += 1
+    assert checked >= 2  # at least k-NN with a small k and Mahalanobis fit the smoke sessions
+    table = (workdir / "table.md").read_text()
+    assert "| train | test | " + " | ".join(unknown.ALL_SCORES) + " |" in table

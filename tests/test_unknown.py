@@ -206,3 +206,14 @@ def test_classifier_refuses_feature_arrays_that_do_not_fit(tiny_feature_clfs):
         PlaceClassifier(meta, tiny_params())  # a feature score without its reference
     with pytest.raises(ArtefactError, match="but the score is 'msp'"):
         PlaceClassifier(tiny_meta(), {**tiny_params(), "unknown": {"reference": np.zeros((10, 128), np.float32)}})
+
+
+def test_can_fit_feature_detector_says_when_a_session_is_too_small():
+    labels = np.repeat(np.arange(10), 12)  # 120 frames, 12 per class
+    assert unknown.can_fit_feature_detector("knn50", labels)
+    assert not unknown.can_fit_feature_detector("knn50", labels[:60])  # a fold's reference < 50 frames
+    assert unknown.can_fit_feature_detector("mahalanobis", labels)
+    assert not unknown.can_fit_feature_detector("mahalanobis", np.arange(40))  # one frame per class
+    for score, y in (("knn50", labels[:60]), ("mahalanobis", np.arange(40))):
+        with pytest.raises(ValueError):
+            unknown.fit_feature_detector(score, np.random.default_rng(0).normal(size=(len(y), 3)), y)

@@ -139,7 +139,9 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
     from experiments.cross_season import report
 
     if jax.process_index() == 0:
-        write_classifier_index(ctx, sessions, nets, mlp_dirs, grid, fused)
+        write_classifier_index(
+            ctx, sessions, nets, mlp_dirs, grid, fused, outputs, scores["unknown"]["feature_thresholds"]
+        )
         io.write_json(workdir / "results.json", results)
         report.write_table(results, workdir / "table.md")
         if config.figures:

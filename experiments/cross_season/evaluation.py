@@ -33,6 +33,7 @@ def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumb
     config = ctx.config
     fused = runs[0][2]  # the first seed's fusion: the unseen-place columns
     with ctx.timed("evaluate"):
+        detectors = {s.name: feature_detectors(runs[0][1], s) for s in sessions}
         pairs = []
         for s in sessions:
             for t in sessions:
@@ -46,7 +47,7 @@ def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumb
                 if t.name == s.name:
                     row["same_session"] = True
                 else:
-                    row.update(_unknown_columns(fused, s, t))
+                    row.update(_unknown_columns(fused, runs[0][1], detectors[s.name], s, t))
                     row["_correct"] = {
                         m: np.stack([np.argmax(lg[m], 1) == t.labels for lg in per_seed]) for m in per_seed[0]
                     }
@@ -66,7 +67,14 @@ def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumb
         "ceilings_and_baselines": {
             k: float(np.mean([p[k] for p in cross])) for k in ("seen_class_fraction", "heading_ceiling", *thumbs)
         },
-        "unknown": _unknown_summary(cross),
+        "unknown": {
+            **_unknown_summary(cross),
+            # Per training session, each feature score's held-out threshold (null: too small a session for it).
+            "feature_thresholds": {
+                name: {k: (None if d is None else float(d[1])) for k, d in det.items()}
+                for name, det in detectors.items()
+            },
+        },
     }
 
 
@@ -141,22 +149,69 @@ def nets_modalities(nets: dict, session: str) -> list[str]:
     return [m for (s, m) in nets if s == session]
 
 
-def _unknown_columns(fused: dict, s: SessionData, t: SessionData) -> dict[str, float]:
+def fused_embedding(outputs: dict, train: str, test: str) -> np.ndarray:
+    """The fusion MLP's input on ``test``: ``[fc7_rgb, fc7_hha]`` of the nets trained on ``train``, float32
+    ``(N, D)``."""
+    return np.concatenate([np.asarray(outputs[(train, m, test)]["fc7"], np.float32) for m in ("rgb", "hha")], axis=1)
+
+
+def feature_detectors(outputs: dict, s: SessionData) -> dict[str, tuple[dict, float]]:
+    """Per feature score (``unknown.FEATURE_SCORES``), ``(model, threshold)`` of training session ``s``: the model
+    on all its frames' fused embeddings, the threshold on its frames held out (purged K-fold, docs/route.md);
+    ``None`` where the session is too small for the score."""
+    from placejax.classify import unknown
+
+    emb = fused_embedding(outputs, s.name, s.name)
+    out = {}
+    for score in unknown.FEATURE_SCORES:
+        # A session too small for it (k > the reference's frames, one frame per class): no column.
+        fits = unknown.can_fit_feature_detector(score, s.labels)
+        out[score] = unknown.fit_feature_detector(score, emb, s.labels) if fits else None
+    return out
+
+
+def _unknown_columns(fused: dict, outputs: dict, detectors: dict, s: SessionData, t: SessionData) -> dict:
     """Unseen-place detection of the fusion trained on ``s`` when tested on ``t`` (extra columns of table.md).
 
-    Each score's threshold comes from ``s``'s own frames only (``target_frr`` of them rejected); test frames in
-    classes ``s`` never visited are the positives.
+    Each score's threshold comes from ``s``'s frames only (``target_frr`` of them rejected): the logit scores' on
+    its own (memorised) frames, the feature scores' (``detectors``: :func:`feature_detectors`) on its frames held
+    out of the reference; test frames in classes ``s`` never visited are the positives. Per score:
+    ``unknown_<score>_auroc``, ``unknown_<score>_rejected_seen`` / ``_rejected_unseen``; for the default score
+    also ``unknown_rejected_*`` and ``unknown_seen_accuracy_accepted``.
     """
     from placejax.classify import unknown
 
-    out = {}
+    out: dict[str, float] = {}
     seen = np.unique(s.labels)
-    for score in unknown.SCORES:
-        thr = unknown.fit_threshold(np.asarray(unknown.unknown_score(fused[(s.name, s.name)], score)))
-        m = unknown.detection_metrics(fused[(s.name, t.name)], t.labels, seen, thr, score)
-        out[f"unknown_{score}_auroc"] = m["auroc"]
-        if score == unknown.DEFAULT_SCORE:
-            out.update({f"unknown_{k}": v for k, v in m.items() if k != "auroc"})
+    unseen = ~np.isin(t.labels, seen)
+    correct = np.argmax(fused[(s.name, t.name)], axis=1) == t.labels
+    nan = float("nan")
+    emb_t = fused_embedding(outputs, s.name, t.name)
+    for score in unknown.ALL_SCORES:
+        if score in unknown.FEATURE_SCORES:
+            if detectors[score] is None:  # too small a training session for this score
+                out.update({f"unknown_{score}_{k}": nan for k in ("auroc", "rejected_seen", "rejected_unseen")})
+                if score == unknown.DEFAULT_SCORE:
+                    out.update(dict.fromkeys(("unknown_rejected_seen", "unknown_rejected_unseen"), nan))
+                    out["unknown_seen_accuracy_accepted"], out["unknown_unseen_fraction"] = nan, float(unseen.mean())
+                continue
+            model, thr = detectors[score]
+            values = unknown.feature_score(score, model, emb_t)
+        else:
+            thr = unknown.fit_threshold(np.asarray(unknown.unknown_score(fused[(s.name, s.name)], score)))
+            values = np.asarray(unknown.unknown_score(fused[(s.name, t.name)], score))
+        reject = values > thr
+        m = {
+            "auroc": unknown.auroc(values, unseen),
+            "rejected_seen": float(reject[~unseen].mean()) if (~unseen).any() else nan,
+            "rejected_unseen": float(reject[unseen].mean()) if unseen.any() else nan,
+        }
+        out.update({f"unknown_{score}_{k}": v for k, v in m.items()})
+        if score == unknown.DEFAULT_SCORE:  # PlaceClassifier's score: the main table's columns
+            accepted_seen = ~unseen & ~reject
+            out["unknown_rejected_seen"], out["unknown_rejected_unseen"] = m["rejected_seen"], m["rejected_unseen"]
+            out["unknown_seen_accuracy_accepted"] = float(correct[accepted_seen].mean()) if accepted_seen.any() else nan
+            out["unknown_unseen_fraction"] = float(unseen.mean())
     # NaN (no unseen or no accepted frame in this pair) is written as null: results.json stays strict JSON.
     return {k: (None if np.isnan(v) else v) for k, v in out.items()}
 
@@ -170,4 +225,16 @@ def _unknown_summary(cross: list[dict]) -> dict:
     for k in keys:
         vals = [p[k] for p in cross if p[k] is not None]
         mean[k], n[k] = (float(np.mean(vals)) if vals else None), len(vals)
-    return {"score": unknown.DEFAULT_SCORE, "target_frr": unknown.DEFAULT_TARGET_FRR, "mean": mean, "n_pairs": n}
+    return {
+        "score": unknown.DEFAULT_SCORE,
+        "target_frr": unknown.DEFAULT_TARGET_FRR,
+        "scores": list(unknown.ALL_SCORES),
+        "feature_threshold": {
+            "held_out": "purged K-fold within the training session (placejax.classify.unknown.held_out_folds)",
+            "folds": unknown.HELD_OUT_FOLDS,
+            "block": unknown.HELD_OUT_BLOCK,
+            "gap": unknown.HELD_OUT_GAP,
+        },
+        "mean": mean,
+        "n_pairs": n,
+    }

@@ -9,13 +9,25 @@ from pathlib import Path
 import numpy as np
 
 from experiments.cross_season.context import Context
-from placejax.classify.run_layout import NETS_DIR, write_run_index
+from placejax.classify.run_layout import NETS_DIR, UNKNOWN_DIR, write_run_index
 from placejax.data import PlaceGrid
 from placejax.models import IMAGENET_MEAN_255, IMAGENET_STD_255
 
 
-def write_classifier_index(ctx: Context, sessions, nets, mlp_dirs: dict, grid: PlaceGrid, fused: dict) -> None:
-    """``classifiers.json``: what ``placejax.PlaceClassifier.from_run`` needs for every training session."""
+def write_classifier_index(
+    ctx: Context,
+    sessions,
+    nets,
+    mlp_dirs: dict,
+    grid: PlaceGrid,
+    fused: dict,
+    outputs: dict | None = None,
+    feature_thresholds: dict | None = None,
+) -> None:
+    """``classifiers.json``: what ``placejax.PlaceClassifier.from_run`` needs for every training session; with the
+    nets' ``outputs``, also each training session's fused embeddings (``unknown/<train>.npz``) and the feature
+    scores' thresholds (held out, ``placejax.classify.unknown.fit_feature_detector``; ``feature_thresholds``:
+    session → score → threshold, as the evaluation computed them, else computed here)."""
     from placejax.classify import unknown
 
     c = ctx.config.depth
@@ -52,6 +64,30 @@ def write_classifier_index(ctx: Context, sessions, nets, mlp_dirs: dict, grid: P
                 "threshold": unknown.fit_threshold(train_scores),
                 "target_frr": unknown.DEFAULT_TARGET_FRR,
             }
+        extra = {}
+        if outputs is not None:
+            from experiments.cross_season.evaluation import fused_embedding
+
+            emb = fused_embedding(outputs, s.name, s.name)
+            known = (feature_thresholds or {}).get(s.name)
+            for score in unknown.FEATURE_SCORES:
+                if known is not None:
+                    thr = known[score]
+                elif unknown.can_fit_feature_detector(score, s.labels):
+                    thr = unknown.fit_feature_detector(score, emb, s.labels)[1]
+                else:
+                    thr = None
+                if thr is None:  # too small a session for this score
+                    continue
+                held = {"folds": unknown.HELD_OUT_FOLDS, "block": unknown.HELD_OUT_BLOCK, "gap": unknown.HELD_OUT_GAP}
+                thresholds[score] = {"threshold": thr, "target_frr": unknown.DEFAULT_TARGET_FRR, "held_out": held}
+            path = Path(UNKNOWN_DIR) / f"{s.name}.npz"
+            (ctx.workdir / UNKNOWN_DIR).mkdir(exist_ok=True)
+            partial = ctx.workdir / f"{path}.partial"
+            with open(partial, "wb") as f:  # then renamed: a killed run leaves no half-written file under the name
+                np.savez(f, embeddings=emb, labels=np.asarray(s.labels, np.int32))
+            partial.replace(ctx.workdir / path)
+            extra["embeddings"] = str(path)
         index_sessions[s.name] = {
             "rgb": str(Path(NETS_DIR) / nets[(s.name, "rgb")].key["ckpt"]),
             "hha": str(Path(NETS_DIR) / nets[(s.name, "hha")].key["ckpt"]),
@@ -60,6 +96,7 @@ def write_classifier_index(ctx: Context, sessions, nets, mlp_dirs: dict, grid: P
             "image_size": list(s.cached.image_shape),
             "visited_classes": np.unique(s.labels[s.labels >= 0]).tolist(),
             "unknown": thresholds,
+            **extra,
         }
     write_run_index(
         ctx.workdir,

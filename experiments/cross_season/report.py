@@ -99,14 +99,55 @@ def table_markdown(results: dict) -> str:
         note += (
             f"\nUnseen-place detection (extra columns; the fusion's outputs; test frames in classes the training "
             f"session never visited are the positives): AUROC of each score (msp = 1 − max softmax, entropy, "
-            f"energy = −logsumexp, margin = −(p1 − p2)); with the {u['score']} threshold set on the training session's "
-            f"own frames to reject {100 * u['target_frr']:.0f}% of them: share of unseen / seen test frames rejected "
+            f"energy = −logsumexp, margin = −(p1 − p2)); with the threshold of {u['score']} (the score PlaceClassifier "
+            f"uses; the unseen-place table below has every score) set on training-session frames to reject "
+            f"{100 * u['target_frr']:.0f}% of them: share of unseen / seen test frames rejected "
             f"and top-1 on the accepted seen frames (%). '–': undefined for that pair (no unseen or no accepted "
             f"frame); the mean is over the pairs where it is defined.\n"
         )
     from experiments.cross_season.route import route_markdown
 
-    return "\n".join(lines) + "\n" + note + _baselines_markdown(results) + route_markdown(results)
+    return (
+        "\n".join(lines)
+        + "\n"
+        + note
+        + _baselines_markdown(results)
+        + unknown_markdown(results)
+        + route_markdown(results)
+    )
+
+
+def unknown_markdown(results: dict) -> str:
+    """The unseen-place table: per pair, every per-frame score's AUROC; then per score its mean AUROC and the mean
+    shares of seen / unseen test frames rejected at its training-session threshold (docs/route.md)."""
+    u = results.get("unknown", {})
+    if "scores" not in u:
+        return ""
+    scores = [k for k in u["scores"] if f"unknown_{k}_auroc" in u["mean"]]
+    auc = lambda v: "–" if v is None else f"{v:.2f}"
+    pct = lambda v: "–" if v is None else _pct(v)
+    head = ["train", "test", *scores]
+    lines = ["", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for p in results["pairs"]:
+        lines.append("| " + " | ".join([p["train"], p["test"], *[auc(p.get(f"unknown_{k}_auroc")) for k in scores]]))
+        lines[-1] += " |"
+    m = u["mean"]
+    lines.append("| " + " | ".join(["**mean AUROC**", "", *[auc(m.get(f"unknown_{k}_auroc")) for k in scores]]) + " |")
+    for what, label in (("seen", "**seen rejected %**"), ("unseen", "**unseen rejected %**")):
+        cells = [pct(m.get(f"unknown_{k}_rejected_{what}")) for k in scores]
+        lines.append("| " + " | ".join([label, "", *cells]) + " |")
+    f = u.get("feature_threshold", {})
+    note = (
+        "\nUnseen-place scores, one frame at a time (docs/route.md; the first seed's fusion; positives: test frames "
+        "in classes the training session never visited): AUROC per pair and its mean, and the mean shares of seen / "
+        f"unseen test frames rejected at each score's threshold ({100 * u['target_frr']:.0f} % of training frames "
+        "rejected). Logit scores (msp, entropy, energy, margin): threshold on the training session's own frames. "
+        "Feature scores of the fused fc7 (knn<k>: distance to the k-th nearest L2-normalised training embedding; "
+        "mahalanobis: class means, one Ledoit–Wolf-shrunk covariance): threshold on training frames held out of "
+        f"the reference (every {f.get('folds', '?')}th frame, the {f.get('gap', '?')} frames either side left out "
+        f"of the reference). `{u['score']}` is the score PlaceClassifier uses.\n"
+    )
+    return "\n".join(lines) + "\n" + note
 
 
 _BASELINE_COLUMNS = {

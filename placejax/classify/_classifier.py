@@ -477,9 +477,11 @@ class PlaceClassifier:
             for m in ("rgb", "hha"):  # the HHA net may read its own trunk (vgg.hha_weights)
                 params[m] = {"trunk": _pretrained_trunk(cfg["vgg"], m), "classifier": params[m]["classifier"]}
         score = unknown.DEFAULT_SCORE
+        if score in unknown.FEATURE_SCORES and files.embeddings is None:
+            score = "msp"  # a run from before the feature scores saved no embeddings: its classifiers used msp
         thr = files.unknown.get(score, {})
         if score in unknown.FEATURE_SCORES:
-            if files.embeddings is None or not Path(files.embeddings).is_file() or "threshold" not in thr:
+            if not Path(files.embeddings).is_file() or "threshold" not in thr:
                 raise FileNotFoundError(
                     f"the run in {files.workdir} has no training embeddings or no {score} threshold for "
                     f"{train_session} (a run older than the feature-space unseen-place scores): rerun it"

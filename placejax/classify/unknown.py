@@ -40,6 +40,7 @@ __all__ = [
     "KNN_KS",
     "SCORES",
     "auroc",
+    "can_fit_feature_detector",
     "detection_metrics",
     "feature_score",
     "fit_feature_detector",
@@ -63,8 +64,10 @@ FEATURE_SCORES = (*(f"knn{k}" for k in KNN_KS), "mahalanobis")
 """The names :func:`feature_score` knows: scores of the fused embedding."""
 ALL_SCORES = SCORES + FEATURE_SCORES
 """Every per-frame unseen-place score."""
-DEFAULT_SCORE = "msp"
-"""The score a classifier's rejection threshold is fitted on."""
+DEFAULT_SCORE = "knn1"
+"""The score ``PlaceClassifier`` uses. Chosen on world 1 by the rule of docs/route.md (written before its figures):
+the highest mean AUROC among the scores rejecting ≤ 25 % of seen-place frames (knn1: 0.645, 3.1 % of seen and
+6.3 % of unseen frames rejected; msp 0.589 and 83.8 %)."""
 DEFAULT_TARGET_FRR = 0.05
 """The share of the training session's own frames the threshold rejects."""
 
@@ -266,15 +269,21 @@ def fit_mahalanobis(embeddings, labels, *, shrinkage: float | None = None) -> di
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"shrinkage must be in [0, 1], got {alpha}")
     alpha = max(alpha, 1e-3)
-    # Eigenvectors of S = zᵀz / n from the SVD of z: S's non-zero spectrum is s² / n.
-    _, sv, vt = np.linalg.svd(z, full_matrices=False)
-    nz = sv > sv.max() * 1e-10
+    # Eigenvectors of S = zᵀz / n, from the smaller of the D × D and N × N symmetric problems (eigh: LAPACK's SVD
+    # of a float64 1098 × 1024 matrix of fc7 embeddings did not converge on world 1).
+    if d <= n:
+        ev, vecs = np.linalg.eigh(z.T @ z)  # (D,), (D, D) columns
+        basis = vecs.T
+    else:
+        ev, u = np.linalg.eigh(z @ z.T)  # (N,), (N, N): zᵀu / sqrt(ev) are the eigenvectors of zᵀz
+        basis = (z.T @ u / np.sqrt(np.maximum(ev, 1e-300))).T
+    nz = ev > ev.max() * 1e-10
     floor = alpha * mu
     return {
         "means": means.astype(np.float32),
         "classes": classes.astype(np.int32),
-        "basis": vt[nz].astype(np.float32),
-        "variances": ((1.0 - alpha) * sv[nz] ** 2 / n + floor).astype(np.float32),
+        "basis": basis[nz].astype(np.float32),
+        "variances": ((1.0 - alpha) * ev[nz] / n + floor).astype(np.float32),
         "floor": np.asarray(floor, np.float32),
         "shrinkage": np.asarray(alpha, np.float32),
     }
@@ -381,6 +390,18 @@ def held_out_feature_scores(score: str, embeddings, labels, folds=None) -> np.nd
     if np.isnan(out).any():
         raise ValueError("the folds do not hold out every frame")
     return out
+
+
+def can_fit_feature_detector(score: str, labels, folds=None) -> bool:
+    """Whether :func:`fit_feature_detector` applies to a training session with ``labels`` (int ``(N,)``, time
+    order): every reference of the held-out folds has at least k frames (``knn<k>``), or a class with two labelled
+    frames (``mahalanobis``: a within-class covariance). Small sessions (the smoke preset) fail some."""
+    y = np.asarray(labels)
+    folds = held_out_folds(len(y)) if folds is None else folds
+    refs = [ref for _, ref in folds] + [np.arange(len(y))]
+    if score == "mahalanobis":
+        return all((np.bincount(y[r][y[r] >= 0]) >= 2).any() if (y[r] >= 0).any() else False for r in refs)
+    return all(len(r) >= _knn_k(score) for r in refs)
 
 
 def fit_feature_detector(
