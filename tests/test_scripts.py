@@ -1,8 +1,8 @@
 """Every command-line script runs on a tiny setting and writes its output: ``python -m`` as a user types it.
 
-The experiments' diagnostics, ``python -m placejax.data.simcampus`` and every benchmark but ``nclt_rehearsal`` (the
-paper preset at full size on fake NCLT trees: over 10 minutes at its smallest; its projection is tested in
-``test_nclt_rehearsal.py``) are run in a subprocess, so that a refactor of what they import cannot break them
+The experiments' diagnostics, ``python -m placejax.data.simcampus`` and every benchmark but ``nclt_rehearsal`` (its
+full-size run takes over 10 minutes; ``test_nclt_rehearsal.py`` runs its ``--quick`` mode end to end and checks its
+projection) are run in a subprocess, so that a refactor of what they import cannot break them
 silently. The benchmarks run from a copy of the
 ``benchmarks`` package in a temporary folder, so that their ``benchmarks/results/*.json`` land there and never over
 a developer's own measurements. Each check compares the output with something the test computes itself where the

@@ -214,6 +214,10 @@ def test_can_fit_feature_detector_says_when_a_session_is_too_small():
     assert not unknown.can_fit_feature_detector("knn50", labels[:60])  # a fold's reference < 50 frames
     assert unknown.can_fit_feature_detector("mahalanobis", labels)
     assert not unknown.can_fit_feature_detector("mahalanobis", np.arange(40))  # one frame per class
+    # So few frames that a purged fold has no reference frame: not applicable, not an error.
+    with pytest.raises(ValueError, match="no reference frame"):
+        unknown.held_out_folds(4)
+    assert not unknown.can_fit_feature_detector("knn1", np.zeros(4, int))
     for score, y in (("knn50", labels[:60]), ("mahalanobis", np.arange(40))):
         with pytest.raises(ValueError):
             unknown.fit_feature_detector(score, np.random.default_rng(0).normal(size=(len(y), 3)), y)

@@ -397,7 +397,11 @@ def can_fit_feature_detector(score: str, labels, folds=None) -> bool:
     order): every reference of the held-out folds has at least k frames (``knn<k>``), or a class with two labelled
     frames (``mahalanobis``: a within-class covariance). Small sessions (the smoke preset) fail some."""
     y = np.asarray(labels)
-    folds = held_out_folds(len(y)) if folds is None else folds
+    if folds is None:
+        try:
+            folds = held_out_folds(len(y))
+        except ValueError:  # too few frames for the purged folds (a fold with no reference frame)
+            return False
     refs = [ref for _, ref in folds] + [np.arange(len(y))]
     if score == "mahalanobis":
         return all((np.bincount(y[r][y[r] >= 0]) >= 2).any() if (y[r] >= 0).any() else False for r in refs)
