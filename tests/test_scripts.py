@@ -60,6 +60,42 @@ def _bench(root: Path, name: str, *args: str, result: str | None = None) -> tupl
 # ---------------------------------------------------------------------------------------------------- experiments
 
 
+def _fake_results(workdir: Path, rgb: float, hha: float, ours: float, nn_gradient: float, nn_hha: float) -> Path:
+    """A ``results.json`` with the fields ``experiments.lookup_gap`` reads (fractions, as a run writes them)."""
+    workdir.mkdir(parents=True)
+    results = {
+        "mean": {"rgb_net": rgb, "hha_net": hha, "ours": ours, "average": (rgb + hha) / 2},
+        "ceilings_and_baselines": {"nn_rgb": 0.10, "nn_gradient": nn_gradient, "nn_hha": nn_hha, "nn_hha_true": 0.9},
+        "timings_s": {"total": 123.0},
+    }
+    (workdir / "results.json").write_text(json.dumps(results))
+    return workdir
+
+
+def test_lookup_gap(tmp_path):
+    """``python -m experiments.lookup_gap``: the rule's margins and score by hand, its rows and its figure; the
+    oracle column (1-NN on rendered depth, 0.9 here) is never the one the fusion has to beat."""
+    a = _fake_results(tmp_path / "a", rgb=0.20, hha=0.25, ours=0.30, nn_gradient=0.22, nn_hha=0.24)
+    b = _fake_results(tmp_path / "b", rgb=0.26, hha=0.27, ours=0.31, nn_gradient=0.22, nn_hha=0.28)
+    out = _run(["-m", "experiments.lookup_gap", "--out", "fig", f"size:64={a}", f"size:96={b}", f"jitter:0={a}"],
+               cwd=tmp_path)
+    rows = json.loads((tmp_path / "fig" / "lookup_gap.json").read_text())["rows"]
+    assert [(r["lever"], r["value"]) for r in rows] == [("size", 64), ("size", 96), ("jitter", 0)]
+    # a: m_rgb = 20 − 22 = −2, m_hha = 25 − 24 = +1, m_fus = 30 − max(20, 25, 22.5, 10, 22, 24) = +5 → score −2.
+    assert rows[0]["m_rgb"] == pytest.approx(-2) and rows[0]["m_hha"] == pytest.approx(1)
+    assert rows[0]["m_fus"] == pytest.approx(5) and rows[0]["score"] == pytest.approx(-2)
+    # b: +4, −1, 31 − 28 = +3 → −1.
+    assert rows[1]["score"] == pytest.approx(-1) and rows[1]["m_fus"] == pytest.approx(3)
+    assert "| size | 96 |" in out and rows[1]["total_s"] == 123.0
+    assert cv2.imread(str(tmp_path / "fig" / "lookup_gap.png")) is not None
+    bad = subprocess.run([sys.executable, "-m", "experiments.lookup_gap", "--out", "fig", f"size={a}"],
+                         cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True)
+    assert bad.returncode != 0 and "LEVER:VALUE=WORKDIR" in bad.stderr
+    missing = subprocess.run([sys.executable, "-m", "experiments.lookup_gap", "--out", "fig", f"size:1={tmp_path}"],
+                             cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True)
+    assert missing.returncode != 0 and "no results.json" in missing.stderr
+
+
 @pytest.mark.slow
 def test_calibrate_world(tmp_path):
     """RGB-only calibration on 10 frames per season: 12 pairs, the mean row is the mean of the pairs, and the seen-
