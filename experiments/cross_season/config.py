@@ -4,8 +4,8 @@ Presets:
     smoke: the default's path at toy scale — SimCampus, 4 seasons with a frame every 40 m (45–60 frames) at
         64×64, a 3×3 grid, the shipped frozen trunk (fc6–fc8 trained on cached features, 30 epochs of ~3 steps),
         rendered depth, 2 seeds; a couple of minutes at most on 2 CPU cores. Used by the tests.
-    default: SimCampus, 4 seasons at 64×64 (a frame every 2 m of travel, ~900–1200 per season; the trunk's last
-        map is 2×2, so fc6 sees spatial layout), the 10×10 grid, the paper's recipe with the ImageNet stand-in:
+    default: SimCampus, 4 seasons at 96×96 (a frame every 1 m of travel, ~1,800–2,400 per season; the trunk's
+        last map is 3×3, so fc6 sees spatial layout; size and spacing chosen on world 1, docs/lookup-gap.md), the 10×10 grid, the paper's recipe with the ImageNet stand-in:
         the VGG16 trunk at 1/8 width pretrained on other SimCampus worlds (``placejax.pretrain``, shipped with
         the package; the HHA net's trunk pretrained on HHA images of those worlds) frozen, its conv features
         cached once per session, fc6–fc8 trained (AdamW 3e-4, 30
@@ -119,9 +119,9 @@ def _base() -> ml_collections.ConfigDict:
     c.data = dict(
         source="simcampus",
         sessions=("WI", "SP", "SU", "AU"),
-        image_size=(64, 64),
+        image_size=(96, 96),
         world_seed=0,
-        frame_spacing=2.0,
+        frame_spacing=1.0,
         max_frames=0,
         nclt_root="",
         camera=5,
@@ -227,6 +227,7 @@ def get_config(preset: str = "default") -> ml_collections.ConfigDict:
         # A frame every 40 m covers each season's whole route in ~50 frames, so sessions share places. The
         # default's path (shipped frozen trunk at 64², fc6–fc8 on cached features) with one seed.
         c.data.frame_spacing = 40.0
+        c.data.image_size = (64, 64)
         c.grid.n = 3
         c.depth.source = "true"
         c.n_seeds = 2
