@@ -172,16 +172,21 @@ def bench_copy(tmp_path) -> Path:
     return tmp_path
 
 
-def test_too_few_frames_for_the_batches_stop_before_anything_runs(bench_copy):
-    done = subprocess.run(
-        [sys.executable, "-m", "benchmarks.nclt_rehearsal", "--frames", "4", "5"],
+def _rehearse(bench_copy: Path, *args: str, timeout: float) -> subprocess.CompletedProcess:
+    """``python -m benchmarks.nclt_rehearsal ARGS`` from the copy, output captured, never raising on its exit code."""
+    return subprocess.run(
+        [sys.executable, "-m", "benchmarks.nclt_rehearsal", *args],
         cwd=bench_copy,
         env=_script_env(bench_copy),
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=timeout,
         check=False,
     )
+
+
+def test_too_few_frames_for_the_batches_stop_before_anything_runs(bench_copy):
+    done = _rehearse(bench_copy, "--frames", "4", "5", timeout=300)
     assert done.returncode == 2, done.stderr[-2000:]
     assert "--frames 4 is too small for the run's batches" in done.stderr
     assert "train.batch_size=64 exceeds the 2 kept frames" in done.stderr
@@ -195,15 +200,7 @@ def test_quick_run_end_to_end(bench_copy):
     a child per size, tables, the NN timing, the projection, the record) on tiny settings. The record's fields
     exist and are finite, the run used the quick settings, and its projection is the arithmetic of
     ``project`` on its own measurements; the output says it is not a projection of the real run."""
-    done = subprocess.run(
-        [sys.executable, "-m", "benchmarks.nclt_rehearsal", "--quick"],
-        cwd=bench_copy,
-        env=_script_env(bench_copy),
-        capture_output=True,
-        text=True,
-        timeout=600,
-        check=False,
-    )
+    done = _rehearse(bench_copy, "--quick", timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     out = done.stdout
     assert out.count(QUICK_NOTE) >= 3  # before the run, above the projection, after the last line
