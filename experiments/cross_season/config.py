@@ -4,14 +4,14 @@ Presets:
     smoke: the default's path at toy scale — SimCampus, 4 seasons with a frame every 40 m (45–60 frames) at
         64×64, a 3×3 grid, the shipped frozen trunk (fc6–fc8 trained on cached features, 30 epochs of ~3 steps),
         rendered depth, 2 seeds; a couple of minutes at most on 2 CPU cores. Used by the tests.
-    default: SimCampus, 4 seasons at 96×96 (a frame every 1 m of travel, ~1,800–2,400 per season; the trunk's
-        last map is 3×3, so fc6 sees spatial layout; size and spacing chosen on world 1, docs/lookup-gap.md), the 10×10 grid, the paper's recipe with the ImageNet stand-in:
-        the VGG16 trunk at 1/8 width pretrained on other SimCampus worlds (``placejax.pretrain``, shipped with
-        the package; the HHA net's trunk pretrained on HHA images of those worlds) frozen, its conv features
-        cached once per session, fc6–fc8 trained (AdamW 3e-4, 30
-        epochs; chosen on world 1, never on the evaluation campus: RGB-Net cross-season mean 17.0 % vs 16.4 %
-        at 12 epochs, 16.9 % at 1e-3, 16.5 % with weight decay 0.05, 10.1 % with dropout 0.5), 3 seeds of every
-        net and MLP, the placejax-trained depth network as depth source.
+    default: SimCampus, 4 seasons at 96×96 (a frame every 1 m of travel, ~1,800–2,400 per season; the trunk's last
+        map is 3×3, so fc6 sees spatial layout; size and spacing chosen on world 1, docs/lookup-gap.md), the 10×10
+        grid, the paper's recipe with the ImageNet stand-in: the VGG16 trunk at 1/8 width pretrained on other
+        SimCampus worlds (``placejax.pretrain``, shipped with the package; the HHA net's trunk pretrained on HHA
+        images of those worlds) frozen, its conv features cached once per session, fc6–fc8 trained (AdamW 3e-4, 30
+        epochs; chosen on world 1, never on the evaluation campus: RGB-Net cross-season mean 17.0 % vs 16.4 % at 12
+        epochs, 16.9 % at 1e-3, 16.5 % with weight decay 0.05, 10.1 % with dropout 0.5), 3 seeds of every net and
+        MLP, the placejax-trained depth network as depth source.
     paper: NCLT 2012-01-22 / 03-31 / 08-04 / 11-17, Cam5, 256×256, ImageNet VGG16 at full width with frozen
         convolutions (features cached, fc6–fc8 trained), the official MiDaS v2.1 small, 100 classes, fusion MLP
         8192 → 1024 → 100 (paper §IV).
