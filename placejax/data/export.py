@@ -34,7 +34,7 @@ __all__ = [
 # that the two agree.
 SIMCAMPUS_RENDER_PRESETS: dict[str, dict] = {
     "smoke": {"world_seed": 0, "image_size": (64, 64), "frame_spacing": 40.0, "max_frames": 0},
-    "default": {"world_seed": 0, "image_size": (64, 64), "frame_spacing": 2.0, "max_frames": 0},
+    "default": {"world_seed": 0, "image_size": (96, 96), "frame_spacing": 1.0, "max_frames": 0},
 }
 """Preset → how ``python -m placejax.data.simcampus export`` renders the campus (the experiment's data presets)."""
 
