@@ -3,9 +3,10 @@
 import numpy as np
 import pytest
 
-from experiments.cross_season.config import apply_overrides, get_config, validate
+from experiments.cross_season.config import apply_overrides, get_config, leaf_keys, validate
 from experiments.cross_season.keys import results_only
 from experiments.cross_season.nets import modality_jitter
+from experiments.overrides import get
 from placejax.data import ViewJitter, jittered_copies, jittered_view
 
 
@@ -84,3 +85,13 @@ def test_experiment_settings():
     apply_overrides(c, ["train.jitter_shift=0.7"])
     with pytest.raises(ValueError, match=r"train.jitter_\*"):
         validate(c)
+
+
+def test_large_is_the_default_with_two_jittered_copies():
+    """``--preset large`` differs from the default in the jittered copies alone (docs/lookup-gap.md, round 2)."""
+    default, large = get_config("default"), get_config("large")
+    validate(large)
+    differ = {k for k in leaf_keys(default) if get(default, k) != get(large, k)}
+    assert differ == {"preset", "train.jitter_copies"}
+    assert large.train.jitter_copies == 2 and default.train.jitter_copies == 0
+
