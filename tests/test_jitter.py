@@ -94,4 +94,3 @@ def test_large_is_the_default_with_two_jittered_copies():
     differ = {k for k in leaf_keys(default) if get(default, k) != get(large, k)}
     assert differ == {"preset", "train.jitter_copies"}
     assert large.train.jitter_copies == 2 and default.train.jitter_copies == 0
-
