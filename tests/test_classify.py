@@ -20,7 +20,7 @@ from experiments.cross_season import apply_overrides, get_config, run
 from experiments.cross_season.context import Context
 from experiments.cross_season.depth_hha import compute_depth_and_hha, depth_source
 from experiments.cross_season.fusion import train_mlp
-from experiments.cross_season.nets import net_outputs, train_nets
+from experiments.cross_season.nets import net_outputs, train_nets, training_labels
 from experiments.cross_season.sessions import fit_grid, load_sessions
 from placejax.classify import ArtefactError, PlaceClassifier, run_layout, unknown
 from placejax.classify.__main__ import main as classify_main
@@ -86,7 +86,9 @@ def experiment_outputs(smoke_run):
     }
     emb = np.concatenate([out[("rgb", TRAIN)]["fc7"], out[("hha", TRAIN)]["fc7"]], 1)
     upstream = {m: cache_digest(nets[(TRAIN, m)].key) for m in ("rgb", "hha")}
-    state, prepare, _ = train_mlp(ctx, tr, emb, grid.num_classes, 0, upstream)
+    sizes = (out[("rgb", TRAIN)]["fc7"].shape[1], out[("hha", TRAIN)]["fc7"].shape[1])
+    labels = training_labels(cfg, tr, 0)
+    state, prepare, _ = train_mlp(ctx, tr, emb, labels, sizes, grid.num_classes, 0, upstream)
     result = {}
     for s in sessions:
         e = np.concatenate([out[("rgb", s.name)]["fc7"], out[("hha", s.name)]["fc7"]], 1)
@@ -523,3 +525,47 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_r
     got = experiment_depth(session, 0, 8)
     np.testing.assert_array_equal(got, far_to_sky(experiment_plain(session, 0, 8), threshold))
     assert 0.2 < (got == 1000.0).mean() < 0.8
+
+
+def test_fusion_head_options_train_on_the_copies(smoke_run, tmp_path, monkeypatch):
+    """Round 3's head options (docs/lookup-gap.md) in the experiment: with ``mlp.jittered`` the MLP trains on the
+    originals' embeddings and then the jittered copies' (copy-major, labels tiled), the copies' fc7 being the
+    nets' own on their cached jittered features; the options enter the MLP's key only when on."""
+    from experiments.cross_season import fusion
+    from experiments.cross_season.keys import results_only
+    from experiments.cross_season.nets import jittered_fc7
+
+    cfg, workdir, _ = smoke_run
+    shutil.copytree(workdir, tmp_path / "run")
+    plain = cfg.copy_and_resolve_references()
+    assert not {"input_dropout", "modality_dropout", "jittered"} & set(results_only(plain.mlp))
+    cfg = cfg.copy_and_resolve_references()
+    apply_overrides(cfg, ["train.jitter_copies=1", "mlp.jittered=True", "mlp.modality_dropout=0.25"])
+    assert results_only(cfg.mlp)["modality_dropout"] == 0.25 and results_only(cfg.mlp)["jittered"] is True
+    ctx = Context(config=cfg, workdir=tmp_path / "run", mesh=data_mesh(None))
+    sessions = load_sessions(ctx)
+    grid = fit_grid(ctx, sessions)
+    compute_depth_and_hha(ctx, sessions)
+    seen = []
+    original = fusion.train_classifier
+
+    def recording(ctx, name, fn, params, frames, labels, *args, **kwargs):
+        seen.append((np.asarray(frames), np.asarray(labels)))
+        return original(ctx, name, fn, params, frames, labels, *args, **kwargs)
+
+    monkeypatch.setattr(fusion, "train_classifier", recording)
+    nets, outputs, fused, _ = fusion.train_and_predict(ctx, sessions, grid.num_classes, cfg.seed)
+    tr = {s.name: s for s in sessions}[TRAIN]
+    frames, labels = seen[0]
+    n = len(tr)
+    assert frames.shape[0] == 2 * n and np.array_equal(labels, np.tile(tr.labels, 2))
+    for half, m in enumerate(("rgb", "hha")):
+        d = outputs[(TRAIN, m, TRAIN)]["fc7"].shape[1]
+        cols = slice(half * d, (half + 1) * d)
+        np.testing.assert_array_equal(frames[:n, cols], outputs[(TRAIN, m, TRAIN)]["fc7"])
+        copies = jittered_fc7(ctx, nets[(TRAIN, m)], tr)
+        np.testing.assert_array_equal(frames[n:, cols], copies)
+        assert not np.allclose(copies, frames[:n, cols])  # the copies are other views
+    for (_, t), logits in fused.items():
+        assert logits.shape == (len({x.name: x for x in sessions}[t]), grid.num_classes)
+        assert np.all(np.isfinite(logits))

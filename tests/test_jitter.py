@@ -94,3 +94,20 @@ def test_large_is_the_default_with_two_jittered_copies():
     differ = {k for k in leaf_keys(default) if get(default, k) != get(large, k)}
     assert differ == {"preset", "train.jitter_copies"}
     assert large.train.jitter_copies == 2 and default.train.jitter_copies == 0
+
+
+def test_fusion_head_settings_are_checked():
+    c = get_config("default")
+    assert (c.mlp.input_dropout, c.mlp.modality_dropout, c.mlp.jittered) == (0.0, 0.0, False)
+    for bad, message in (
+        ("mlp.modality_dropout=0.6", r"mlp.modality_dropout=0.6: at most 0.5"),
+        ("mlp.input_dropout=1.0", r"mlp.input_dropout=1.0: a dropout rate must be < 1"),
+        ("mlp.input_dropout=-0.1", r"mlp.input_dropout=-0.1: expected a finite number >= 0"),
+        ("mlp.jittered=True", r"mlp.jittered needs train.jitter_copies > 0"),
+    ):
+        c = get_config("default")
+        apply_overrides(c, [bad])
+        with pytest.raises(ValueError, match=message):
+            validate(c)
+    apply_overrides(c, ["train.jitter_copies=2"])
+    validate(c)

@@ -214,6 +214,43 @@ def test_fusion_mlp_matches_numpy_and_dropout():
         model.apply(variables, jnp.zeros((3, 4, 6)))
 
 
+def test_fusion_mlp_modality_dropout_drops_at_most_one_block_and_rescales():
+    """With a hidden layer that copies its input (identity kernel, zero bias) and an identity output layer, the
+    training-time logits are the dropped-and-rescaled embeddings themselves: every row is either the input ×
+    1/(1 − p) with one block zeroed, or the whole input × 1/(1 − p); each block is dropped in ~p of the rows."""
+    p, n = 0.25, 4000
+    model = FusionMLP(num_classes=6, hidden=6, modality_sizes=(2, 4), modality_dropout=p)
+    x = jnp.abs(jax.random.normal(jax.random.key(0), (n, 6))) + 0.5  # positive: ReLU passes it unchanged
+    eye = {"kernel": jnp.eye(6), "bias": jnp.zeros(6)}
+    variables = {"params": {"hidden": eye, "out": eye}}
+    assert jax.tree.map(jnp.shape, model.init(jax.random.key(1), x)["params"]) == jax.tree.map(
+        jnp.shape, variables["params"]
+    )  # the dropouts add no parameter: a head trained with them loads into a plain FusionMLP
+    np.testing.assert_allclose(model.apply(variables, x), x, rtol=1e-6)  # evaluation: untouched
+    y = np.asarray(model.apply(variables, x, train=True, rngs={"dropout": jax.random.key(2)}))
+    scaled = np.asarray(x) / (1 - p)
+    first = np.all(y[:, :2] == 0, axis=1)
+    second = np.all(y[:, 2:] == 0, axis=1)
+    assert not np.any(first & second)
+    for rows, keep in ((first, slice(2, 6)), (second, slice(0, 2)), (~first & ~second, slice(0, 6))):
+        np.testing.assert_allclose(y[rows][:, keep], scaled[rows][:, keep], rtol=1e-5)
+    sd = np.sqrt(p * (1 - p) / n)
+    assert abs(first.mean() - p) < 4 * sd and abs(second.mean() - p) < 4 * sd
+    with pytest.raises(ValueError, match="do not add up"):
+        FusionMLP(num_classes=6, hidden=6, modality_sizes=(2, 3), modality_dropout=p).apply(
+            variables, x, train=True, rngs={"dropout": jax.random.key(2)}
+        )
+    with pytest.raises(ValueError, match=r"must lie in \[0, 1\]"):
+        FusionMLP(num_classes=6, hidden=6, modality_sizes=(2, 4), modality_dropout=0.6).apply(
+            variables, x, train=True, rngs={"dropout": jax.random.key(2)}
+        )
+    drop_in = FusionMLP(num_classes=6, hidden=6, input_dropout_rate=0.5)
+    z = np.asarray(drop_in.apply(variables, x, train=True, rngs={"dropout": jax.random.key(3)}))
+    kept = z != 0
+    np.testing.assert_allclose(z[kept], 2 * np.asarray(x)[kept], rtol=1e-5)
+    assert abs(kept.mean() - 0.5) < 0.02
+
+
 @pytest.mark.parametrize("hw", [(32, 32), (64, 64), (96, 64), (100, 131), (224, 224), (256, 256)])
 def test_fold_adaptive_pool_same_outputs(tiny_vgg, hw):
     """fc6 on the unpooled map with the folded kernel == fc6 on the 7×7 pooled map, at sizes whose last map

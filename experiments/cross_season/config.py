@@ -87,6 +87,10 @@ HELP: dict[str, str] = {
     "train.shuffle_labels": "control: train every net and MLP on its session's labels permuted across frames",
     "mlp.hidden": "hidden units of the fusion MLP (1024 in the paper)",
     "mlp.dropout": "dropout on the MLP hidden layer",
+    "mlp.input_dropout": "dropout on the MLP's concatenated input embeddings (docs/lookup-gap.md, round 3)",
+    "mlp.modality_dropout": "probability per training example of dropping its RGB (and, separately, its HHA) "
+    "embedding, the other scaled up (ModDrop; at most 0.5)",
+    "mlp.jittered": "with train.jitter_copies: the MLP also trains on the embeddings of the jittered copies",
     "mlp.epochs": "epochs of the fusion MLP",
     "mlp.batch_size": "fusion MLP batch",
     "mlp.learning_rate": "fusion MLP peak learning rate",
@@ -185,6 +189,9 @@ def _base() -> ml_collections.ConfigDict:
     c.mlp = dict(
         hidden=1024,
         dropout=0.0,
+        input_dropout=0.0,
+        modality_dropout=0.0,
+        jittered=False,
         epochs=20,
         batch_size=64,
         learning_rate=1e-3,
@@ -311,7 +318,8 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
         v = get(c, key)
         if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
             errors.append(f"{key}={v!r}: expected a finite positive number")
-    for key in ("train.weight_decay", "mlp.weight_decay", "vgg.dropout", "mlp.dropout", "depth.far_as_sky_m"):
+    nonnegative = ("train.weight_decay", "mlp.weight_decay", "vgg.dropout", "mlp.dropout", "mlp.input_dropout")
+    for key in (*nonnegative, "mlp.modality_dropout", "depth.far_as_sky_m"):
         v = get(c, key)
         if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
             errors.append(f"{key}={v!r}: expected a finite number >= 0")
@@ -331,9 +339,18 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> None
     v = get(c, "route.block_frames")
     if isinstance(v, bool) or not isinstance(v, int) or v < 1:
         errors.append(f"route.block_frames={v!r}: expected a positive int")
-    for key in ("vgg.dropout", "mlp.dropout"):
+    for key in ("vgg.dropout", "mlp.dropout", "mlp.input_dropout"):
         if isinstance(get(c, key), int | float) and get(c, key) >= 1:
             errors.append(f"{key}={get(c, key)!r}: a dropout rate must be < 1")
+    if isinstance(get(c, "mlp.modality_dropout"), int | float) and get(c, "mlp.modality_dropout") > 0.5:
+        errors.append(
+            f"mlp.modality_dropout={get(c, 'mlp.modality_dropout')!r}: at most 0.5 (one of the two embeddings is "
+            "dropped per example, each with this probability)"
+        )
+    if not isinstance(get(c, "mlp.jittered"), bool):
+        errors.append(f"mlp.jittered={get(c, 'mlp.jittered')!r}: expected True or False")
+    elif get(c, "mlp.jittered") and not get(c, "train.jitter_copies"):
+        errors.append("mlp.jittered needs train.jitter_copies > 0 (it trains on the copies' embeddings)")
     from placejax.depth import validate_shifts
 
     try:

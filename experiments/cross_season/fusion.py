@@ -11,7 +11,14 @@ import numpy as np
 
 from experiments.cross_season.context import Context, SessionData, seed_context
 from experiments.cross_season.keys import results_only
-from experiments.cross_season.nets import features_prepare, net_outputs, train_classifier, train_nets, training_labels
+from experiments.cross_season.nets import (
+    features_prepare,
+    jittered_fc7,
+    net_outputs,
+    train_classifier,
+    train_nets,
+    training_labels,
+)
 from placejax.classify.run_layout import MLP_DIR
 from placejax.data import eval_dataset
 from placejax.data.cache import cache_digest
@@ -19,16 +26,38 @@ from placejax.models import FusionMLP
 from placejax.training import apply_fn, predict
 
 
-def train_mlp(ctx: Context, s: SessionData, embeddings: np.ndarray, num_classes: int, si: int, upstream: dict):
-    """The fusion MLP (paper §III-D) on the training session's concatenated fc7 pairs; orbax-checkpointed."""
+def fusion_model(config, num_classes: int, modality_sizes: tuple[int, ...]) -> FusionMLP:
+    """The fusion MLP of a run's ``mlp`` section (its dropouts act in training only)."""
+    m = config.mlp
+    return FusionMLP(
+        num_classes=num_classes,
+        hidden=m.hidden,
+        dropout_rate=m.dropout,
+        input_dropout_rate=m.input_dropout,
+        modality_sizes=tuple(modality_sizes),
+        modality_dropout=m.modality_dropout,
+    )
+
+
+def train_mlp(
+    ctx: Context,
+    s: SessionData,
+    embeddings: np.ndarray,
+    labels: np.ndarray,
+    modality_sizes: tuple[int, ...],
+    num_classes: int,
+    si: int,
+    upstream: dict,
+):
+    """The fusion MLP (paper §III-D) on the training session's concatenated fc7 pairs (``labels`` theirs: with
+    ``mlp.jittered``, the originals' then the jittered copies'); orbax-checkpointed."""
     cfg = ctx.config
-    model = FusionMLP(num_classes=num_classes, hidden=cfg.mlp.hidden, dropout_rate=cfg.mlp.dropout)
+    model = fusion_model(cfg, num_classes, modality_sizes)
     key = jax.random.fold_in(jax.random.key(cfg.seed), 10_000 + si)
     init_key, run_key = jax.random.split(key)
     params = model.init(init_key, jnp.zeros((1, embeddings.shape[1])))["params"]
     mlp_key = {"mlp": results_only(cfg.mlp), "upstream": upstream, "seed": cfg.seed}
     folder = ctx.workdir / MLP_DIR / f"{s.name}-{cache_digest(mlp_key)}"
-    labels = training_labels(cfg, s, si)
     state = train_classifier(
         ctx,
         f"MLP {s.name}",
@@ -58,9 +87,16 @@ def train_and_predict(ctx: Context, sessions: list[SessionData], num_classes: in
     mlp_dirs: dict[str, Path] = {}
     with ctx.timed("mlp"):
         for si, s in enumerate(sessions):
-            emb = np.concatenate([outputs[(s.name, "rgb", s.name)]["fc7"], outputs[(s.name, "hha", s.name)]["fc7"]], 1)
+            rgb, hha = (outputs[(s.name, m, s.name)]["fc7"] for m in ("rgb", "hha"))
+            emb, labels = np.concatenate([rgb, hha], 1), training_labels(cfg, s, si)
+            if cfg.mlp.jittered:
+                # The copies' embeddings: the nets trained on these views, but not memorised them as the originals.
+                copies = np.concatenate([jittered_fc7(ctx, nets[(s.name, m)], s) for m in ("rgb", "hha")], 1)
+                emb = np.concatenate([emb, copies])
+                labels = np.tile(labels, cfg.train.jitter_copies + 1)
             upstream = {m: cache_digest(nets[(s.name, m)].key) for m in ("rgb", "hha")}
-            state, prepare, mlp_dirs[s.name] = train_mlp(ctx, s, emb, num_classes, si, upstream)
+            sizes = (rgb.shape[1], hha.shape[1])
+            state, prepare, mlp_dirs[s.name] = train_mlp(ctx, s, emb, labels, sizes, num_classes, si, upstream)
             for t in sessions:
                 emb_t = np.concatenate(
                     [outputs[(s.name, "rgb", t.name)]["fc7"], outputs[(s.name, "hha", t.name)]["fc7"]], 1

@@ -20,14 +20,19 @@ def weights_identity(path: str, registry_name: str) -> dict:
     return identity(path, default=f"registry:{registry_name}")
 
 
+# Options added after caches keyed without them existed: absent from a key while off (0 / False).
+_NEWER_OFF_BY_DEFAULT = ("input_dropout", "modality_dropout", "jittered")
+
+
 def results_only(section: ml_collections.ConfigDict) -> dict:
-    """A config section without the keys that change no result, for cache keys: checkpoint intervals, and the
-    ``jitter_*`` magnitudes when ``jitter_copies`` is 0 (so runs without copies keep the keys they had before the
-    copies existed)."""
+    """A config section without the keys that change no result, for cache keys: checkpoint intervals, the
+    ``jitter_*`` magnitudes when ``jitter_copies`` is 0, and the fusion MLP's round-3 options while off (so runs
+    without them keep the keys they had before they existed)."""
     out = {k: v for k, v in section.to_dict().items() if k != "save_every"}
     if not out.get("jitter_copies", 1):
         out = {k: v for k, v in out.items() if not k.startswith("jitter_")}
-    return out
+    return {k: v for k, v in out.items() if not (k in _NEWER_OFF_BY_DEFAULT and not v)}
+
 
 
 def params_digest(params: Any) -> str:

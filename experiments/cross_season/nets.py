@@ -114,6 +114,8 @@ class TrainedNet:
     inputs: Callable[[SessionData], np.ndarray]  # frames (or cached conv features) the net reads
     prepare: Callable[[dict], dict]
     key: dict
+    # With train.jitter_copies: the cached features of a session's jittered copies (copy-major), else None.
+    jittered: Callable[[SessionData], np.ndarray] | None = None
 
 
 def modality_jitter(config: ml_collections.ConfigDict, modality: str):
@@ -337,8 +339,32 @@ def train_nets(
                 # net retrained under the same recipe (its folder deleted, another device count: the sums of a
                 # step are grouped differently) must not meet the outputs of the one before.
                 identity = {**net_key, "ckpt": folder.name, "weights": params_digest(state.params)}
-                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, identity)
+                copies = None
+                if pretrained is not None and jittered is not None:
+
+                    def copies(t, jittered=jittered):
+                        return jittered[t.name].data
+
+                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, identity, copies)
     return nets
+
+
+def jittered_fc7(ctx: Context, net: TrainedNet, s: SessionData) -> np.ndarray:
+    """fc7 ``(copies · N, D)`` of ``net`` on the jittered copies of ``s`` (copy-major, as the net trained on them)."""
+    if net.jittered is None:
+        raise ValueError(f"{net.name}: no jittered copies (train.jitter_copies=0 or a net without cached features)")
+    frames = np.asarray(net.jittered(s))
+    ds = eval_dataset(frames, batch_size=ctx.config.eval.batch_size, shard=_WHOLE)
+    out = predict(
+        local_copy(net.state, ctx.local_mesh),
+        ds,
+        len(frames),
+        mesh=ctx.local_mesh,
+        prepare=net.prepare,
+        features=("fc7",),
+        progress=False,
+    )
+    return out["fc7"]
 
 
 def net_outputs(ctx: Context, net: TrainedNet, s: SessionData, num_classes: int) -> dict[str, np.ndarray]:
