@@ -34,7 +34,6 @@ def results_only(section: ml_collections.ConfigDict) -> dict:
     return {k: v for k, v in out.items() if not (k in _NEWER_OFF_BY_DEFAULT and not v)}
 
 
-
 def params_digest(params: Any) -> str:
     """16 hex digits of the SHA-256 of a parameter tree: every leaf's path, dtype, shape and bytes, in order."""
     h = hashlib.sha256()
