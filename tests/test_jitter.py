@@ -69,7 +69,7 @@ def test_bad_settings_and_images_are_refused():
 
 def test_experiment_settings():
     c = get_config("default")
-    assert c.train.jitter_copies == 0
+    apply_overrides(c, ["train.jitter_copies=0"])
     # Without copies the magnitudes do not enter the nets' keys (runs keep the keys they had before the copies).
     assert not any(k.startswith("jitter_") for k in results_only(c.train))
     apply_overrides(c, ["train.jitter_copies=2"])
@@ -87,17 +87,21 @@ def test_experiment_settings():
         validate(c)
 
 
-def test_large_is_the_default_with_two_jittered_copies():
-    """``--preset large`` differs from the default in the jittered copies alone (docs/lookup-gap.md, round 2)."""
-    default, large = get_config("default"), get_config("large")
+def test_large_is_the_default_with_three_times_the_steps():
+    """``--preset large`` differs from the default in the heads' epochs alone (docs/lookup-gap.md, round 3)."""
+    default, large, paper = get_config("default"), get_config("large"), get_config("paper")
+    validate(default)
     validate(large)
     differ = {k for k in leaf_keys(default) if get(default, k) != get(large, k)}
-    assert differ == {"preset", "train.jitter_copies"}
-    assert large.train.jitter_copies == 2 and default.train.jitter_copies == 0
+    assert differ == {"preset", "train.epochs"}
+    assert large.train.epochs == 3 * default.train.epochs
+    assert default.train.jitter_copies == 2 and default.mlp.input_dropout == 0.5
+    # The paper's recipe has neither.
+    assert paper.train.jitter_copies == 0 and paper.mlp.input_dropout == 0.0
 
 
 def test_fusion_head_settings_are_checked():
-    c = get_config("default")
+    c = get_config("smoke")
     assert (c.mlp.input_dropout, c.mlp.modality_dropout, c.mlp.jittered) == (0.0, 0.0, False)
     for bad, message in (
         ("mlp.modality_dropout=0.6", r"mlp.modality_dropout=0.6: at most 0.5"),
@@ -105,7 +109,7 @@ def test_fusion_head_settings_are_checked():
         ("mlp.input_dropout=-0.1", r"mlp.input_dropout=-0.1: expected a finite number >= 0"),
         ("mlp.jittered=True", r"mlp.jittered needs train.jitter_copies > 0"),
     ):
-        c = get_config("default")
+        c = get_config("smoke")
         apply_overrides(c, [bad])
         with pytest.raises(ValueError, match=message):
             validate(c)

@@ -353,9 +353,13 @@ def jittered_fc7(ctx: Context, net: TrainedNet, s: SessionData) -> np.ndarray:
     """fc7 ``(copies · N, D)`` of ``net`` on the jittered copies of ``s`` (copy-major, as the net trained on them)."""
     if net.jittered is None:
         raise ValueError(f"{net.name}: no jittered copies (train.jitter_copies=0 or a net without cached features)")
-    frames = np.asarray(net.jittered(s))
+    return _run_head(ctx, net, np.asarray(net.jittered(s)))["fc7"]
+
+
+def _run_head(ctx: Context, net: TrainedNet, frames: np.ndarray) -> dict[str, np.ndarray]:
+    """Logits and fc7 of ``net`` on ``frames`` (this process alone, on its own devices)."""
     ds = eval_dataset(frames, batch_size=ctx.config.eval.batch_size, shard=_WHOLE)
-    out = predict(
+    return predict(
         local_copy(net.state, ctx.local_mesh),
         ds,
         len(frames),
@@ -364,7 +368,6 @@ def jittered_fc7(ctx: Context, net: TrainedNet, s: SessionData) -> np.ndarray:
         features=("fc7",),
         progress=False,
     )
-    return out["fc7"]
 
 
 def net_outputs(ctx: Context, net: TrainedNet, s: SessionData, num_classes: int) -> dict[str, np.ndarray]:
@@ -375,16 +378,7 @@ def net_outputs(ctx: Context, net: TrainedNet, s: SessionData, num_classes: int)
 
     def compute(a: int, b: int) -> np.ndarray:
         # This process alone (whichever holds the cache's lock): every frame, on its own devices.
-        ds = eval_dataset(np.asarray(frames[a:b]), batch_size=cfg.eval.batch_size, shard=_WHOLE)
-        out = predict(
-            local_copy(net.state, ctx.local_mesh),
-            ds,
-            b - a,
-            mesh=ctx.local_mesh,
-            prepare=net.prepare,
-            features=("fc7",),
-            progress=False,
-        )
+        out = _run_head(ctx, net, np.asarray(frames[a:b]))
         return np.concatenate([out["logits"], out["fc7"]], axis=1)
 
     cache = build_array_cache(
