@@ -65,6 +65,11 @@ def test_smoke_table_and_results(smoke):
         assert t[stage] > 0, stage  # each did real work in this fresh run
     assert t["nets"] > t["evaluate"]  # training dominates evaluation
     assert sum(t[s] for s in stages) <= t["total"] * 1.01 + 1.0  # stages are disjoint parts of the run
+    # Peak memory so far after each stage: positive, never decreasing in stage order, the total the largest.
+    peak = results["peak_rss_mib"]
+    assert set(stages) <= set(peak) and peak["sessions"] > 0
+    in_order = [peak[s] for s in stages]
+    assert in_order == sorted(in_order) and peak["total"] == max(peak.values())
     text = (workdir / "table.md").read_text()
     table = text.split("\n\n")[0].splitlines()  # the paper's table (the baselines table follows)
     assert table[0].split("|")[1:8] == [" train ", " test ", " Ours ", " RGB-Net ", " gain ", " HHA-Net ", " gain "]

@@ -574,7 +574,7 @@ def test_own_data_doc_commands_exist():
 # --------------------------------------------------------------------------------------------------- the experiment
 
 # Fields of results.json that may differ between two runs of the same data: where and how it ran.
-_RUN_FIELDS = ("config", "timings_s", "versions")
+_RUN_FIELDS = ("config", "timings_s", "peak_rss_mib", "versions")
 
 
 def _smoke(workdir: Path, *overrides: str) -> dict:

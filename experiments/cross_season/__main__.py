@@ -69,7 +69,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 130
     print(table_markdown(results))
-    print(f"results in {workdir}/results.json; stage times (s): {results['timings_s']}")
+    print(
+        f"results in {workdir}/results.json; stage times (s): {results['timings_s']}; "
+        f"peak memory so far after each stage (MiB): {results.get('peak_rss_mib')}"
+    )
     return 0
 
 

@@ -4,6 +4,8 @@ per-session record that the stages fill in."""
 from __future__ import annotations
 
 import dataclasses
+import resource
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -31,6 +33,9 @@ class Context:
     mesh: jax.sharding.Mesh
     local_mesh: jax.sharding.Mesh | None = None  # default: this process's devices
     timings: dict[str, float] = dataclasses.field(default_factory=dict)
+    # stage -> the process's peak resident memory so far (MiB) when that stage last ended: the first stage whose
+    # value reaches the run's peak is the one that set it.
+    peak_rss_mib: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         if self.local_mesh is None:
@@ -47,7 +52,8 @@ class Context:
         return bool(self.config.progress)
 
     def timed(self, stage: str):
-        """A context manager adding its block's wall time to ``timings[stage]`` (seconds)."""
+        """A context manager adding its block's wall time to ``timings[stage]`` (seconds) and recording the peak
+        resident memory so far in ``peak_rss_mib[stage]``."""
         ctx = self
 
         class _Timer:
@@ -56,6 +62,7 @@ class Context:
 
             def __exit__(self, *exc):
                 ctx.timings[stage] = ctx.timings.get(stage, 0.0) + time.perf_counter() - self.t0
+                ctx.peak_rss_mib[stage] = peak_rss_mib()
 
         return _Timer()
 
@@ -75,8 +82,15 @@ class SessionData:
         return len(self.cached)
 
 
+def peak_rss_mib() -> float:
+    """This process's peak resident memory so far, MiB (``getrusage``: kB on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)
+
+
 def seed_context(ctx: Context, seed: int) -> Context:
-    """``ctx`` with ``config.seed = seed`` (a copy of the config; the timings, workdir and meshes are shared)."""
+    """``ctx`` with ``config.seed = seed`` (a copy of the config; the timings, peak memory, workdir and meshes are
+    shared)."""
     cfg = ctx.config.copy_and_resolve_references()
     cfg.seed = seed
     return dataclasses.replace(ctx, config=cfg)

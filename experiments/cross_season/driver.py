@@ -32,7 +32,7 @@ import ml_collections
 import numpy as np
 
 from experiments.cross_season import config as _config
-from experiments.cross_season.context import Context
+from experiments.cross_season.context import Context, peak_rss_mib
 from experiments.cross_season.depth_hha import compute_depth_and_hha
 from experiments.cross_season.evaluation import baseline_features, evaluate
 from experiments.cross_season.fusion import train_and_predict
@@ -135,6 +135,7 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         "devices": {"count": mesh.size, "platform": jax.devices()[0].platform, "processes": jax.process_count()},
         "versions": versions(),
         "timings_s": {k: round(v, 3) for k, v in ctx.timings.items()},
+        "peak_rss_mib": {**ctx.peak_rss_mib, "total": peak_rss_mib()},
     }
     from experiments.cross_season import report
 
