@@ -301,3 +301,34 @@ def test_corrupt_caches_are_detected_and_rebuilt(tmp_path):
     calls.clear()
     np.testing.assert_array_equal(build().data, data)
     assert calls[0] == (0, 16)  # started over
+
+
+def _rss_file_kb() -> int | None:
+    """This process's resident pages of mapped files (kB), or None off Linux."""
+    try:
+        lines = Path("/proc/self/status").read_text().splitlines()
+    except OSError:
+        return None
+    return next((int(line.split()[1]) for line in lines if line.startswith("RssFile:")), None)
+
+
+def test_release_mapped_pages_keeps_the_data_and_drops_the_resident_pages(tmp_path):
+    """A cache read through its memmap stays readable and unchanged after ``release_mapped_pages``; on Linux its
+    pages leave the resident set (they stay in the page cache) and come back when read again."""
+    from placejax.data import release_mapped_pages
+
+    n = 2048
+    cache = build_array_cache(
+        tmp_path, "big", n, lambda a, b: np.arange(a, b, dtype=np.float32)[:, None] * np.ones((1, 4096), np.float32),
+        (4096,), np.float32, key={"k": 1}, chunk=512,
+    )  # fmt: skip
+    want = np.arange(n, dtype=np.float64) * 4096
+    before = _rss_file_kb()
+    np.testing.assert_array_equal(cache.data.sum(axis=1, dtype=np.float64), want)  # every page read: 32 MiB
+    read = _rss_file_kb()
+    assert release_mapped_pages() >= cache.data.nbytes
+    released = _rss_file_kb()
+    np.testing.assert_array_equal(cache.data.sum(axis=1, dtype=np.float64), want)  # read back, the same
+    if before is not None and read is not None and released is not None:
+        assert read - before > 24 * 1024  # the whole array became resident...
+        assert read - released > 24 * 1024  # ...and left the resident set

@@ -33,8 +33,8 @@ class Context:
     mesh: jax.sharding.Mesh
     local_mesh: jax.sharding.Mesh | None = None  # default: this process's devices
     timings: dict[str, float] = dataclasses.field(default_factory=dict)
-    # stage -> the process's peak resident memory so far (MiB) when that stage last ended: the first stage whose
-    # value reaches the run's peak is the one that set it.
+    # stage -> the process's peak resident memory so far (MiB) when that stage last ended (a stage may run once
+    # per seed or session): where the run's peak was reached, read with the timings' order.
     peak_rss_mib: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):

@@ -40,6 +40,7 @@ from experiments.cross_season.index import write_classifier_index
 from experiments.cross_season.route import route_columns, write_route_figures
 from experiments.cross_season.sessions import fit_grid, load_sessions
 from placejax import io
+from placejax.data import release_mapped_pages
 from placejax.training import data_mesh, release_free_memory, sync_processes
 
 
@@ -101,6 +102,14 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
     return results
 
 
+def _release_memory() -> None:
+    """Between stages: the C heap's free memory back to the OS (what the depth network's inference and the HHA
+    encoder freed; train() releases its own) and the pages of the caches read so far out of the resident set (they
+    stay in the OS page cache, and a later read maps them back)."""
+    release_free_memory()
+    release_mapped_pages()
+
+
 def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Mesh, t_start: float) -> dict:
     """Every stage in order (see the module docstring), then the index, results, table and figures."""
     ctx = Context(config=config, workdir=workdir, mesh=mesh)
@@ -113,13 +122,17 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         grid = fit_grid(ctx, sessions)
     num_classes = grid.num_classes
     compute_depth_and_hha(ctx, sessions)
-    release_free_memory()  # what the depth network's inference and the HHA encoder freed (train() releases its own)
+    _release_memory()
     # Every net and MLP is trained once per seed (seed, seed + 1, ...); the table reports the mean over seeds.
-    runs = [train_and_predict(ctx, sessions, num_classes, config.seed + k) for k in range(config.n_seeds)]
+    runs = []
+    for k in range(config.n_seeds):
+        runs.append(train_and_predict(ctx, sessions, num_classes, config.seed + k))
+        _release_memory()
     nets, outputs, fused, mlp_dirs = runs[0]  # the first seed's models: figures and PlaceClassifier
 
     with ctx.timed("baselines"):
         thumbs = baseline_features(ctx, sessions)
+    _release_memory()
 
     scores = evaluate(ctx, sessions, runs, thumbs)
     scores["route"], route_traces = route_columns(ctx, sessions, runs, grid, scores["pairs"])

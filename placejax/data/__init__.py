@@ -25,6 +25,7 @@ from placejax.data.cache import (
     cache_session,
     open_array_cache,
     open_session_cache,
+    release_mapped_pages,
 )
 from placejax.data.grid import PlaceGrid
 from placejax.data.jitter import ViewJitter, jittered_copies, jittered_view
@@ -70,6 +71,7 @@ __all__ = [
     "nclt",
     "open_array_cache",
     "open_session_cache",
+    "release_mapped_pages",
     "session_identity",
     "simcampus",
     "train_dataset",

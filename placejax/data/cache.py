@@ -33,9 +33,11 @@ import dataclasses
 import fcntl
 import hashlib
 import json
+import mmap
 import os
 import re
 import shutil
+import weakref
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -57,6 +59,7 @@ __all__ = [
     "cache_session",
     "open_array_cache",
     "open_session_cache",
+    "release_mapped_pages",
     "session_identity",
 ]
 
@@ -103,6 +106,30 @@ class ArrayCache:
 
 # Caches verified in this process (path, size, mtime): a cache is hashed once per process, not at every open.
 _VERIFIED: set[tuple[str, int, int]] = set()
+
+# The read-only memmaps of complete caches opened in this process, by id (weak: a map nobody holds is closed).
+_OPEN_MAPS: weakref.WeakValueDictionary[int, np.memmap] = weakref.WeakValueDictionary()
+
+
+def release_mapped_pages() -> int:
+    """Drops this process's resident pages of every open cache memmap; returns the bytes of the maps advised.
+
+    Reading a cache through its memory map leaves the pages read in the process's resident set (peak RSS counts
+    them) for as long as the map is open, so a long run that reads many caches grows by their sizes. The files stay
+    in the OS page cache: a later read maps the pages back without disk I/O, and the data are unchanged. Returns 0
+    where ``madvise(MADV_DONTNEED)`` is not offered (the maps are left as they are).
+    """
+    advice = getattr(mmap, "MADV_DONTNEED", None)
+    if advice is None:
+        return 0
+    released = 0
+    for m in list(_OPEN_MAPS.values()):
+        mm = getattr(m, "_mmap", None)
+        if mm is None or mm.closed or not hasattr(mm, "madvise"):
+            continue
+        mm.madvise(advice)
+        released += len(mm)
+    return released
 
 
 def _verify_checksums(path: Path, manifest: dict) -> None:
@@ -169,6 +196,8 @@ def open_array_cache(path: str | os.PathLike, key: Mapping | None = None, *, ver
         data = np.load(path / _DATA, mmap_mode="r")
     except (OSError, ValueError) as e:
         raise CacheError(f"{path / _DATA}: unreadable cache data ({e})") from None
+    if isinstance(data, np.memmap):  # an empty array is read into memory, not mapped
+        _OPEN_MAPS[id(data)] = data
     if list(data.shape) != manifest["shape"] or data.dtype.str != manifest["dtype"]:
         raise CacheError(
             f"{path / _DATA}: holds {data.dtype} {data.shape}, manifest says {manifest['dtype']} {manifest['shape']}"
