@@ -299,6 +299,7 @@ def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
     c.depth.update(source=source, dav2_weights=str(refs / "small_metric.pth"), dav2_short_side=28, batch_size=2)
     c.depth.update(near_m=1.0, far_m=6.0)
     c.vgg.update(pretrained=False, weights="", hha_weights="", width=1 / 64)
+    c.train.jitter_copies = 0  # jittered copies need a frozen pretrained trunk's cached features
     c.mlp.hidden = 8
     xconfig.validate(c)
     k = [[30.0, 0.0, 15.5], [0.0, 30.0, 15.5], [0.0, 0.0, 1.0]]
