@@ -248,7 +248,7 @@ def main() -> None:
             )
             tm_cl = ref.build(ref.SMALL_RELATIVE).to(memory_format=torch.channels_last)
             tm_cl.load_state_dict(tm.state_dict())
-            depth = lambda m: (lambda x: m(pixel_values=x).predicted_depth)
+            depth = lambda m: lambda x: m(pixel_values=x).predicted_depth
             torch_fns = {"torch": (depth(tm), "nchw"), "torch_channels_last": (depth(tm_cl), "channels_last")}
         else:
             shapes = jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, 28, 28, 3)))
@@ -296,8 +296,18 @@ def main() -> None:
                 "flax_plain": (jax.jit(fc7), variables),
             }
             name = "vgg16_fc7" if width == 1.0 else f"vgg16_fc7_w{width:g}"
-            row = _case(name, 8, (side, side), flax_fns, torch_fns, args.repeats, rng, width=width, used_by=use,
-                        folded_pool=fold)
+            row = _case(
+                name,
+                8,
+                (side, side),
+                flax_fns,
+                torch_fns,
+                args.repeats,
+                rng,
+                width=width,
+                used_by=use,
+                folded_pool=fold,
+            )
             rows.append(row)
             _print_row(row)
 

@@ -17,9 +17,7 @@ RECIPE = Path(__file__).parent / "fixtures" / "midas_small_recipe"
 def _bounds(name: str, shape: tuple[int, ...], bn_modules: set[str]) -> tuple[float, float]:
     module, leaf = name.rsplit(".", 1)
     if module in bn_modules:
-        return {"weight": (0.5, 1.5), "bias": (-0.2, 0.2), "running_mean": (-0.2, 0.2), "running_var": (0.5, 1.5)}[
-            leaf
-        ]
+        return {"weight": (0.5, 1.5), "bias": (-0.2, 0.2), "running_mean": (-0.2, 0.2), "running_var": (0.5, 1.5)}[leaf]
     if leaf == "weight":
         lim = float(np.sqrt(3.0 / np.prod(shape[1:])))
         # The network's last conv (one output channel) is drawn non-negative so that the non-negative output is

@@ -249,7 +249,15 @@ def test_corrupt_caches_are_detected_and_rebuilt(tmp_path):
 
     def build():
         return build_array_cache(
-            tmp_path, "x", 40, fn, (3,), np.float32, key={"v": 1}, extras={"t": np.arange(40)}, chunk=16,
+            tmp_path,
+            "x",
+            40,
+            fn,
+            (3,),
+            np.float32,
+            key={"v": 1},
+            extras={"t": np.arange(40)},
+            chunk=16,
             progress=False,
         )
 
@@ -293,7 +301,15 @@ def test_corrupt_caches_are_detected_and_rebuilt(tmp_path):
 
     with pytest.raises(RuntimeError, match="stop"):
         build_array_cache(
-            tmp_path, "x", 40, stopping, (3,), np.float32, key={"v": 1}, extras={"t": np.arange(40)}, chunk=16,
+            tmp_path,
+            "x",
+            40,
+            stopping,
+            (3,),
+            np.float32,
+            key={"v": 1},
+            extras={"t": np.arange(40)},
+            chunk=16,
             progress=False,
         )
     (partial_dir,) = list(tmp_path.glob("x-*.partial"))

@@ -120,7 +120,7 @@ def test_registry_loads_official_format_and_refuses_truncated(refs, tmp_path, mo
     np.testing.assert_array_equal(a["kernel"], b["kernel"])
     # No published checksum: a truncated download is refused by the reader's structural checks.
     cut = tmp_path / "cut.pth"
-    cut.write_bytes((refs / "small_metric.pth").read_bytes()[: 60_000_000])
+    cut.write_bytes((refs / "small_metric.pth").read_bytes()[:60_000_000])
     with pytest.raises(TorchCheckpointError):
         load("depth_anything_v2_vits", cut)
 

@@ -62,9 +62,7 @@ def _rel_err(out, ref):
 
 def test_parity_square_with_intermediates(fixture_io, fixture_variables):
     x = jnp.asarray(fixture_io["input_nchw"].transpose(0, 2, 3, 1))
-    out, state = jax.jit(lambda v, x: MidasSmall().apply(v, x, mutable=["intermediates"]))(
-        fixture_variables, x
-    )
+    out, state = jax.jit(lambda v, x: MidasSmall().apply(v, x, mutable=["intermediates"]))(fixture_variables, x)
     ref = fixture_io["output"]
     assert out.shape == ref.shape == (2, 256, 256)
     assert float(out.min()) >= 0.0
@@ -136,9 +134,7 @@ def test_fold_batch_norm_matches_unfolded_and_is_inference_only():
 
 def test_official_parameter_count(fixture_state_dict, fixture_variables):
     n_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(fixture_variables["params"]))
-    unused = sum(
-        v.size for k, v in fixture_state_dict.items() if k.startswith("scratch.refinenet4.resConfUnit1.")
-    )
+    unused = sum(v.size for k, v in fixture_state_dict.items() if k.startswith("scratch.refinenet4.resConfUnit1."))
     assert unused == 4_719_616
     assert n_params + unused == 21_320_545  # docs/models.md: trainable parameters of the official checkpoint
 
@@ -187,9 +183,7 @@ def test_align_corners_reproduces_linear_functions(h, w, ho, wo):
     f = lambda y, x: 2.0 + 3.0 * y - 1.5 * x + 0.5 * x * y
     img = jnp.asarray(np.stack([f(yy, xx), -f(yy, xx)], -1)[None], jnp.float32)
     out = resize(img, (ho, wo), "bilinear", align_corners=True)
-    y2, x2 = np.meshgrid(
-        np.linspace(0, 1, ho) if h > 1 else np.zeros(ho), np.linspace(0, 1, wo), indexing="ij"
-    )
+    y2, x2 = np.meshgrid(np.linspace(0, 1, ho) if h > 1 else np.zeros(ho), np.linspace(0, 1, wo), indexing="ij")
     want = np.stack([f(y2, x2), -f(y2, x2)], -1)[None]
     if h == 1:
         want = np.stack([f(np.zeros_like(x2), x2), -f(np.zeros_like(x2), x2)], -1)[None]

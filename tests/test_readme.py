@@ -138,8 +138,10 @@ _LINK = re.compile(r"\]\(([^)#\s]+)(?:#([^)\s]*))?\)")
 
 def _anchors(page: Path) -> set[str]:
     """GitHub's anchors of a Markdown page's headings: lower case, punctuation dropped, spaces as hyphens."""
-    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
-            for h in re.findall(r"^#+ (.+)$", page.read_text(), re.MULTILINE)}
+    return {
+        re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+        for h in re.findall(r"^#+ (.+)$", page.read_text(), re.MULTILINE)
+    }
 
 
 def test_readme_links_exist():
@@ -192,9 +194,23 @@ def test_the_test_command_keeps_a_group_on_one_worker(tmp_path):
         "    print('WORKER', os.environ['PYTEST_XDIST_WORKER'])\n"
     )
     out = subprocess.run(
-        [sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadgroup", "-rA", "-p", "no:cacheprovider",
-         "test_grouped.py"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-n",
+            "2",
+            "--dist",
+            "loadgroup",
+            "-rA",
+            "-p",
+            "no:cacheprovider",
+            "test_grouped.py",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert out.returncode == 0, out.stdout + out.stderr
     workers = re.findall(r"^WORKER (gw\d+)$", out.stdout, re.MULTILINE)

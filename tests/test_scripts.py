@@ -77,8 +77,9 @@ def test_lookup_gap(tmp_path):
     oracle column (1-NN on rendered depth, 0.9 here) is never the one the fusion has to beat."""
     a = _fake_results(tmp_path / "a", rgb=0.20, hha=0.25, ours=0.30, nn_gradient=0.22, nn_hha=0.24)
     b = _fake_results(tmp_path / "b", rgb=0.26, hha=0.27, ours=0.31, nn_gradient=0.22, nn_hha=0.28)
-    out = _run(["-m", "experiments.lookup_gap", "--out", "fig", f"size:64={a}", f"size:96={b}", f"jitter:0={a}"],
-               cwd=tmp_path)
+    out = _run(
+        ["-m", "experiments.lookup_gap", "--out", "fig", f"size:64={a}", f"size:96={b}", f"jitter:0={a}"], cwd=tmp_path
+    )
     rows = json.loads((tmp_path / "fig" / "lookup_gap.json").read_text())["rows"]
     assert [(r["lever"], r["value"]) for r in rows] == [("size", 64), ("size", 96), ("jitter", 0)]
     # a: m_rgb = 20 − 22 = −2, m_hha = 25 − 24 = +1, m_fus = 30 − max(20, 25, 22.5, 10, 22, 24) = +5 → score −2.
@@ -88,11 +89,21 @@ def test_lookup_gap(tmp_path):
     assert rows[1]["score"] == pytest.approx(-1) and rows[1]["m_fus"] == pytest.approx(3)
     assert "| size | 96 |" in out and rows[1]["total_s"] == 123.0
     assert cv2.imread(str(tmp_path / "fig" / "lookup_gap.png")) is not None
-    bad = subprocess.run([sys.executable, "-m", "experiments.lookup_gap", "--out", "fig", f"size={a}"],
-                         cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True)
+    bad = subprocess.run(
+        [sys.executable, "-m", "experiments.lookup_gap", "--out", "fig", f"size={a}"],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode != 0 and "LEVER:VALUE=WORKDIR" in bad.stderr
-    missing = subprocess.run([sys.executable, "-m", "experiments.lookup_gap", "--out", "fig", f"size:1={tmp_path}"],
-                             cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True)
+    missing = subprocess.run(
+        [sys.executable, "-m", "experiments.lookup_gap", "--out", "fig", f"size:1={tmp_path}"],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        capture_output=True,
+        text=True,
+    )
     assert missing.returncode != 0 and "no results.json" in missing.stderr
 
 

@@ -142,9 +142,7 @@ def _analytic_scene(boxes=(), ells=()):
         ),
     )
     tables = _seasons.SceneTables(world.boxes, world.cyls, world.ells)
-    return _seasons.geometry_from_tables(world, tables), _seasons.look_from_tables(
-        tables, _seasons.STYLES["SU"]
-    )
+    return _seasons.geometry_from_tables(world, tables), _seasons.look_from_tables(tables, _seasons.STYLES["SU"])
 
 
 def _render_scene(geo, look, pose6, hw):
@@ -234,9 +232,9 @@ def test_seasonal_geometry_changes_exist():
         facade = np.r_[0:6, 9:13]  # wall, windows, window grid (roofs get snow in winter)
         r = world.renovated
         renovated = not np.allclose(t[s].boxes.look[r][:, facade], world.boxes.look[r][:, facade])
-        crane = (
-            (t[s].boxes.geo[:, 2] + t[s].boxes.geo[:, 5]) - world.height(*t[s].boxes.geo[:, :2].T) > 20
-        ) & (t[s].boxes.role == W.ROLE_PROP)
+        crane = ((t[s].boxes.geo[:, 2] + t[s].boxes.geo[:, 5]) - world.height(*t[s].boxes.geo[:, :2].T) > 20) & (
+            t[s].boxes.role == W.ROLE_PROP
+        )
         assert renovated == (s in ("SU", "AU")) and crane.any() == (s in ("SU", "AU")), s
     # Snow on roofs in winter only.
     bld = world.boxes.role == W.ROLE_BUILDING
@@ -284,9 +282,7 @@ def test_routes_differ_so_test_sessions_have_unseen_cells(sessions):
     # Sessions drive the shared edges in both directions.
     world = sessions["WI"].world
     dirs = [dict(_trajectory.session_route(world, i)[1]) for i in range(4)]
-    assert any(
-        dirs[a][e] != dirs[b][e] for a in range(4) for b in range(4) for e in set(dirs[a]) & set(dirs[b])
-    )
+    assert any(dirs[a][e] != dirs[b][e] for a in range(4) for b in range(4) for e in set(dirs[a]) & set(dirs[b]))
 
 
 def test_trajectory_follows_spec(sessions):

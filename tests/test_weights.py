@@ -95,9 +95,7 @@ def test_malicious_pickles_are_refused_without_running(tmp_path):
     # Sanity check of the test itself: the payload really names os.system.
     assert b"system" in payload
     zipped = _zip_with_pickle(tmp_path / "evil.pt", payload)
-    with pytest.raises(
-        UnsafeCheckpointError, match=r"evil\.pt: refusing to load global '(posix|os)\.system'"
-    ):
+    with pytest.raises(UnsafeCheckpointError, match=r"evil\.pt: refusing to load global '(posix|os)\.system'"):
         read_torch_checkpoint(zipped)
     raw = tmp_path / "evil_legacy.pt"
     raw.write_bytes(payload)
@@ -177,9 +175,7 @@ def test_registry_entries_are_complete():
     assert REGISTRY["vgg16_imagenet"].sha256_prefix == "397923af"
     img = np.full((2, 2, 3), 255, np.uint8)
     x = REGISTRY["vgg16_imagenet"].preprocessing.normalise(img)
-    np.testing.assert_allclose(
-        x[0, 0], (1 - np.array([0.485, 0.456, 0.406])) / np.array([0.229, 0.224, 0.225]), 1e-6
-    )
+    np.testing.assert_allclose(x[0, 0], (1 - np.array([0.485, 0.456, 0.406])) / np.array([0.229, 0.224, 0.225]), 1e-6)
 
 
 def test_cache_dir_default(monkeypatch):

@@ -348,9 +348,7 @@ def read_u2d_map(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             raise NcltFormatError(f"{path}: bad header {header.strip()!r}, expected 'width/cols = W , height/rows = H'")
         width, height = int(m.group(1)), int(m.group(2))
         if not (1 <= width <= _U2D_MAX_SIDE and 1 <= height <= _U2D_MAX_SIDE):
-            raise NcltFormatError(
-                f"{path}: header size {width} × {height} (W × H) outside 1…{_U2D_MAX_SIDE} per side"
-            )
+            raise NcltFormatError(f"{path}: header size {width} × {height} (W × H) outside 1…{_U2D_MAX_SIDE} per side")
         size = path.stat().st_size
         if width * height * _U2D_MIN_LINE_BYTES > size:
             raise NcltFormatError(

@@ -288,7 +288,7 @@ def _arccos(x: jax.Array) -> jax.Array:
     big = a > 0.5
     z = jnp.where(big, 0.5 * (1.0 - a), a * a)
     s = jnp.where(big, jnp.sqrt(z), a)
-    p = ((((4.2163199048e-2 * z + 2.4181311049e-2) * z + 4.5470025998e-2) * z + 7.4953002686e-2) * z + 1.6666752422e-1)
+    p = (((4.2163199048e-2 * z + 2.4181311049e-2) * z + 4.5470025998e-2) * z + 7.4953002686e-2) * z + 1.6666752422e-1
     asin_s = s + s * z * p  # arcsin(s)
     acos_a = jnp.where(big, 2.0 * asin_s, np.float32(np.pi / 2) - asin_s)  # arccos(|x|)
     return jnp.where(x < 0, np.float32(np.pi) - acos_a, acos_a)

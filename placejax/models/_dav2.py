@@ -389,8 +389,13 @@ class DepthAnythingV2(nn.Module):
             raise ValueError(f"the DPT head reads 4 layers, got layers={self.layers}, out_channels={self.out_channels}")
         kw = dict(dtype=self.dtype, param_dtype=self.param_dtype)
         maps = DinoV2Encoder(
-            self.embed_dim, self.depth, self.num_heads, tuple(self.layers), pos_grid=self.pos_grid,
-            name="pretrained", **kw,
+            self.embed_dim,
+            self.depth,
+            self.num_heads,
+            tuple(self.layers),
+            pos_grid=self.pos_grid,
+            name="pretrained",
+            **kw,
         )(x)
         for i, m in enumerate(maps, start=1):
             self.sow("intermediates", f"features_{i}", m)
@@ -419,9 +424,7 @@ def dav2_input_size(height: int, width: int, short_side: int = 518) -> tuple[int
     return side(scale * height), side(scale * width)
 
 
-def dav2_apply(
-    variables: Any, images: Array, *, model: DepthAnythingV2, short_side: int = 518
-) -> Array:
+def dav2_apply(variables: Any, images: Array, *, model: DepthAnythingV2, short_side: int = 518) -> Array:
     """Depth of RGB images at their own resolution, through the official pre- and post-processing.
 
     The images are ImageNet-normalised, resized (bicubic) to ``dav2_input_size(H, W, short_side)``, run through

@@ -50,9 +50,7 @@ class FusionMLP(nn.Module):
     @nn.compact
     def __call__(self, embeddings: Array, train: bool = False) -> Array:
         if embeddings.ndim != 2:
-            raise ValueError(
-                f"FusionMLP expects (N, D) concatenated embeddings, got shape {embeddings.shape}"
-            )
+            raise ValueError(f"FusionMLP expects (N, D) concatenated embeddings, got shape {embeddings.shape}")
         kw = dict(dtype=self.dtype, param_dtype=self.param_dtype)
         if train and self.modality_dropout > 0:
             embeddings = self._drop_modalities(embeddings)

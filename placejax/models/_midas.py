@@ -170,13 +170,9 @@ class EfficientNetLite3Encoder(nn.Module):
         """Maps ``(N, H, W, 3)`` to taps at strides 4, 8, 16, 32 (H, W multiples of 32)."""
         kw = dict(dtype=self.dtype, param_dtype=self.param_dtype)
         stem, widths = encoder_channels(self.width)
-        x = _conv_bn(
-            x, stem, 3, stride=2, names=("stem_conv", "stem_bn"), train=train, folded=self.folded_bn, **kw
-        )
+        x = _conv_bn(x, stem, 3, stride=2, names=("stem_conv", "stem_bn"), train=train, folded=self.folded_bn, **kw)
         taps = []
-        for s, ((kind, repeats, kernel, stride, _), out) in enumerate(
-            zip(_LITE3_STAGES, widths, strict=True)
-        ):
+        for s, ((kind, repeats, kernel, stride, _), out) in enumerate(zip(_LITE3_STAGES, widths, strict=True)):
             for i in range(repeats):
                 name = f"blocks_{s}_{i}"
                 if kind == "ds":

@@ -216,8 +216,7 @@ def fold_adaptive_pool(variables: dict[str, Any], input_hw: tuple[int, int]) -> 
     rows, hidden = kernel.shape
     if rows % (POOL_SIZE * POOL_SIZE):
         raise ValueError(
-            f"fold_adaptive_pool: fc6 kernel has {rows} rows, expected 49·C for the 7×7 pooled map"
-            " (already folded?)"
+            f"fold_adaptive_pool: fc6 kernel has {rows} rows, expected 49·C for the 7×7 pooled map (already folded?)"
         )
     c = rows // (POOL_SIZE * POOL_SIZE)
     ph = jnp.asarray(adaptive_avg_pool_matrix(h, POOL_SIZE), kernel.dtype)

@@ -204,9 +204,7 @@ def hha_views(
     return np.concatenate([np.asarray(hha.encode(depth[i : i + 128], k)) for i in range(0, len(depth), 128)])
 
 
-def other_season_views(
-    world_seed: int, poses6: np.ndarray, hw, rng: np.random.Generator, depth_fn=None
-) -> np.ndarray:
+def other_season_views(world_seed: int, poses6: np.ndarray, hw, rng: np.random.Generator, depth_fn=None) -> np.ndarray:
     """HHA of each view in one of the non-summer seasons' geometry (view i: season i mod 3); ``depth_fn`` as in
     :func:`hha_views`."""
     out = np.empty((len(poses6), *hw, 3), np.uint8)

@@ -150,9 +150,7 @@ def _midas_rule(key: str, value: np.ndarray):
     if parts[0] == "pretrained" and len(parts) == 5:
         stage = _MIDAS_STAGE[(parts[1].removeprefix("layer"), parts[2])]
         sub = parts[4]
-        return _leaf(
-            ("encoder", f"blocks_{stage}_{parts[3]}", sub), leaf, value, bool(_MIDAS_BN.fullmatch(sub))
-        )
+        return _leaf(("encoder", f"blocks_{stage}_{parts[3]}", sub), leaf, value, bool(_MIDAS_BN.fullmatch(sub)))
     if parts[0] == "scratch":
         if parts[1] == "output_conv":
             return _leaf((f"output_conv_{parts[2]}",), leaf, value, is_bn=False)
@@ -231,9 +229,7 @@ def convert_vgg16(state_dict: Mapping[str, np.ndarray], model: VGG16 | None = No
     if model is None:
         fc8 = state_dict.get("classifier.6.weight")
         if fc8 is None:
-            raise ValueError(
-                "convert_vgg16: the state dict has no 'classifier.6.weight' (fc8); is it a VGG16?"
-            )
+            raise ValueError("convert_vgg16: the state dict has no 'classifier.6.weight' (fc8); is it a VGG16?")
         model = VGG16(num_classes=int(np.shape(fc8)[0]))
     expected = _expected_tree(model, jax.ShapeDtypeStruct((1, 32, 32, 3), jnp.float32))
     return _apply_rules(state_dict, expected, _vgg_rule(CONV_NAMES), "convert_vgg16")
@@ -265,8 +261,12 @@ def _dav2_rule(key: str, value: np.ndarray):
                 return "params", ("pretrained", block, sub[0], {"weight": "scale", "bias": "bias"}[leaf]), value
             if sub in (["ls1"], ["ls2"]) and leaf == "gamma":
                 return "params", ("pretrained", block, sub[0], "gamma"), value
-            dense = {("attn", "qkv"): ("attn", "qkv"), ("attn", "proj"): ("attn", "proj"),
-                     ("mlp", "fc1"): ("fc1",), ("mlp", "fc2"): ("fc2",)}[tuple(sub)]
+            dense = {
+                ("attn", "qkv"): ("attn", "qkv"),
+                ("attn", "proj"): ("attn", "proj"),
+                ("mlp", "fc1"): ("fc1",),
+                ("mlp", "fc2"): ("fc2",),
+            }[tuple(sub)]
             if leaf == "weight":
                 return "params", ("pretrained", block, *dense, "kernel"), _dense(value)
             return "params", ("pretrained", block, *dense, {"bias": "bias"}[leaf]), value
@@ -291,9 +291,7 @@ def _dav2_rule(key: str, value: np.ndarray):
     raise KeyError(key)
 
 
-def convert_depth_anything_v2(
-    state_dict: Mapping[str, np.ndarray], model: DepthAnythingV2 | None = None
-) -> Variables:
+def convert_depth_anything_v2(state_dict: Mapping[str, np.ndarray], model: DepthAnythingV2 | None = None) -> Variables:
     """Official Depth Anything V2 state dict (``depth_anything_v2_*.pth`` keys) → Flax ``{"params": ...}``.
 
     Args:

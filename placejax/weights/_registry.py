@@ -77,9 +77,7 @@ class Preprocessing:
             raise ValueError(f"expected images with 3 channels last, got shape {x.shape}")
         if self.channel_order == "BGR":
             x = x[..., ::-1]
-        return (x * np.float32(self.scale) - np.asarray(self.mean, np.float32)) / np.asarray(
-            self.std, np.float32
-        )
+        return (x * np.float32(self.scale) - np.asarray(self.mean, np.float32)) / np.asarray(self.std, np.float32)
 
 
 @dataclass(frozen=True)

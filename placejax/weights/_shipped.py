@@ -116,7 +116,6 @@ def announce_training(what: str, preset: str, detail: str, minutes: float | None
     preset takes (``minutes`` on 2 CPU cores, when measured) and where it is cached."""
     took = f"about {minutes} min on 2 CPU cores" if minutes else "its length depends on the preset"
     print(
-        f"placejax: training {what} '{preset}' ({detail}, {took}); cached in {workdir} (interrupt and rerun to "
-        "resume)",
+        f"placejax: training {what} '{preset}' ({detail}, {took}); cached in {workdir} (interrupt and rerun to resume)",
         file=sys.stderr,
     )

@@ -62,8 +62,7 @@ def main() -> None:
     if args.midas_fixture is not None:
         with np.load(args.midas_fixture) as f:
             midas = {
-                k: torch.from_numpy(f[k].astype(np.float32) if f[k].dtype == np.float16 else f[k])
-                for k in f.files
+                k: torch.from_numpy(f[k].astype(np.float32) if f[k].dtype == np.float16 else f[k]) for k in f.files
             }
         torch.save(midas, out / "midas_fixture.pt")
 

@@ -39,9 +39,7 @@ def main() -> None:
         logits, fc7 = model(x), model.fc7(x)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     torch.save(model.state_dict(), args.out_dir / "vgg16.pth")
-    np.savez(
-        args.out_dir / "vgg16_reference.npz", input_nchw=x.numpy(), logits=logits.numpy(), fc7=fc7.numpy()
-    )
+    np.savez(args.out_dir / "vgg16_reference.npz", input_nchw=x.numpy(), logits=logits.numpy(), fc7=fc7.numpy())
 
 
 if __name__ == "__main__":

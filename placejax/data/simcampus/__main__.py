@@ -26,9 +26,7 @@ def pick_place(session: simcampus.SimCampusSession, stride: int = 25) -> int:
     idx = np.arange(0, len(session), stride)
     out = session.render(idx)
     logd = np.log(out["depth"])
-    edges = (np.abs(np.diff(logd, axis=1)) > 0.4).sum((1, 2)) + (np.abs(np.diff(logd, axis=2)) > 0.4).sum(
-        (1, 2)
-    )
+    edges = (np.abs(np.diff(logd, axis=1)) > 0.4).sum((1, 2)) + (np.abs(np.diff(logd, axis=2)) > 0.4).sum((1, 2))
     sky = out["sky"].mean((1, 2))
     h = out["depth"].shape[1]
     # Nothing within 4 m in the upper part of the view (a lamp post right in front hides the place).

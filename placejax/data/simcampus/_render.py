@@ -393,9 +393,7 @@ def _shade_ground(geo: Geometry, look_ground, px, py, pz):
     lk = jnp.stack(lk, -1)
     # Two octaves of cell noise: one octave reads as a checkerboard on near ground.
     zero = jnp.zeros_like(pz)
-    w = 0.6 * _cell_noise(px, py, zero, lk[..., 6]) + 0.4 * _cell_noise(
-        px + 0.37, py, zero, lk[..., 6] * 0.31
-    )
+    w = 0.6 * _cell_noise(px, py, zero, lk[..., 6]) + 0.4 * _cell_noise(px + 0.37, py, zero, lk[..., 6] * 0.31)
     return _mix(lk, w), (-gx * inv, -gy * inv, inv)
 
 
@@ -464,9 +462,7 @@ def _surface_stage(geo: Geometry, look: Look, pose6, kmat, t, kind, row_idx, hw)
     # Three separate planes: stacking them here makes XLA evaluate all of the shading per stacked element.
     albedo = tuple(sel([s[0][i] for s in shaded]) for i in range(3))
     normal = [sel([s[1][i] for s in shaded]) for i in range(3)]
-    lam = jnp.maximum(
-        normal[0] * look.sun_dir[0] + normal[1] * look.sun_dir[1] + normal[2] * look.sun_dir[2], 0
-    )
+    lam = jnp.maximum(normal[0] * look.sun_dir[0] + normal[1] * look.sun_dir[1] + normal[2] * look.sun_dir[2], 0)
     return albedo, lam
 
 
@@ -484,9 +480,7 @@ def _compose_stage(look: Look, pose6, kmat, frame_id, t, kind, sky, albedo, lam,
     row = jnp.arange(h, dtype=jnp.int32)[:, None] * jnp.ones((1, w), jnp.int32)
     out = []
     for i in range(3):
-        lit = jnp.where(
-            kind == 4, look.backdrop_rgb[i], albedo[i] * (look.ambient_rgb[i] + look.sun_rgb[i] * lam)
-        )
+        lit = jnp.where(kind == 4, look.backdrop_rgb[i], albedo[i] * (look.ambient_rgb[i] + look.sun_rgb[i] * lam))
         lit = lit * haze + look.fog_rgb[i] * (1.0 - haze)
         sky_rgb = look.sky_horizon[i] * (1 - wz) + look.sky_zenith[i] * wz + look.sun_rgb[i] * glow
         c = jnp.where(sky, sky_rgb, lit)
@@ -509,9 +503,7 @@ def _geometry_batch(geo, poses6, kmats, *, hw, budget):
 @functools.partial(jax.jit, static_argnames=("hw", "look_per_frame"))
 def _surface_batch(geo, look, poses6, kmats, t, kind, row_idx, *, hw, look_per_frame):
     fn = lambda lk, p, k, t_, kd, r: _surface_stage(geo, lk, p, k, t_, kd, r, hw)
-    return jax.vmap(fn, in_axes=(0 if look_per_frame else None, 0, 0, 0, 0, 0))(
-        look, poses6, kmats, t, kind, row_idx
-    )
+    return jax.vmap(fn, in_axes=(0 if look_per_frame else None, 0, 0, 0, 0, 0))(look, poses6, kmats, t, kind, row_idx)
 
 
 @functools.partial(jax.jit, static_argnames=("hw", "look_per_frame"))
@@ -562,9 +554,7 @@ def render_batch(
         :class:`Rendered` ``(rgb, depth, sky, objects)``.
     """
     t, kind, sky, row_idx = _geometry_batch(geo, poses6, kmats, hw=hw, budget=budget)
-    albedo, lam = _surface_batch(
-        geo, look, poses6, kmats, t, kind, row_idx, hw=hw, look_per_frame=look_per_frame
-    )
+    albedo, lam = _surface_batch(geo, look, poses6, kmats, t, kind, row_idx, hw=hw, look_per_frame=look_per_frame)
     rgb, depth = _compose_batch(
         look, poses6, kmats, frame_ids, t, kind, sky, albedo, lam, hw=hw, look_per_frame=look_per_frame
     )

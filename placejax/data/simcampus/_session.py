@@ -188,9 +188,7 @@ class SimCampusSession:
         for lo in range(0, len(idx), self.batch_size):
             chunk = idx[lo : lo + self.batch_size]
             pad = np.concatenate([chunk, np.full(self.batch_size - len(chunk), chunk[0])])
-            out = render(
-                self.world, self.name, self.poses6[pad], self.intrinsics, self.image_shape, self._id0 + pad
-            )
+            out = render(self.world, self.name, self.poses6[pad], self.intrinsics, self.image_shape, self._id0 + pad)
             parts.append({k: v[: len(chunk)] for k, v in out.items()})
         if not parts:
             h, w = self.image_shape

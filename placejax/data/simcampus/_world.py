@@ -292,9 +292,7 @@ def make_world(seed: int) -> World:
     centres = np.array([((g[i] + g[i + 1]) / 2, (g[j] + g[j + 1]) / 2) for i in range(4) for j in range(4)])
     order = rng.permutation(len(centres))
     site = _fit_rect(centres[order[0]] + rng.uniform(-4, 4, 2), 14.0, 10.0, path_pts, 5.0)
-    lots = np.stack(
-        [_fit_rect(centres[i] + rng.uniform(-6, 6, 2), 11.0, 6.0, path_pts, 3.5) for i in order[1:3]]
-    )
+    lots = np.stack([_fit_rect(centres[i] + rng.uniform(-6, 6, 2), 11.0, 6.0, path_pts, 3.5) for i in order[1:3]])
     obstacles = [_rect_points(*site[:2], *site[2:], 0.0)] + [_rect_points(*r[:2], *r[2:], 0.0) for r in lots]
 
     # Landmarks: distinctive, season-independent objects near paths (tower, water tower, sculpture, dome).
