@@ -195,31 +195,18 @@ def _child(spec_path: Path) -> None:
     """Runs the experiment described by ``spec`` in this process and writes its measurements."""
     spec = json.loads(spec_path.read_text())
     from experiments.cross_season import apply_overrides, get_config, run
-    from experiments.cross_season.context import Context
 
     peak = {"anon": 0.0, "rss": 0.0}
     by_stage: dict[str, dict[str, float]] = {}  # stage -> peak {"anon", "rss"} sampled while it ran
-    current = [None]
+    current: list[str | None] = [None]
     stop = threading.Event()
 
-    # Which stage is running: the experiment's own stage timer, wrapped (stages do not nest).
-    timed = Context.timed
-
-    def tracked(self, stage: str):
-        timer = timed(self, stage)
-
-        class _Tracked:
-            def __enter__(self):
-                current[0] = stage
-                return timer.__enter__()
-
-            def __exit__(self, *exc):
-                current[0] = None
-                return timer.__exit__(*exc)
-
-        return _Tracked()
-
-    Context.timed = tracked
+    def on_stage(stage: str, started: bool) -> None:
+        # Which stage is running, from the experiment's stage timer (a nested stage hands back to its parent).
+        if started:
+            current.append(stage)
+        else:
+            current.pop()
 
     def sample() -> None:
         while not stop.is_set():
@@ -228,7 +215,7 @@ def _child(spec_path: Path) -> None:
                 for line in f:
                     if line.startswith(("RssAnon:", "VmRSS:")):
                         now["anon" if line.startswith("RssAnon") else "rss"] = int(line.split()[1]) / 1024
-            stage = by_stage.setdefault(current[0] or "other", {"anon": 0.0, "rss": 0.0})
+            stage = by_stage.setdefault(current[-1] or "other", {"anon": 0.0, "rss": 0.0})
             for key, v in now.items():
                 peak[key] = max(peak[key], v)
                 stage[key] = max(stage[key], v)
@@ -238,7 +225,7 @@ def _child(spec_path: Path) -> None:
     sampler.start()
     cfg = apply_overrides(get_config(spec.get("preset", "paper")), spec["overrides"])
     t0 = time.perf_counter()
-    results = run(cfg, spec["workdir"])
+    results = run(cfg, spec["workdir"], on_stage=on_stage)
     wall = time.perf_counter() - t0
     stop.set()
     sampler.join()
@@ -291,7 +278,7 @@ def _du_mb(path: Path) -> float:
 
 def _nn_pair_seconds(n: int, cfg: dict) -> float:
     """Seconds of the nearest-neighbour baselines of one (train, test) pair of ``n``-frame sessions."""
-    from experiments.cross_season.baselines import THUMB_SIZES, nearest_neighbour_labels
+    from placejax.stages import THUMB_SIZES, nearest_neighbour_labels
 
     rng = np.random.default_rng(0)
     labels = rng.integers(0, 100, n).astype(np.int32)

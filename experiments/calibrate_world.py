@@ -26,12 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.cross_season import config as _config
-from experiments.cross_season.context import Context, seed_context
-from experiments.cross_season.evaluation import pair_ceilings_and_baselines, rgb_baseline_features
-from experiments.cross_season.nets import net_outputs, train_nets
-from experiments.cross_season.sessions import fit_grid, load_sessions
-from placejax import io
+from experiments.cross_season import PRESETS, apply_overrides, get_config, validate
+from placejax import io, stages
 from placejax.evaluation import mean_sd, top1
 from placejax.training import data_mesh
 
@@ -39,21 +35,33 @@ from placejax.training import data_mesh
 def measure(config, workdir: Path) -> dict:
     """The RGB-only calibration measures of ``config`` (a cross-season ConfigDict); see the module doc."""
     mesh = data_mesh(config.devices or None)
-    _config.validate(config, mesh.size)
+    sec = validate(config, mesh.size)
     workdir.mkdir(parents=True, exist_ok=True)
-    ctx = Context(config=config, workdir=workdir, mesh=mesh)
-    sessions = load_sessions(ctx)
-    grid = fit_grid(ctx, sessions)
+    ws = stages.Workspace(workdir, mesh, progress=bool(config.progress))
+    sessions = stages.open_sessions(ws, sec["data"])
+    grid = stages.fit_grid(ws, sessions, sec["grid"])
     c = grid.num_classes
-    thumbs = rgb_baseline_features(sessions)
+    thumbs = stages.rgb_baseline_features(sessions)
 
     seeds = [config.seed + k for k in range(config.n_seeds)]
     per_seed_logits = []
     for seed in seeds:
-        sctx = seed_context(ctx, seed)
-        nets = train_nets(sctx, sessions, c, modalities=("rgb",))
+        nets = stages.train_nets(
+            ws,
+            sessions,
+            c,
+            vgg=sec["vgg"],
+            train_cfg=sec["train"],
+            eval_cfg=sec["eval"],
+            seed=seed,
+            modalities=("rgb",),
+        )
         per_seed_logits.append(
-            {(a, t.name): net_outputs(sctx, net, t, c)["logits"] for (a, _), net in nets.items() for t in sessions}
+            {
+                (a, t.name): stages.net_outputs(ws, net, t, c, sec["eval"])["logits"]
+                for (a, _), net in nets.items()
+                for t in sessions
+            }
         )
     pairs = []
     for s in sessions:
@@ -66,7 +74,7 @@ def measure(config, workdir: Path) -> dict:
                 {
                     "train": s.name,
                     "test": t.name,
-                    **pair_ceilings_and_baselines(s, t, thumbs),
+                    **stages.pair_ceilings_and_baselines(s, t, thumbs),
                     "rgb_net": mean,
                     "rgb_net_sd": sd,
                     "rgb_net_per_seed": accs,
@@ -106,11 +114,11 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--workdir", required=True, type=Path)
-    parser.add_argument("--preset", default="default", choices=_config.PRESETS)
+    parser.add_argument("--preset", default="default", choices=PRESETS)
     parser.add_argument("overrides", nargs="*", help="key=value overrides of experiments.cross_season's config")
     args = parser.parse_args(argv)
-    cfg = _config.get_config(args.preset)
-    _config.apply_overrides(cfg, args.overrides)
+    cfg = get_config(args.preset)
+    apply_overrides(cfg, args.overrides)
     out = measure(cfg, args.workdir.absolute())
     print(format_table(out))
     return 0

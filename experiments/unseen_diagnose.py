@@ -204,8 +204,8 @@ def seed_outputs(workdir: Path, results: dict, sessions: dict[str, dict], seed_i
 
 def pair_row(outputs: dict, train: dict, test: dict, results_row: dict | None) -> dict[str, Any]:
     """The figures of one training → test pair (``train``, ``test``: ``load_sessions`` records)."""
-    from experiments.cross_season.evaluation import fused_embedding
     from placejax.classify import unknown
+    from placejax.stages import fused_embedding
 
     s, t = train["name"], test["name"]
     # As the experiment's unseen-place columns: the score's model on every training frame's fused embedding.

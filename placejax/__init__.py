@@ -15,6 +15,9 @@ JAX, Flax or OpenCV until a subpackage is used):
 - `placejax.data`: sessions (NCLT, SimCampus, in-memory arrays), the place grid, caches and grain pipelines.
 - `placejax.route`: a Bayes filter over the place cells along a route, fed by the classifier and odometry.
 - `placejax.training`: the one training engine every network uses.
+- `placejax.stages`: the method's stages as functions (sessions, depth and HHA, the place nets, the fusion MLP),
+  what ``experiments.cross_season`` drives.
+- `placejax.config`: how every stage's settings are stated (one dataclass per section).
 - `placejax.classify`: `PlaceClassifier` (uint8 RGB ``(N, H, W, 3)`` → places), the pure end-to-end
   `placejax.classify.forward` and unseen-place scores.
 - `placejax.evaluation`: top-1 accuracy, seed means and paired bootstrap intervals of a gain.
@@ -36,6 +39,7 @@ __all__ = [
     "PlaceClassifier",
     "Prediction",
     "classify",
+    "config",
     "data",
     "depth",
     "evaluation",
@@ -44,6 +48,7 @@ __all__ = [
     "models",
     "pretrain",
     "route",
+    "stages",
     "training",
     "weights",
 ]
@@ -52,7 +57,21 @@ _FROM_CLASSIFY = ("PlaceClassifier", "Prediction")
 _SUBMODULES = tuple(name for name in __all__ if name not in _FROM_CLASSIFY)
 
 if _TYPE_CHECKING:  # what IDEs and type checkers see; at run time the same names load lazily (__getattr__)
-    from placejax import classify, data, depth, evaluation, hha, io, models, pretrain, route, training, weights
+    from placejax import (
+        classify,
+        config,
+        data,
+        depth,
+        evaluation,
+        hha,
+        io,
+        models,
+        pretrain,
+        route,
+        stages,
+        training,
+        weights,
+    )
     from placejax.classify import PlaceClassifier, Prediction
 
 

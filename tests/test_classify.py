@@ -17,11 +17,8 @@ import pytest
 from predictions import assert_same_predictions
 
 from experiments.cross_season import apply_overrides, get_config, run
-from experiments.cross_season.context import Context
-from experiments.cross_season.depth_hha import compute_depth_and_hha, depth_source
-from experiments.cross_season.fusion import train_mlp
-from experiments.cross_season.nets import net_outputs, train_nets, training_labels
-from experiments.cross_season.sessions import fit_grid, load_sessions
+from experiments.cross_season.config import sections
+from placejax import stages
 from placejax.classify import ArtefactError, PlaceClassifier, run_layout, unknown
 from placejax.classify.__main__ import main as classify_main
 from placejax.data import eval_dataset
@@ -68,32 +65,49 @@ def clf(smoke_run):
     return PlaceClassifier.from_run(workdir, TRAIN)
 
 
+def _sessions_with_depth(cfg, workdir: Path):
+    """The run's sessions through the library's stages (cached): ``(workspace, sessions, grid)``."""
+    from placejax.depth import depth_source
+
+    c = sections(cfg)
+    ws = stages.Workspace(workdir, data_mesh(None), progress=False)
+    sessions = stages.open_sessions(ws, c["data"])
+    grid = stages.fit_grid(ws, sessions, c["grid"])
+    src = depth_source(c["depth"], progress=False)
+    stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, src, c["depth"].batch_size))
+    return ws, sessions, grid
+
+
 @pytest.fixture(scope="module")
 def experiment_outputs(smoke_run):
     """The experiment's evaluation path recomputed with its own stage functions (all cached or checkpointed):
     per session its uint8 frames, HHA images, labels and the logits of RGB-Net, HHA-Net and the fusion MLP of
     the classifier trained on ``TRAIN``."""
     cfg, workdir, _ = smoke_run
-    ctx = Context(config=cfg, workdir=Path(workdir).absolute(), mesh=data_mesh(None))
-    sessions = load_sessions(ctx)
-    grid = fit_grid(ctx, sessions)
-    compute_depth_and_hha(ctx, sessions)
-    nets = train_nets(ctx, sessions, grid.num_classes)
+    c = sections(cfg)
+    ws, sessions, grid = _sessions_with_depth(cfg, Path(workdir).absolute())
+    nets = stages.train_nets(
+        ws, sessions, grid.num_classes, vgg=c["vgg"], train_cfg=c["train"], eval_cfg=c["eval"], seed=cfg.seed
+    )
     by_name = {s.name: s for s in sessions}
     tr = by_name[TRAIN]
     out = {
-        (m, s.name): net_outputs(ctx, nets[(TRAIN, m)], s, grid.num_classes) for m in ("rgb", "hha") for s in sessions
+        (m, s.name): stages.net_outputs(ws, nets[(TRAIN, m)], s, grid.num_classes, c["eval"])
+        for m in ("rgb", "hha")
+        for s in sessions
     }
     emb = np.concatenate([out[("rgb", TRAIN)]["fc7"], out[("hha", TRAIN)]["fc7"]], 1)
     upstream = {m: cache_digest(nets[(TRAIN, m)].key) for m in ("rgb", "hha")}
     sizes = (out[("rgb", TRAIN)]["fc7"].shape[1], out[("hha", TRAIN)]["fc7"].shape[1])
-    labels = training_labels(cfg, tr, 0)
-    state, prepare, _ = train_mlp(ctx, tr, emb, labels, sizes, grid.num_classes, 0, upstream)
+    labels = stages.training_labels(tr.labels, shuffle=False, seed=cfg.seed, session_index=0)
+    state, prepare, _ = stages.train_mlp(
+        ws, tr, emb, labels, sizes, grid.num_classes, 0, upstream, mlp=c["mlp"], seed=cfg.seed
+    )
     result = {}
     for s in sessions:
         e = np.concatenate([out[("rgb", s.name)]["fc7"], out[("hha", s.name)]["fc7"]], 1)
         ds = eval_dataset(e, batch_size=cfg.eval.batch_size)
-        fused = predict(state, ds, len(s), mesh=ctx.mesh, prepare=prepare, progress=False)["logits"]
+        fused = predict(state, ds, len(s), mesh=ws.mesh, prepare=prepare, progress=False)["logits"]
         result[s.name] = {
             "images": np.asarray(s.cached.images),
             "hha": np.asarray(s.hha.data),
@@ -488,13 +502,6 @@ def test_top_level_name_is_lazy():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-def _far_as_sky(ctx, value):
-    """``ctx`` with ``depth.far_as_sky_m = value``."""
-    cfg = ctx.config.copy_and_resolve_references()
-    cfg.depth.far_as_sky_m = value
-    return dataclasses.replace(ctx, config=cfg)
-
-
 def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_run, clf):
     """``depth.far_as_sky_m``: the experiment's trained-depth stage and the classifier's depth stage both hand
     HHA the metric network's depth with everything at or beyond the threshold at 1000 m. The threshold here is
@@ -506,8 +513,11 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_r
     assert clf._spec.far_as_sky_m == cfg.depth.far_as_sky_m > 0  # the run's settings reached the classifier
     assert clf._spec.flip_average is cfg.depth.flip_average is True  # (the equality tests above cover it)
     assert clf._spec.shifts == tuple(cfg.depth.shift_px) == (2, 4)  # (and so the shifted views)
-    ctx = Context(config=cfg, workdir=Path(workdir).absolute(), mesh=data_mesh(None))
-    session = load_sessions(ctx)[0]
+    from placejax.depth import depth_source
+
+    c = sections(cfg)
+    ws = stages.Workspace(Path(workdir).absolute(), data_mesh(None), progress=False)
+    session = stages.open_sessions(ws, c["data"])[0]
     images = np.asarray(session.cached.images[:8])
 
     def classifier_depth(threshold):
@@ -519,11 +529,11 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_r
     np.testing.assert_array_equal(classifier_depth(threshold), far_to_sky(plain, threshold))
     assert 0.3 < (classifier_depth(threshold) == 1000.0).mean() < 0.7
 
-    key, experiment_depth = depth_source(_far_as_sky(ctx, threshold), "trained")
-    assert key["far_as_sky_m"] == threshold  # the depth and HHA caches are keyed by it
-    _, experiment_plain = depth_source(_far_as_sky(ctx, 0.0), "trained")
-    got = experiment_depth(session, 0, 8)
-    np.testing.assert_array_equal(got, far_to_sky(experiment_plain(session, 0, 8), threshold))
+    experiment_depth = depth_source(dataclasses.replace(c["depth"], far_as_sky_m=threshold), progress=False)
+    assert experiment_depth.key["far_as_sky_m"] == threshold  # the depth and HHA caches are keyed by it
+    experiment_plain = depth_source(dataclasses.replace(c["depth"], far_as_sky_m=0.0), progress=False)
+    got = experiment_depth.predict(images)
+    np.testing.assert_array_equal(got, far_to_sky(experiment_plain.predict(images), threshold))
     assert 0.2 < (got == 1000.0).mean() < 0.8
 
 
@@ -531,30 +541,35 @@ def test_fusion_head_options_train_on_the_copies(smoke_run, tmp_path, monkeypatc
     """Round 3's head options (docs/lookup-gap.md) in the experiment: with ``mlp.jittered`` the MLP trains on the
     originals' embeddings and then the jittered copies' (copy-major, labels tiled), the copies' fc7 being the
     nets' own on their cached jittered features; the options enter the MLP's key only when on."""
-    from experiments.cross_season import fusion
-    from experiments.cross_season.keys import results_only
-    from experiments.cross_season.nets import jittered_fc7
+    from placejax.stages import _fusion, jittered_fc7, results_only
 
     cfg, workdir, _ = smoke_run
     shutil.copytree(workdir, tmp_path / "run")
-    plain = cfg.copy_and_resolve_references()
-    assert not {"input_dropout", "modality_dropout", "jittered"} & set(results_only(plain.mlp))
+    assert not {"input_dropout", "modality_dropout", "jittered"} & set(results_only(sections(cfg)["mlp"]))
     cfg = cfg.copy_and_resolve_references()
     apply_overrides(cfg, ["train.jitter_copies=1", "mlp.jittered=True", "mlp.modality_dropout=0.25"])
-    assert results_only(cfg.mlp)["modality_dropout"] == 0.25 and results_only(cfg.mlp)["jittered"] is True
-    ctx = Context(config=cfg, workdir=tmp_path / "run", mesh=data_mesh(None))
-    sessions = load_sessions(ctx)
-    grid = fit_grid(ctx, sessions)
-    compute_depth_and_hha(ctx, sessions)
+    c = sections(cfg)
+    assert results_only(c["mlp"])["modality_dropout"] == 0.25 and results_only(c["mlp"])["jittered"] is True
+    ws, sessions, grid = _sessions_with_depth(cfg, tmp_path / "run")
     seen = []
-    original = fusion.train_classifier
+    original = _fusion.train_classifier
 
-    def recording(ctx, name, fn, params, frames, labels, *args, **kwargs):
+    def recording(ws, name, fn, params, frames, labels, *args, **kwargs):
         seen.append((np.asarray(frames), np.asarray(labels)))
-        return original(ctx, name, fn, params, frames, labels, *args, **kwargs)
+        return original(ws, name, fn, params, frames, labels, *args, **kwargs)
 
-    monkeypatch.setattr(fusion, "train_classifier", recording)
-    nets, outputs, fused, _ = fusion.train_and_predict(ctx, sessions, grid.num_classes, cfg.seed)
+    monkeypatch.setattr(_fusion, "train_classifier", recording)
+    run_ = stages.train_seed(
+        ws,
+        sessions,
+        grid.num_classes,
+        vgg=c["vgg"],
+        train_cfg=c["train"],
+        mlp=c["mlp"],
+        eval_cfg=c["eval"],
+        seed=cfg.seed,
+    )
+    nets, outputs, fused = run_.nets, run_.outputs, run_.fused
     tr = {s.name: s for s in sessions}[TRAIN]
     frames, labels = seen[0]
     n = len(tr)
@@ -563,7 +578,7 @@ def test_fusion_head_options_train_on_the_copies(smoke_run, tmp_path, monkeypatc
         d = outputs[(TRAIN, m, TRAIN)]["fc7"].shape[1]
         cols = slice(half * d, (half + 1) * d)
         np.testing.assert_array_equal(frames[:n, cols], outputs[(TRAIN, m, TRAIN)]["fc7"])
-        copies = jittered_fc7(ctx, nets[(TRAIN, m)], tr)
+        copies = jittered_fc7(ws, nets[(TRAIN, m)], tr, c["eval"])
         np.testing.assert_array_equal(frames[n:, cols], copies)
         assert not np.allclose(copies, frames[:n, cols])  # the copies are other views
     for (_, t), logits in fused.items():

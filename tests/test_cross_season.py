@@ -145,30 +145,31 @@ def test_frozen_trunk_features_are_cached_once_and_reused(smoke, monkeypatch):
     """The default path freezes the trunk: its conv features are computed once per session and modality (both
     seeds of the smoke run read the same caches) and a later call reads them without running the trunk."""
     workdir, _ = smoke
-    from experiments.cross_season import nets
-    from experiments.cross_season.context import Context
-    from experiments.cross_season.depth_hha import compute_depth_and_hha
-    from experiments.cross_season.sessions import fit_grid, load_sessions
+    from experiments.cross_season.config import sections
+    from placejax import stages
+    from placejax.depth import depth_source
     from placejax.pretrain import modality_weights
+    from placejax.stages import _nets
     from placejax.training import data_mesh
 
-    feats = [f for s in SEASONS for m in nets.MODALITIES for f in run_layout.cache_folders(workdir, s, "features", m)]
+    feats = [f for s in SEASONS for m in stages.MODALITIES for f in run_layout.cache_folders(workdir, s, "features", m)]
     assert len(feats) == len(SEASONS) * 3  # sessions × (rgb, hha, depth1), not × seeds
-    cfg = _smoke_config()
-    ctx = Context(config=cfg, workdir=workdir, mesh=data_mesh(None))
-    sessions = load_sessions(ctx)
-    fit_grid(ctx, sessions)
-    compute_depth_and_hha(ctx, sessions)
+    c = sections(_smoke_config())
+    ws = stages.Workspace(workdir, data_mesh(None), progress=False)
+    sessions = stages.open_sessions(ws, c["data"])
+    stages.fit_grid(ws, sessions, c["grid"])
+    stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, depth_source(c["depth"]), c["depth"].batch_size))
 
     def no_trunk(*a, **k):
         raise AssertionError("the frozen trunk ran again instead of reading its cached features")
 
-    monkeypatch.setattr(nets, "map_batches", no_trunk)
+    monkeypatch.setattr(_nets, "map_batches", no_trunk)
+    vgg = c["vgg"]
     for modality in ("rgb", "hha"):
-        trunk = nets.pretrained_vgg(
-            ctx, modality_weights(modality, weights=cfg.vgg.weights, hha_weights=cfg.vgg.hha_weights)
+        trunk = stages.pretrained_vgg(
+            vgg, modality_weights(modality, weights=vgg.weights, hha_weights=vgg.hha_weights)
         )["trunk"]
-        cached = nets.conv_features(ctx, sessions, modality, trunk)
+        cached = stages.conv_features(ws, sessions, modality, trunk, vgg=vgg, eval_cfg=c["eval"])
         assert {s.name for s in sessions} == set(cached)
         assert np.asarray(cached["WI"].data).shape == (len(sessions[0]), 7, 7, 64)
 
@@ -543,7 +544,7 @@ def test_hha_diagnose_on_the_smoke_run_reproduces_its_rendered_depth_baseline(sm
 
 
 def test_nearest_neighbour_and_heading_ceiling_on_analytic_cases():
-    from experiments.cross_season import baselines
+    from placejax.stages import _baselines as baselines
 
     train = baselines._standardise(np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], np.float32))
     test = baselines._standardise(np.array([[0, 0.9, 0.1, 0], [1, 0.2, 0, 0]], np.float32))
@@ -566,7 +567,6 @@ def test_nearest_neighbour_and_heading_ceiling_on_analytic_cases():
 def test_smoke_route_columns(smoke):
     """The route stage's keys exist and are sane, and RGB-Net + route is recomputed here, seed by seed, from the
     cached RGB-Net logits, SimCampus's simulated odometry and placejax.route (docs/route.md)."""
-    from experiments.cross_season.route import filter_config
     from placejax import route
     from placejax.data import simcampus
 
@@ -598,7 +598,9 @@ def test_smoke_route_columns(smoke):
         for d in dirs:
             logits = np.asarray(open_array_cache(d).data)[:, : results["num_classes"]]
             probs = route.calibrated_probabilities(logits, results["config"]["route"]["temperature"])
-            cells, _ = route.place_belief(route.forward(probs, moved, grid, filter_config(cfg)), grid.num_classes)
+            cells, _ = route.place_belief(
+                route.forward(probs, moved, grid, route.FilterConfig(bounded=False)), grid.num_classes
+            )
             accs.append(np.mean(cells.argmax(1) == labels[p["test"]]))
         assert sorted(accs) == pytest.approx(sorted(p["rgb_net_route_per_seed"]), abs=1e-9)
         assert (workdir / "figures" / f"route_{p['train']}_{p['test']}.png").stat().st_size > 1000

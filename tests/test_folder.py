@@ -670,16 +670,17 @@ def test_folder_source_config_checked():
 def test_experiment_grid_warns_about_a_session_elsewhere(tmp_path, caplog):
     from types import SimpleNamespace
 
-    from experiments.cross_season.sessions import fit_grid
+    from placejax.data import GridConfig
+    from placejax.stages import fit_grid
 
-    ctx = SimpleNamespace(config=SimpleNamespace(grid=SimpleNamespace(n=3)), workdir=tmp_path)
+    ctx = SimpleNamespace(workdir=tmp_path)
     square = np.array([[0.0, 0, 0], [10, 10, 0]])
     sessions = [SimpleNamespace(name=n, cached=SimpleNamespace(poses=p)) for n, p in (("a", square), ("b", square))]
     with caplog.at_level("WARNING"):
-        fit_grid(ctx, sessions)
+        fit_grid(ctx, sessions, GridConfig(n=3))
     assert "shares no place cell" not in caplog.text
     sessions.append(SimpleNamespace(name="far", cached=SimpleNamespace(poses=square + np.array([1000.0, 0, 0]))))
     with caplog.at_level("WARNING"):
-        grid = fit_grid(ctx, sessions)
+        grid = fit_grid(ctx, sessions, GridConfig(n=3))
     assert "session far shares no place cell" in caplog.text and "session a " not in caplog.text
     assert grid.n == 3 and (tmp_path / "grid.json").is_file()

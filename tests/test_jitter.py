@@ -3,9 +3,7 @@
 import numpy as np
 import pytest
 
-from experiments.cross_season.config import apply_overrides, get_config, leaf_keys, validate
-from experiments.cross_season.keys import results_only
-from experiments.cross_season.nets import modality_jitter
+from experiments.cross_season.config import apply_overrides, get_config, leaf_keys, sections, validate
 from experiments.overrides import get
 from placejax.data import ViewJitter, jittered_copies, jittered_view
 
@@ -68,15 +66,18 @@ def test_bad_settings_and_images_are_refused():
 
 
 def test_experiment_settings():
+    from placejax.stages import modality_jitter, results_only
+
     c = get_config("default")
     apply_overrides(c, ["train.jitter_copies=0"])
     # Without copies the magnitudes do not enter the nets' keys (runs keep the keys they had before the copies).
-    assert not any(k.startswith("jitter_") for k in results_only(c.train))
+    assert not any(k.startswith("jitter_") for k in results_only(sections(c)["train"]))
     apply_overrides(c, ["train.jitter_copies=2"])
-    assert results_only(c.train)["jitter_shift"] == c.train.jitter_shift
+    train = sections(c)["train"]
+    assert results_only(train)["jitter_shift"] == c.train.jitter_shift
     # Colour for RGB only: an HHA pixel's channels are measurements.
-    assert modality_jitter(c, "rgb").colour and not modality_jitter(c, "hha").colour
-    assert modality_jitter(c, "hha").geometric
+    assert modality_jitter(train, "rgb").colour and not modality_jitter(train, "hha").colour
+    assert modality_jitter(train, "hha").geometric
     validate(c)
     apply_overrides(c, ["vgg.pretrained=False", "vgg.hha_weights=''"])
     with pytest.raises(ValueError, match=r"jitter_copies needs vgg\.pretrained"):
@@ -104,9 +105,9 @@ def test_fusion_head_settings_are_checked():
     c = get_config("smoke")
     assert (c.mlp.input_dropout, c.mlp.modality_dropout, c.mlp.jittered) == (0.0, 0.0, False)
     for bad, message in (
-        ("mlp.modality_dropout=0.6", r"mlp.modality_dropout=0.6: at most 0.5"),
-        ("mlp.input_dropout=1.0", r"mlp.input_dropout=1.0: a dropout rate must be < 1"),
-        ("mlp.input_dropout=-0.1", r"mlp.input_dropout=-0.1: expected a finite number >= 0"),
+        ("mlp.modality_dropout=0.6", r"mlp.modality_dropout=0.6: expected a number in \[0, 0.5\]"),
+        ("mlp.input_dropout=1.0", r"mlp.input_dropout=1.0: expected a number in \[0, 1\)"),
+        ("mlp.input_dropout=-0.1", r"mlp.input_dropout=-0.1: expected a number in \[0, 1\)"),
         ("mlp.jittered=True", r"mlp.jittered needs train.jitter_copies > 0"),
     ):
         c = get_config("smoke")

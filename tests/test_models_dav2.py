@@ -229,18 +229,17 @@ def test_configs_and_unknown_encoder():
 def test_experiment_depth_source(refs, source):
     """depth.source=depth_anything_v2[_metric]: the metric model's metres go to HHA as they are, the relative
     model's output through the per-image [near_m, far_m] mapping."""
-    from types import SimpleNamespace
-
     from experiments.cross_season import config as xconfig
-    from experiments.cross_season.depth_hha import depth_source
+    from placejax.depth import DepthSourceConfig, depth_source
     from placejax.hha import inverse_depth_to_metric
 
     c = xconfig.get_config("default")
     c.depth.update(source=source, dav2_weights=str(refs / "small_metric.pth"), dav2_short_side=28, batch_size=2)
     xconfig.validate(c)
-    key, fn = depth_source(SimpleNamespace(config=c, progress=False), source)
+    src = depth_source(DepthSourceConfig(**c.depth), progress=False)
+    key = src.key
     rgb = np.random.default_rng(6).integers(0, 256, (3, 24, 32, 3), dtype=np.uint8)
-    got = fn(SimpleNamespace(cached=SimpleNamespace(images=rgb)), 0, 3)
+    got = src.predict(rgb)
     assert got.shape == (3, 24, 32) and got.dtype == np.float32
     metric = source.endswith("metric")
     model = DepthAnythingV2.from_encoder("vits", head="metric" if metric else "relative", max_depth=80.0)
@@ -284,10 +283,8 @@ def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
     The run is described by its index entries (as ``write_classifier_index`` writes them) with tiny random VGG16s
     and MLP in place of its checkpoints, so no smoke run is needed."""
     import zipfile
-    from types import SimpleNamespace
 
     from experiments.cross_season import config as xconfig
-    from experiments.cross_season.depth_hha import depth_source
     from placejax import hha as _hha
     from placejax.classify import ArtefactError, PlaceClassifier, _classifier, run_layout
     from placejax.classify._schema import check_manifest
@@ -305,8 +302,9 @@ def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
     k = [[30.0, 0.0, 15.5], [0.0, 30.0, 15.5], [0.0, 0.0, 1.0]]
     rgb = np.random.default_rng(7).integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)
     # The experiment's path: its depth stage on the cached frames, then HHA with the session's intrinsics.
-    _, fn = depth_source(SimpleNamespace(config=c, progress=False), source)
-    exp_depth = fn(SimpleNamespace(cached=SimpleNamespace(images=rgb)), 0, 3)
+    from placejax.depth import DepthSourceConfig, depth_source
+
+    exp_depth = depth_source(DepthSourceConfig(**c.depth), progress=False).predict(rgb)
     exp_hha = np.asarray(_hha.encode(exp_depth, np.asarray(k)))
 
     nets = _tiny_vgg_mlp_params(4, 32, seed=8)

@@ -161,28 +161,24 @@ def test_cli_overrides_are_typed_and_cache_folder_follows_the_config(tmp_path):
 def test_experiment_reads_the_shipped_trunk_as_pretrained_weights(tmp_path):
     """``vgg.weights=shipped:NAME`` gives the experiment's frozen-trunk path the shipped trunk (fc6/fc7 then
     start from He init), identified in cache keys by the file's hash."""
+    import dataclasses
+
     import jax
     import jax.numpy as jnp
 
-    from experiments.cross_season import get_config
-    from experiments.cross_season.context import Context
-    from experiments.cross_season.keys import weights_identity
-    from experiments.cross_season.nets import pretrained_vgg
     from placejax.models import VGG16
-    from placejax.training import data_mesh
+    from placejax.stages import VGGConfig, pretrained_vgg
+    from placejax.weights import identity
 
-    cfg = get_config("default")
-    cfg.vgg.update(pretrained=True, weights="shipped:simcampus_places_w0125_s64", width=0.125)
-    ctx = Context(config=cfg, workdir=tmp_path, mesh=data_mesh(1))
-    params = pretrained_vgg(ctx, cfg.vgg.weights)
+    vgg = VGGConfig(pretrained=True, weights="shipped:simcampus_places_w0125_s64", width=0.125)
+    params = pretrained_vgg(vgg, vgg.weights)
     want = jax.eval_shape(VGG16(num_classes=100, width=0.125).init, jax.random.key(0), jnp.zeros((1, 64, 64, 3)))
     assert set(params) == {"trunk"}
     assert jax.tree.map(lambda a: a.shape, params["trunk"]) == jax.tree.map(lambda a: a.shape, want["params"]["trunk"])
-    ident = weights_identity(cfg.vgg.weights, "vgg16_imagenet")
-    assert ident["shipped"] == cfg.vgg.weights and len(ident["sha256"]) == 64
-    cfg.vgg.width = 0.25
+    ident = identity(vgg.weights, default="registry:vgg16_imagenet")
+    assert ident["shipped"] == vgg.weights and len(ident["sha256"]) == 64
     with pytest.raises(ValueError, match=r"width-0\.125 trunk"):
-        pretrained_vgg(ctx, cfg.vgg.weights)
+        pretrained_vgg(dataclasses.replace(vgg, width=0.25), vgg.weights)
 
 
 def test_rgb_fingerprint_is_unchanged_by_the_modality_field():

@@ -24,7 +24,7 @@ def _help_epilog() -> str:
                 node = node[part]
             values[name] = node
         shown = "  ".join(f"{name}={value!r}" for name, value in values.items())
-        lines.append(f"  {k}\n      {shown}\n      {_config.HELP.get(k, '')}")
+        lines.append(f"  {k}\n      {shown}\n      {_config.help_text(k)}")
     return "\n".join(lines)
 
 
@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         parser.error(str(e))
     from experiments.cross_season.driver import run
-    from experiments.cross_season.report import table_markdown
+    from experiments.cross_season.report.table import table_markdown
 
     workdir = args.workdir or f"runs/cross_season-{args.preset}"
     try:

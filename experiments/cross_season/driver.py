@@ -1,19 +1,20 @@
-"""The experiment's driver: runs (or resumes) every stage in a work directory, one run per directory.
+"""The experiment's driver: runs (or resumes) every stage of ``placejax.stages`` in a work directory, one run per
+directory, then scores and reports.
 
-Stages, in order (``results.json`` records each one's wall time in this run), and the module of each:
-    sessions   RGB frames of every session, decoded/rendered once and cached at ``data.image_size`` (sessions).
-    grid       the ``grid.n × grid.n`` place grid over all sessions' viewpoints, ``grid.json`` (sessions).
-    depth      per session, metric depth ``float32 (N, H, W)`` from the chosen source (depth_hha).
-    hha        per session, HHA ``uint8 (N, H, W, 3)`` of that depth (depth_hha).
-    features   (pretrained VGG16 only) frozen conv features ``(N, 7, 7, 512·width)`` per modality (nets).
-    nets       per training session, a VGG16 place classifier per modality (rgb, hha, depth1); orbax (nets).
-    outputs    every net on every session: logits and fc7, cached (nets).
-    mlp        per training session, the fusion MLP on [fc7_rgb, fc7_hha]; orbax (fusion).
-    baselines  thumbnails of every session for the nearest-neighbour baselines (evaluation).
-    evaluate   top-1 accuracy on every other session for all methods, gains and their intervals (evaluation).
-    route      the route filter on the fusion's and RGB-Net's outputs along every test session: columns
-               ours_route, rgb_net_route, their gains, the route's unseen-place scores (route).
-Then ``classifiers.json`` (index), ``results.json``, ``table.md`` and the figures (report).
+Stages, in order (``results.json`` records each one's wall time in this run):
+    sessions   RGB frames of every session, decoded/rendered once and cached at ``data.image_size``.
+    grid       the ``grid.n × grid.n`` place grid over all sessions' viewpoints, ``grid.json``.
+    depth      per session, metric depth ``float32 (N, H, W)`` from the depth source (``placejax.depth``).
+    hha        per session, HHA ``uint8 (N, H, W, 3)`` of that depth.
+    features   (pretrained VGG16 only) frozen conv features per modality, cached.
+    nets       per training session, a VGG16 place classifier per modality (rgb, hha, depth1); orbax.
+    outputs    every net on every session: logits and fc7, cached.
+    mlp        per training session, the fusion MLP on [fc7_rgb, fc7_hha]; orbax.
+    baselines  thumbnails of every session for the nearest-neighbour baselines.
+    evaluate   top-1 accuracy on every other session for all methods, gains and their intervals (report.scores).
+    route      the route filter on the fusion's and RGB-Net's outputs along every test session (report.route).
+Then ``classifiers.json`` (``placejax.stages.write_classifier_index``), ``results.json``, ``table.md`` and the
+figures (``report``).
 
 A kill at any point leaves complete caches, ``.partial`` caches that resume chunk by chunk, and orbax
 checkpoints that resume at their step; the data order and dropout keys are functions of the step, so the
@@ -25,6 +26,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -32,15 +34,9 @@ import ml_collections
 import numpy as np
 
 from experiments.cross_season import config as _config
-from experiments.cross_season.context import Context, peak_rss_mib
-from experiments.cross_season.depth_hha import compute_depth_and_hha
-from experiments.cross_season.evaluation import baseline_features, evaluate
-from experiments.cross_season.fusion import train_and_predict
-from experiments.cross_season.index import write_classifier_index
-from experiments.cross_season.route import route_columns, write_route_figures
-from experiments.cross_season.sessions import fit_grid, load_sessions
-from placejax import io
+from placejax import io, stages
 from placejax.data import release_mapped_pages
+from placejax.depth import depth_source
 from placejax.training import data_mesh, release_free_memory, sync_processes
 
 
@@ -72,11 +68,22 @@ def finished_results(workdir: str | Path, config: ml_collections.ConfigDict) -> 
     return results if same else None
 
 
-def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
+def run(
+    config: ml_collections.ConfigDict,
+    workdir: str | Path,
+    *,
+    on_stage: Callable[[str, bool], None] | None = None,
+) -> dict:
     """Runs (or resumes) the whole experiment in ``workdir``; writes results.json, table.md and figures.
 
     A finished run on read-only storage is read back, not rerun. Two runs cannot share a work directory (the
     second fails at once).
+
+    Args:
+        config: the configuration (``get_config`` and overrides).
+        workdir: the work directory.
+        on_stage: called with ``(stage, True)`` when a stage starts and ``(stage, False)`` when it ends (the
+            NCLT rehearsal samples memory per stage with it).
 
     Returns:
         The ``results.json`` content.
@@ -91,11 +98,12 @@ def run(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
             return finished
         raise PermissionError(f"work directory {workdir} is read-only and holds no finished run of this config")
     workdir.mkdir(parents=True, exist_ok=True)
+    ws = stages.Workspace(workdir, mesh, progress=bool(config.progress), on_stage=on_stage)
     if jax.process_index() == 0:
         with io.run_lock(workdir, hint="pass another --workdir"):
-            results = _run(config, workdir, mesh, t_start)
+            results = _run(config, ws, t_start)
     else:
-        results = _run(config, workdir, mesh, t_start)
+        results = _run(config, ws, t_start)
     # Several processes leave together: JAX's shutdown barrier at exit gives a late process only 5 minutes, and the
     # first one writes the results and figures while the others are done.
     sync_processes("cross_season finished")
@@ -110,33 +118,51 @@ def _release_memory() -> None:
     release_mapped_pages()
 
 
-def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Mesh, t_start: float) -> dict:
+def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float) -> dict:
     """Every stage in order (see the module docstring), then the index, results, table and figures."""
-    ctx = Context(config=config, workdir=workdir, mesh=mesh)
+    from experiments.cross_season import report
+
+    c = _config.sections(config)
+    workdir = ws.workdir
     if jax.process_index() == 0:
         io.write_json(workdir / "config.json", config.to_dict())
 
-    with ctx.timed("sessions"):
-        sessions = load_sessions(ctx)
-    with ctx.timed("grid"):
-        grid = fit_grid(ctx, sessions)
+    with ws.timed("sessions"):
+        sessions = stages.open_sessions(ws, c["data"])
+    with ws.timed("grid"):
+        grid = stages.fit_grid(ws, sessions, c["grid"])
     num_classes = grid.num_classes
-    compute_depth_and_hha(ctx, sessions)
+    with ws.timed("depth"):
+        source = depth_source(c["depth"], progress=ws.progress)
+    stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, source, c["depth"].batch_size))
     _release_memory()
     # Every net and MLP is trained once per seed (seed, seed + 1, ...); the table reports the mean over seeds.
+    modalities = ("rgb", "hha", "depth1") if c["ablations"].depth1 else ("rgb", "hha")
     runs = []
     for k in range(config.n_seeds):
-        runs.append(train_and_predict(ctx, sessions, num_classes, config.seed + k))
+        runs.append(
+            stages.train_seed(
+                ws,
+                sessions,
+                num_classes,
+                vgg=c["vgg"],
+                train_cfg=c["train"],
+                mlp=c["mlp"],
+                eval_cfg=c["eval"],
+                seed=config.seed + k,
+                modalities=modalities,
+            )
+        )
         _release_memory()
-    nets, outputs, fused, mlp_dirs = runs[0]  # the first seed's models: figures and PlaceClassifier
+    first = runs[0]  # the first seed's models: figures and PlaceClassifier
 
-    with ctx.timed("baselines"):
-        thumbs = baseline_features(ctx, sessions)
+    with ws.timed("baselines"):
+        thumbs = stages.baseline_features(ws, sessions, c["depth"].batch_size)
     _release_memory()
 
-    scores = evaluate(ctx, sessions, runs, thumbs)
-    scores["route"], route_traces = route_columns(ctx, sessions, runs, grid, scores["pairs"])
-    ctx.timings["total"] = time.perf_counter() - t_start
+    scores = report.evaluate(ws, config, sessions, runs, thumbs)
+    scores["route"], route_traces = report.route_columns(ws, config, sessions, runs, grid, scores["pairs"])
+    ws.timings["total"] = time.perf_counter() - t_start
     results = {
         "preset": config.preset,
         **scores,
@@ -145,21 +171,25 @@ def _run(config: ml_collections.ConfigDict, workdir: Path, mesh: jax.sharding.Me
         "sessions": {s.name: {"frames": len(s), "classes_visited": len(np.unique(s.labels))} for s in sessions},
         "config": config.to_dict(),
         "seeds": {"seed": config.seed, "seeds": [config.seed + k for k in range(config.n_seeds)]},
-        "devices": {"count": mesh.size, "platform": jax.devices()[0].platform, "processes": jax.process_count()},
+        "devices": {"count": ws.mesh.size, "platform": jax.devices()[0].platform, "processes": jax.process_count()},
         "versions": versions(),
-        "timings_s": {k: round(v, 3) for k, v in ctx.timings.items()},
-        "peak_rss_mib": {**ctx.peak_rss_mib, "total": peak_rss_mib()},
+        "timings_s": {k: round(v, 3) for k, v in ws.timings.items()},
+        "peak_rss_mib": {**ws.peak_rss_mib, "total": stages.peak_rss_mib()},
     }
-    from experiments.cross_season import report
-
     if jax.process_index() == 0:
-        write_classifier_index(
-            ctx, sessions, nets, mlp_dirs, grid, fused, outputs, scores["unknown"]["feature_thresholds"]
+        stages.write_classifier_index(
+            ws,
+            sessions,
+            first,
+            grid,
+            stages.depth_index_entry(source, config.depth.to_dict()),
+            config.to_dict(),
+            scores["unknown"]["feature_thresholds"],
         )
         io.write_json(workdir / "results.json", results)
         report.write_table(results, workdir / "table.md")
         if config.figures:
-            with ctx.timed("figures"):
-                report.write_figures(results, sessions, grid, fused, outputs, workdir / "figures")
-                write_route_figures(route_traces, sessions, workdir / "figures")
+            with ws.timed("figures"):
+                report.write_figures(results, sessions, grid, first.fused, first.outputs, workdir / "figures")
+                report.write_route_figures(route_traces, sessions, workdir / "figures")
     return results

@@ -31,6 +31,7 @@ from placejax.data.grid import PlaceGrid
 from placejax.data.jitter import ViewJitter, jittered_copies, jittered_view
 from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dataset
 from placejax.data.session import ArraySession, Session, session_identity, truncated
+from placejax.data.sources import DataConfig, GridConfig, moved_m, open_session
 
 # Imported on first attribute access (PEP 562): SimCampus renders with JAX, which the rest of the data layer
 # does not need; nclt (and the others) are lazy too so that `python -m placejax.data.nclt` does not find its own
@@ -56,7 +57,9 @@ __all__ = [
     "Augment",
     "CacheError",
     "CachedSession",
+    "DataConfig",
     "FrameSource",
+    "GridConfig",
     "PlaceGrid",
     "Session",
     "ViewJitter",
@@ -68,8 +71,10 @@ __all__ = [
     "folder",
     "jittered_copies",
     "jittered_view",
+    "moved_m",
     "nclt",
     "open_array_cache",
+    "open_session",
     "open_session_cache",
     "release_mapped_pages",
     "session_identity",

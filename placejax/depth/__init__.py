@@ -36,6 +36,7 @@ from placejax.depth._losses import (
     window_normals,
 )
 from placejax.depth._metrics import aligned_depth, depth_metrics
+from placejax.depth._sources import SOURCE_NAMES, DepthSource, DepthSourceConfig, depth_source, register_source
 from placejax.depth._train import (
     PRESETS,
     DepthObjective,
@@ -51,7 +52,10 @@ __all__ = [
     "LOG_DEPTH_UNIT_M",
     "PRESETS",
     "SHIPPED",
+    "SOURCE_NAMES",
     "DepthObjective",
+    "DepthSource",
+    "DepthSourceConfig",
     "DepthTrainConfig",
     "TrainedDepth",
     "align_least_squares",
@@ -61,6 +65,7 @@ __all__ = [
     "baseline_predictions",
     "depth_from_log",
     "depth_metrics",
+    "depth_source",
     "ensure_trained",
     "evaluate",
     "evaluation_frames",
@@ -78,6 +83,7 @@ __all__ = [
     "predict",
     "preprocess",
     "quick_check",
+    "register_source",
     "report_markdown",
     "run_dir",
     "save_shipped",

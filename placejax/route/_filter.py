@@ -59,16 +59,18 @@ class FilterConfig:
         n_noise: distance samples the motion model averages over.
     """
 
-    odometry_noise_frac: float = 0.1
-    odometry_noise_m: float = 0.5
-    bounded: bool = False
+    temperature: float = 4.0
     uniform_mix: float = 1e-3
-    unknown: bool = True
+    unknown_level: float = 5.0
     unknown_prior: float = 0.01
     unknown_enter_per_m: float = 0.005
     unknown_leave_per_m: float = 0.1
-    unknown_level: float = 2.0
     emission_floor: float = 1e-4
+    odometry_noise_frac: float = 0.1
+    odometry_noise_m: float = 0.5
+    max_speed_mps: float = 2.0
+    bounded: bool = False
+    unknown: bool = True
     n_angles: int = 32
     n_noise: int = 5
 

@@ -1,6 +1,6 @@
-"""Stages ``features``, ``nets`` and ``outputs``: a VGG16 place classifier per (training session, modality) —
-RGB, HHA and the 1-channel depth ablation — trained from scratch or, with a pretrained trunk, on its cached frozen
-conv features (orbax-checkpointed); then every net's logits and fc7 on every session (cached)."""
+"""Stages ``features``, ``nets`` and ``outputs``: a VGG16 place classifier per (training session, modality) — RGB,
+HHA and the 1-channel depth ablation — trained from scratch or, with a pretrained trunk, on its cached frozen conv
+features (orbax-checkpointed); then every net's logits and fc7 on every session (cached)."""
 
 from __future__ import annotations
 
@@ -12,19 +12,37 @@ from typing import Any
 import grain
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 
-from experiments.cross_season.context import Context, SessionData
-from experiments.cross_season.keys import params_digest, results_only, weights_identity
 from placejax.classify.run_layout import NETS_DIR, cache_name
 from placejax.data import build_array_cache, eval_dataset, train_dataset
 from placejax.data.cache import cache_digest
 from placejax.models import VGG16, cpu_compiler_options, he_init, imagenet_normalise
 from placejax.pretrain import modality_weights
+from placejax.stages._configs import EvalConfig, TrainConfig, VGGConfig
+from placejax.stages._keys import params_digest, results_only
+from placejax.stages._workspace import SessionData, Workspace
 from placejax.training import apply_fn, local_copy, make_optimizer, map_batches, predict, replicate, train
+from placejax.weights import identity
+
+__all__ = [
+    "MODALITIES",
+    "TrainedNet",
+    "conv_features",
+    "features_prepare",
+    "jittered_fc7",
+    "modality_images",
+    "modality_jitter",
+    "net_outputs",
+    "network_input",
+    "pretrained_vgg",
+    "train_classifier",
+    "train_nets",
+    "training_labels",
+]
 
 MODALITIES = ("rgb", "hha", "depth1")
+"""The place classifiers' input modalities: RGB, HHA, and the 1-channel depth ablation (paper §IV)."""
 _WHOLE = grain.sharding.ShardOptions(shard_index=0, shard_count=1)  # every frame, whatever the process
 
 
@@ -51,12 +69,16 @@ def network_input(images: np.ndarray, modality: str) -> np.ndarray:
     return imagenet_normalise(x)
 
 
-def _vgg(ctx: Context, num_classes: int) -> VGG16:
-    c = ctx.config.vgg
-    return VGG16(num_classes=num_classes, width=c.width, dropout_rate=c.dropout)
+def _trunk_weights(vgg: VGGConfig, modality: str) -> str:
+    return modality_weights(modality, weights=vgg.weights, hha_weights=vgg.hha_weights)
 
 
-def pretrained_vgg(ctx: Context, weights: str) -> dict:
+def _weights_identity(vgg: VGGConfig, modality: str) -> dict:
+    """The modality's trunk weights by their identity (file hash), the registry's ImageNet VGG16 when unnamed."""
+    return identity(_trunk_weights(vgg, modality), default="registry:vgg16_imagenet")
+
+
+def pretrained_vgg(vgg: VGGConfig, weights: str) -> dict:
     """Pretrained VGG16 parameters of ``weights`` (``vgg.weights`` or ``vgg.hha_weights``) at ``vgg.width``
     (``placejax.pretrain.pretrained_vgg16``): a torchvision-layout file, ``shipped:<name>`` (a trunk pretrained on
     other SimCampus worlds; fc6/fc7 then start from He init and are trained), or empty for the registry's
@@ -64,96 +86,86 @@ def pretrained_vgg(ctx: Context, weights: str) -> dict:
     from placejax.pretrain import pretrained_vgg16
 
     try:
-        return pretrained_vgg16(weights, ctx.config.vgg.width)
+        return pretrained_vgg16(weights, vgg.width)
     except ValueError as e:
-        raise ValueError(f"vgg weights {weights!r}, vgg.width={ctx.config.vgg.width}: {e}") from None
+        raise ValueError(f"vgg weights {weights!r}, vgg.width={vgg.width}: {e}") from None
 
 
-def training_labels(config: ml_collections.ConfigDict, s: SessionData, si: int) -> np.ndarray:
-    """The labels the networks of training session ``s`` (index ``si``) learn from.
+def training_labels(labels: np.ndarray, *, shuffle: bool, seed: int, session_index: int) -> np.ndarray:
+    """The labels the networks of a training session learn from.
 
-    ``train.shuffle_labels`` (a control): the session's labels permuted across its frames with a seeded
-    permutation, so the label histogram is kept but every image–label link is broken; accuracies measured
+    ``shuffle`` (``train.shuffle_labels``, a control): the session's labels permuted across its frames with a
+    seeded permutation, so the label histogram is kept but every image–label link is broken; accuracies measured
     against the true labels must then fall to chance.
     """
-    if not config.train.shuffle_labels:
-        return s.labels
-    return np.random.default_rng([config.seed, si, 0x5EED]).permutation(s.labels)
-
-
-def _vgg_key(ctx: Context, modality: str) -> dict:
-    """The ``vgg`` section as a cache key: the weights of the modality's trunk by their identity (file hash)."""
-    c = ctx.config.vgg
-    out = {k: v for k, v in c.to_dict().items() if k not in ("weights", "hha_weights")}
-    if c.pretrained:
-        out["weights"] = weights_identity(
-            modality_weights(modality, weights=c.weights, hha_weights=c.hha_weights), "vgg16_imagenet"
-        )
-    return out
-
-
-def _net_key(ctx: Context, s: SessionData, labels: np.ndarray, modality: str, num_classes: int) -> dict:
-    cfg = ctx.config
-    return {
-        "modality": modality,
-        "images": s.cached.key if modality == "rgb" else s.hha.key,
-        "labels": cache_digest({"labels": labels.tolist()}),
-        "num_classes": num_classes,
-        "vgg": _vgg_key(ctx, modality),
-        "train": results_only(cfg.train),
-        "seed": cfg.seed,
-    }
+    if not shuffle:
+        return labels
+    return np.random.default_rng([seed, session_index, 0x5EED]).permutation(labels)
 
 
 @dataclasses.dataclass
 class TrainedNet:
-    """A trained place classifier and how to run it on any session."""
+    """A trained place classifier and how to run it on any session.
+
+    Attributes:
+        name: ``<session>-<modality>``.
+        state: its train state (parameters only: the optimiser state is dropped after training).
+        inputs: session → the frames (or cached conv features) the net reads.
+        prepare: a raw batch → the training engine's ``{"x", "label", "valid"}``.
+        key: what identifies it (recipe, inputs, checkpoint folder, weights digest).
+        jittered: session → the cached features of its jittered copies (copy-major); ``None`` without copies.
+    """
 
     name: str
     state: Any
-    inputs: Callable[[SessionData], np.ndarray]  # frames (or cached conv features) the net reads
+    inputs: Callable[[SessionData], np.ndarray]
     prepare: Callable[[dict], dict]
     key: dict
-    # With train.jitter_copies: the cached features of a session's jittered copies (copy-major), else None.
     jittered: Callable[[SessionData], np.ndarray] | None = None
 
 
-def modality_jitter(config: ml_collections.ConfigDict, modality: str):
+def modality_jitter(train_cfg: TrainConfig, modality: str):
     """The ``train.jitter_*`` settings as a :class:`placejax.data.ViewJitter` for one modality: shift and zoom for
     every modality, colour (brightness, contrast, saturation) for RGB only — an HHA pixel's channels are
     measurements, not colours."""
     from placejax.data import ViewJitter
 
-    t = config.train
+    t = train_cfg
     colour = t.jitter_colour if modality == "rgb" else 0.0
     return ViewJitter(shift=t.jitter_shift, zoom=t.jitter_zoom, brightness=colour, contrast=colour, saturation=colour)
 
 
 def conv_features(
-    ctx: Context, sessions: list[SessionData], modality: str, trunk_params: dict, *, jitter: bool = False
-):
-    """Frozen conv features of every session for one modality, cached as float16.
+    ws: Workspace,
+    sessions: list[SessionData],
+    modality: str,
+    trunk_params: dict,
+    *,
+    vgg: VGGConfig,
+    eval_cfg: EvalConfig,
+    jitter: TrainConfig | None = None,
+) -> dict[str, Any]:
+    """Frozen conv features of every session for one modality, cached as float16: session name → ArrayCache.
 
-    With ``jitter``, the features of ``train.jitter_copies`` jittered copies of every frame instead
-    (``placejax.data.jittered_copies`` with seed 0, whatever the run's seed: the copies are data, shared by every
-    seed's net), ``(copies · N, ...)``, copy-major.
+    With ``jitter`` (a ``train`` section with ``jitter_copies > 0``), the features of ``jitter_copies`` jittered
+    copies of every frame instead (``placejax.data.jittered_copies`` with seed 0, whatever the run's seed: the
+    copies are data, shared by every seed's net), ``(copies · N, ...)``, copy-major.
     """
-    model = _vgg(ctx, 2)
-    c = ctx.config
+    model = VGG16(num_classes=2, width=vgg.width, dropout_rate=vgg.dropout)
     fn = jax.jit(
         lambda p, x: model.apply({"params": {"trunk": p}}, x, method=VGG16.conv_features),
         compiler_options=cpu_compiler_options("vgg16"),  # YNNPACK convs on CPU: ~1.8x faster; {} elsewhere
     )
-    p = replicate(trunk_params, ctx.local_mesh)
-    copies = c.train.jitter_copies if jitter else 1
-    view_jitter = modality_jitter(c, modality) if jitter else None
+    p = replicate(trunk_params, ws.local_mesh)
+    copies = jitter.jitter_copies if jitter is not None else 1
+    view_jitter = modality_jitter(jitter, modality) if jitter is not None else None
     out = {}
     for s in sessions:
         images = modality_images(s, modality)
         n = len(s)
 
         def run(x, modality=modality):
-            return map_batches(lambda b: fn(p, jnp.asarray(network_input(b, modality))), x, c.eval.batch_size)
+            return map_batches(lambda b: fn(p, jnp.asarray(network_input(b, modality))), x, eval_cfg.batch_size)
 
         def compute(a, b, images=images, run=run, n=n):
             if view_jitter is None:
@@ -173,39 +185,34 @@ def conv_features(
             "kind": "vgg_conv_features",
             "modality": modality,
             "images": s.cached.key if modality == "rgb" else s.hha.key,
-            "vgg": {
-                "width": c.vgg.width,
-                "weights": weights_identity(
-                    modality_weights(modality, weights=c.vgg.weights, hha_weights=c.vgg.hha_weights), "vgg16_imagenet"
-                ),
-            },
+            "vgg": {"width": vgg.width, "weights": _weights_identity(vgg, modality)},
         }
         if view_jitter is not None:
             key["jitter"] = {"copies": copies, "seed": 0, **dataclasses.asdict(view_jitter)}
         out[s.name] = build_array_cache(
-            ctx.cache_root,
-            cache_name(s.name, "features", f"{modality}-jitter" if jitter else modality),
+            ws.cache_root,
+            cache_name(s.name, "features", f"{modality}-jitter" if jitter is not None else modality),
             copies * n,
             compute,
             shape[1:],
             np.float16,  # halves a multi-GB cache at full width; features are post-ReLU averages
             key=key,
-            chunk=c.eval.batch_size,
-            progress=ctx.progress,
-            desc=f"conv features {s.name} {modality}" + (" jittered" if jitter else ""),
+            chunk=eval_cfg.batch_size,
+            progress=ws.progress,
+            desc=f"conv features {s.name} {modality}" + (" jittered" if jitter is not None else ""),
         )
     return out
 
 
 def train_classifier(
-    ctx: Context,
+    ws: Workspace,
     name: str,
     fn: Callable[..., Any],
     params: dict,
     frames: Any,
     labels: np.ndarray,
     prepare: Callable[[dict], dict],
-    hp: ml_collections.ConfigDict,
+    hp: Any,
     *,
     seed: int,
     key: jax.Array,
@@ -214,14 +221,15 @@ def train_classifier(
     """Trains one place classifier (a VGG16, its head on cached features, or the fusion MLP) on the engine.
 
     Args:
+        ws: the workspace (mesh, progress).
         name: for the progress bar.
         fn: ``placejax.training.apply_fn`` of the model.
         params: initial parameters.
         frames: per-frame inputs (images, cached features or embeddings).
         labels: int ``(N,)``.
         prepare: raw batch → ``{"x", "label", "valid"}``.
-        hp: a config section with ``epochs``, ``batch_size``, ``learning_rate``, ``optimizer``, ``weight_decay``,
-            ``warmup_steps``, ``save_every``.
+        hp: a :class:`TrainConfig` or ``MLPConfig`` (``epochs``, ``batch_size``, ``learning_rate``, ``optimizer``,
+            ``weight_decay``, ``warmup_steps``, ``save_every``).
         seed: data order.
         key: dropout keys.
         folder: orbax checkpoints (resumed from when present).
@@ -233,14 +241,14 @@ def train_classifier(
         make_optimizer(hp.optimizer, weight_decay=hp.weight_decay),
         ds,
         key=key,
-        mesh=ctx.mesh,
+        mesh=ws.mesh,
         prepare=prepare,
         learning_rate=hp.learning_rate,
         warmup_steps=hp.warmup_steps,
         checkpoint_dir=folder,
         save_every=hp.save_every,
         desc=f"train {name}",
-        progress=ctx.progress,
+        progress=ws.progress,
     )
 
 
@@ -250,38 +258,46 @@ def features_prepare(b: dict) -> dict:
 
 
 def train_nets(
-    ctx: Context, sessions: list[SessionData], num_classes: int, modalities: tuple[str, ...] | None = None
+    ws: Workspace,
+    sessions: list[SessionData],
+    num_classes: int,
+    *,
+    vgg: VGGConfig,
+    train_cfg: TrainConfig,
+    eval_cfg: EvalConfig,
+    seed: int,
+    modalities: tuple[str, ...] = ("rgb", "hha"),
 ) -> dict[tuple[str, str], TrainedNet]:
-    """Trains (or resumes, or reloads) a VGG16 per (training session, modality).
+    """Trains (or resumes, or reloads) a VGG16 per (training session, modality); timed as stages ``features`` (the
+    frozen trunk's cached features) and ``nets``.
 
-    ``modalities`` defaults to rgb and hha (and depth1 with ``ablations.depth1``); the world calibration trains
-    rgb alone. A net's seed and key depend on the modality's index in ``MODALITIES``, not in this tuple.
+    A net's seed and key depend on the modality's index in :data:`MODALITIES`, not in ``modalities``.
+
+    Returns:
+        ``(session name, modality) → TrainedNet``.
     """
-    cfg = ctx.config
-    if modalities is None:
-        modalities = ("rgb", "hha", "depth1") if cfg.ablations.depth1 else ("rgb", "hha")
-    model = _vgg(ctx, num_classes)
-    key = jax.random.key(cfg.seed)
+    model = VGG16(num_classes=num_classes, width=vgg.width, dropout_rate=vgg.dropout)
+    key = jax.random.key(seed)
     h, w = sessions[0].cached.image_shape
     nets = {}
     trunks: dict[str, dict] = {}  # pretrained parameters by weights (the HHA net may read its own)
     init = jax.jit(model.init)
+    vgg_key = {k: v for k, v in dataclasses.asdict(vgg).items() if k not in ("weights", "hha_weights")}
     for modality in modalities:
         mi = MODALITIES.index(modality)
-        pretrained = None
-        if cfg.vgg.pretrained:
-            weights = modality_weights(modality, weights=cfg.vgg.weights, hha_weights=cfg.vgg.hha_weights)
+        pretrained = jittered = None
+        if vgg.pretrained:
+            weights = _trunk_weights(vgg, modality)
             if weights not in trunks:
-                trunks[weights] = pretrained_vgg(ctx, weights)
+                trunks[weights] = pretrained_vgg(vgg, weights)
             pretrained = trunks[weights]
         if pretrained is not None:
-            with ctx.timed("features"):
-                feats = conv_features(ctx, sessions, modality, pretrained["trunk"])
-                jittered = (
-                    conv_features(ctx, sessions, modality, pretrained["trunk"], jitter=True)
-                    if cfg.train.jitter_copies
-                    else None
-                )
+            with ws.timed("features"):
+                feats = conv_features(ws, sessions, modality, pretrained["trunk"], vgg=vgg, eval_cfg=eval_cfg)
+                if train_cfg.jitter_copies:
+                    jittered = conv_features(
+                        ws, sessions, modality, pretrained["trunk"], vgg=vgg, eval_cfg=eval_cfg, jitter=train_cfg
+                    )
 
             def inputs(s, feats=feats):
                 return feats[s.name].data
@@ -297,11 +313,20 @@ def train_nets(
                 return {"x": network_input(b["image"], modality), "label": b["label"], "valid": b["valid"]}
 
             fn = apply_fn(model)
+        net_vgg_key = {**vgg_key, **({"weights": _weights_identity(vgg, modality)} if vgg.pretrained else {})}
         for si, s in enumerate(sessions):
-            with ctx.timed("nets"):
+            with ws.timed("nets"):
                 name = f"{s.name}-{modality}"
-                labels = training_labels(cfg, s, si)
-                net_key = _net_key(ctx, s, labels, modality, num_classes)
+                labels = training_labels(s.labels, shuffle=train_cfg.shuffle_labels, seed=seed, session_index=si)
+                net_key = {
+                    "modality": modality,
+                    "images": s.cached.key if modality == "rgb" else s.hha.key,
+                    "labels": cache_digest({"labels": labels.tolist()}),
+                    "num_classes": num_classes,
+                    "vgg": net_vgg_key,
+                    "train": results_only(train_cfg),
+                    "seed": seed,
+                }
                 init_key, run_key = jax.random.split(jax.random.fold_in(key, 1000 * mi + si))
                 params = he_init(init(init_key, jnp.zeros((1, h, w, 3)))["params"], init_key)
                 if pretrained is not None:
@@ -312,77 +337,77 @@ def train_nets(
                         if layer in pretrained.get("classifier", {}):
                             cls[layer] = pretrained["classifier"][layer]
                     params = {"classifier": cls}
-                folder = ctx.workdir / NETS_DIR / f"{name}-{cache_digest(net_key)}"
+                folder = ws.workdir / NETS_DIR / f"{name}-{cache_digest(net_key)}"
                 frames, frame_labels = inputs(s), labels
-                if pretrained is not None and jittered is not None:
+                if jittered is not None:
                     # The originals and their jittered copies (copy-major), every copy with its frame's label.
                     frames = np.concatenate([np.asarray(frames), np.asarray(jittered[s.name].data)])
-                    frame_labels = np.tile(labels, cfg.train.jitter_copies + 1)
+                    frame_labels = np.tile(labels, train_cfg.jitter_copies + 1)
                 state = train_classifier(
-                    ctx,
+                    ws,
                     name,
                     fn,
                     params,
                     frames,
                     frame_labels,
                     prepare,
-                    cfg.train,
-                    seed=cfg.seed + si,
+                    train_cfg,
+                    seed=seed + si,
                     key=run_key,
                     folder=folder,
                 )
-                # Only the parameters are used from here on (outputs on every session). The optimiser state (SGD
-                # momentum: as large as the parameters, ~0.5 GB per full-width fc6–fc8) of every net kept until the
-                # end of the run doubled the peak memory of the paper preset (measured: 12 nets held ~12 GB).
+                # Only the parameters are used from here on: the optimiser state of every net kept until the end
+                # of the run doubled the paper preset's peak memory (research log, 2026-11).
                 state = state.replace(opt_state=None)
-                # The outputs and the fusion MLP are keyed by the weights themselves, not only by the recipe: a
-                # net retrained under the same recipe (its folder deleted, another device count: the sums of a
-                # step are grouped differently) must not meet the outputs of the one before.
-                identity = {**net_key, "ckpt": folder.name, "weights": params_digest(state.params)}
+                # Outputs and the fusion MLP are keyed by the weights themselves, not only by the recipe: a net
+                # retrained under the same recipe (another device count groups a step's sums differently) must
+                # not meet the outputs of the one before.
+                identity_key = {**net_key, "ckpt": folder.name, "weights": params_digest(state.params)}
                 copies = None
-                if pretrained is not None and jittered is not None:
+                if jittered is not None:
 
                     def copies(t, jittered=jittered):
                         return jittered[t.name].data
 
-                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, identity, copies)
+                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, identity_key, copies)
     return nets
 
 
-def jittered_fc7(ctx: Context, net: TrainedNet, s: SessionData) -> np.ndarray:
+def jittered_fc7(ws: Workspace, net: TrainedNet, s: SessionData, eval_cfg: EvalConfig) -> np.ndarray:
     """fc7 ``(copies · N, D)`` of ``net`` on the jittered copies of ``s`` (copy-major, as the net trained on them)."""
     if net.jittered is None:
         raise ValueError(f"{net.name}: no jittered copies (train.jitter_copies=0 or a net without cached features)")
-    return _run_head(ctx, net, np.asarray(net.jittered(s)))["fc7"]
+    return _run_head(ws, net, np.asarray(net.jittered(s)), eval_cfg)["fc7"]
 
 
-def _run_head(ctx: Context, net: TrainedNet, frames: np.ndarray) -> dict[str, np.ndarray]:
+def _run_head(ws: Workspace, net: TrainedNet, frames: np.ndarray, eval_cfg: EvalConfig) -> dict[str, np.ndarray]:
     """Logits and fc7 of ``net`` on ``frames`` (this process alone, on its own devices)."""
-    ds = eval_dataset(frames, batch_size=ctx.config.eval.batch_size, shard=_WHOLE)
+    ds = eval_dataset(frames, batch_size=eval_cfg.batch_size, shard=_WHOLE)
     return predict(
-        local_copy(net.state, ctx.local_mesh),
+        local_copy(net.state, ws.local_mesh),
         ds,
         len(frames),
-        mesh=ctx.local_mesh,
+        mesh=ws.local_mesh,
         prepare=net.prepare,
         features=("fc7",),
         progress=False,
     )
 
 
-def net_outputs(ctx: Context, net: TrainedNet, s: SessionData, num_classes: int) -> dict[str, np.ndarray]:
+def net_outputs(
+    ws: Workspace, net: TrainedNet, s: SessionData, num_classes: int, eval_cfg: EvalConfig
+) -> dict[str, np.ndarray]:
     """Logits ``(N, C)`` and fc7 ``(N, D)`` of ``net`` on every frame of ``s`` (cached)."""
-    cfg = ctx.config
     d = int(net.state.params["classifier"]["fc7"]["bias"].shape[0])
     frames = net.inputs(s)
 
     def compute(a: int, b: int) -> np.ndarray:
         # This process alone (whichever holds the cache's lock): every frame, on its own devices.
-        out = _run_head(ctx, net, np.asarray(frames[a:b]))
+        out = _run_head(ws, net, np.asarray(frames[a:b]), eval_cfg)
         return np.concatenate([out["logits"], out["fc7"]], axis=1)
 
     cache = build_array_cache(
-        ctx.cache_root,
+        ws.cache_root,
         cache_name(s.name, "outputs", net.name),
         len(s),
         compute,
@@ -394,8 +419,8 @@ def net_outputs(ctx: Context, net: TrainedNet, s: SessionData, num_classes: int)
             "frames": s.cached.key,
             "hha": None if s.hha is None else s.hha.key,  # None: an RGB-only calibration run
         },
-        chunk=max(cfg.eval.batch_size * 4, 256),
-        progress=ctx.progress,
+        chunk=max(eval_cfg.batch_size * 4, 256),
+        progress=ws.progress,
         desc=f"{net.name} on {s.name}",
     )
     data = np.asarray(cache.data)

@@ -21,11 +21,11 @@ from typing import Any
 import ml_collections
 import numpy as np
 
-from experiments.cross_season.context import Context, SessionData
 from placejax import route
 from placejax.classify import unknown as _unknown
-from placejax.data import PlaceGrid
+from placejax.data import DataConfig, PlaceGrid, moved_m
 from placejax.evaluation import frame_gains, gain_intervals, mean_sd
+from placejax.stages import SeedRun, SessionData, Workspace
 
 # Route column → the single-frame column whose outputs it filters.
 METHODS = {"ours_route": "ours", "rgb_net_route": "rgb_net"}
@@ -39,36 +39,17 @@ UNKNOWN_KEYS = (
 
 
 def filter_config(config: ml_collections.ConfigDict, *, bounded: bool = False) -> route.FilterConfig:
-    """The ``route`` section as a `placejax.route.FilterConfig`."""
-    r = config.route
-    return route.FilterConfig(
-        odometry_noise_frac=float(r.odometry_noise_frac),
-        odometry_noise_m=float(r.odometry_noise_m),
-        bounded=bounded,
-        uniform_mix=float(r.uniform_mix),
-        unknown=True,
-        unknown_prior=float(r.unknown_prior),
-        unknown_enter_per_m=float(r.unknown_enter_per_m),
-        unknown_leave_per_m=float(r.unknown_leave_per_m),
-        unknown_level=float(r.unknown_level),
-        emission_floor=float(r.emission_floor),
-    )
+    """The ``route`` section as a `placejax.route.FilterConfig` (its settings; ``bounded`` from the data)."""
+    from experiments.cross_season.config import ROUTE_SETTINGS
+
+    return route.FilterConfig(**{k: config.route[k] for k in ROUTE_SETTINGS}, bounded=bounded)
 
 
 def session_moved(config: ml_collections.ConfigDict, t: SessionData) -> tuple[np.ndarray, str]:
-    """Metres travelled before each frame of ``t`` (``(N,)``, ``[0] = 0``) and where they come from."""
-    n = len(t)
-    travelled = getattr(t.source, "travelled_m", None)
-    if travelled is not None:
-        return route.moved_from_travelled(np.asarray(travelled)[:n]), "odometry"
-    if config.data.source == "nclt" and config.data.nclt_root:
-        from placejax.data import nclt
-
-        path = Path(config.data.nclt_root) / "sensor_data" / t.name / "odometry_mu_100hz.csv"
-        if path.is_file():
-            odo = nclt.read_odometry(path)
-            return route.moved_from_travelled(nclt.travelled_at(odo, t.cached.utimes)), "odometry"
-    return route.moved_from_timestamps(np.asarray(t.cached.utimes), float(config.route.max_speed_mps)), "timestamps"
+    """Metres travelled before each frame of ``t`` (``(N,)``, ``[0] = 0``) and where they come from
+    (``placejax.data.moved_m``)."""
+    data = DataConfig(**config.data)
+    return moved_m(data, t.source, np.asarray(t.cached.utimes), float(config.route.max_speed_mps))
 
 
 def _blocks(gains: np.ndarray, block: int) -> np.ndarray:
@@ -77,16 +58,22 @@ def _blocks(gains: np.ndarray, block: int) -> np.ndarray:
 
 
 def route_columns(
-    ctx: Context, sessions: list[SessionData], runs: list[tuple], grid: PlaceGrid, pairs: list[dict]
+    ws: Workspace,
+    config: ml_collections.ConfigDict,
+    sessions: list[SessionData],
+    runs: list[SeedRun],
+    grid: PlaceGrid,
+    pairs: list[dict],
 ) -> tuple[dict[str, Any], dict[tuple[str, str], dict[str, np.ndarray]]]:
     """Adds the route columns to every cross-session row of ``pairs`` (in place) and returns their summary.
 
     Args:
-        ctx: the run context (``config.route``, ``config.seed``, the ``route`` timer).
+        ws: the run's workspace (the ``route`` timer).
+        config: the run's config (``route``, ``seed``).
         sessions: every session, labelled.
-        runs: per seed, ``(nets, outputs, fused, mlp_dirs)`` (``fusion.train_and_predict``).
+        runs: one per seed (``placejax.stages.train_seed``).
         grid: the place grid.
-        pairs: the cross-session rows of ``evaluation.evaluate``.
+        pairs: the cross-session rows of ``scores.evaluate``.
 
     Returns:
         ``(summary, traces)``: the ``route`` part of ``results.json`` (settings, distance source per session, means,
@@ -94,15 +81,14 @@ def route_columns(
         ``ours_route`` beliefs over the cells ``(N, K)``, unknown-state probability ``(N,)`` and single-frame
         labels ``(N,)`` (for the figure).
     """
-    from experiments.cross_season.evaluation import method_logits
+    from experiments.cross_season.report.scores import method_logits
 
-    config = ctx.config
     by_name = {s.name: s for s in sessions}
     k = grid.num_classes
     moved = {s.name: session_moved(config, s) for s in sessions}
     traces: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     gains: dict[str, list[np.ndarray]] = {m: [] for m in METHODS}
-    with ctx.timed("route"):
+    with ws.timed("route"):
         for row in pairs:
             s, t = by_name[row["train"]], by_name[row["test"]]
             dist, source = moved[t.name]

@@ -21,6 +21,18 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from placejax.stages._workspace import SessionData
+
+__all__ = [
+    "MAX_HEADING_DEG",
+    "THUMB_SIZES",
+    "gradient_thumbnails",
+    "heading_ceiling",
+    "nearest_neighbour_labels",
+    "pair_ceilings_and_baselines",
+    "rgb_baseline_features",
+    "thumbnails",
+]
 THUMB_SIZES = {"nn_rgb": 12, "nn_gradient": 12, "nn_hha": 16, "nn_hha_true": 16}
 MAX_HEADING_DEG = 45.0
 
@@ -84,3 +96,49 @@ def heading_ceiling(
         cos = np.cos(test_poses[te_idx, 2][:, None] - tr[None, :])
         ok[te_idx] = (cos >= cos_max - 1e-12).any(axis=1)
     return float(ok.mean())
+
+
+def rgb_baseline_features(sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
+    """Standardised RGB and gradient-magnitude thumbnails of every session (the RGB-only baselines): baseline name
+    → session name → ``(N, D)``."""
+    return {
+        "nn_rgb": {s.name: thumbnails(s.cached.images, THUMB_SIZES["nn_rgb"]) for s in sessions},
+        "nn_gradient": {s.name: gradient_thumbnails(s.cached.images, THUMB_SIZES["nn_gradient"]) for s in sessions},
+    }
+
+
+def pair_ceilings_and_baselines(s: SessionData, t: SessionData, thumbs: dict) -> dict[str, float]:
+    """Pose ceilings and 1-NN baselines of training session ``s`` on test session ``t`` (``thumbs``: name →
+    session → standardised thumbnails)."""
+    # The best any classifier trained on s can do: test frames in classes s never visited are errors.
+    row = {
+        "seen_class_fraction": float(np.isin(t.labels, np.unique(s.labels)).mean()),
+        "heading_ceiling": heading_ceiling(s.cached.poses, s.labels, t.cached.poses, t.labels),
+    }
+    for name, feats in thumbs.items():
+        guess = nearest_neighbour_labels(feats[s.name], s.labels, feats[t.name])
+        row[name] = float(np.mean(guess == t.labels))
+    return row
+
+
+def baseline_features(ws, sessions: list[SessionData], depth_batch_size: int) -> dict[str, dict[str, np.ndarray]]:
+    """Standardised thumbnails of every session for every nearest-neighbour baseline: RGB, gradient, HHA of the
+    run's depth and, where every session has true depth, HHA of that depth (cached like ``depth.source=true``).
+
+    Args:
+        ws: the run's ``Workspace``.
+        sessions: every session, after the depth stages (``SessionData.hha``).
+        depth_batch_size: images per call when the true-depth HHA caches are built.
+    """
+    from placejax.depth import DepthSourceConfig, depth_source
+    from placejax.stages._depth import depth_and_hha, has_true_depth
+
+    feats = rgb_baseline_features(sessions)
+    feats["nn_hha"] = {s.name: thumbnails(s.hha.data, THUMB_SIZES["nn_hha"]) for s in sessions}
+    if has_true_depth(sessions):
+        # Geometry alone: HHA of rendered depth (the same caches as depth.source=true, built once).
+        true = depth_and_hha(ws, sessions, depth_source(DepthSourceConfig(source="true")), depth_batch_size)
+        feats["nn_hha_true"] = {
+            s.name: thumbnails(h.data, THUMB_SIZES["nn_hha_true"]) for s, (_, h) in zip(sessions, true, strict=True)
+        }
+    return feats

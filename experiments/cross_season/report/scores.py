@@ -8,20 +8,21 @@ from typing import Any
 import ml_collections
 import numpy as np
 
-from experiments.cross_season import baselines as _baselines
-from experiments.cross_season.context import Context, SessionData
-from experiments.cross_season.depth_hha import depth_and_hha_caches, has_true_depth
 from placejax.evaluation import frame_gains, gain_intervals, mean_sd, softmax, top1
+from placejax.stages import SeedRun, SessionData, Workspace, fused_embedding, pair_ceilings_and_baselines
 
 
-def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumbs: dict) -> dict[str, Any]:
-    """Scores every method of every seed's ``runs`` (``fusion.train_and_predict``) on every ordered session pair.
+def evaluate(
+    ws: Workspace, config: ml_collections.ConfigDict, sessions: list[SessionData], runs: list[SeedRun], thumbs: dict
+) -> dict[str, Any]:
+    """Scores every method of every seed's ``runs`` (``placejax.stages.train_seed``) on every ordered session pair.
 
     Args:
-        ctx: the run context (``config.seed``, ``config.n_seeds``, the ablations, the ``evaluate`` timer).
+        ws: the run's workspace (the ``evaluate`` timer).
+        config: the run's config (``seed``, ``n_seeds``, the ablations).
         sessions: every session, labelled.
-        runs: per seed, ``(nets, outputs, fused, mlp_dirs)``.
-        thumbs: :func:`baseline_features`.
+        runs: one per seed.
+        thumbs: ``placejax.stages.baseline_features``.
 
     Returns:
         The scoring part of ``results.json``: ``pairs`` (one row per cross-session pair: each method's mean, sd and
@@ -30,10 +31,9 @@ def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumb
         ``ceilings_and_baselines`` (means) and ``unknown`` (means of the unseen-place columns). Accuracies are
         fractions.
     """
-    config = ctx.config
-    fused = runs[0][2]  # the first seed's fusion: the unseen-place columns
-    with ctx.timed("evaluate"):
-        detectors = {s.name: feature_detectors(runs[0][1], s) for s in sessions}
+    fused = runs[0].fused  # the first seed's fusion: the unseen-place columns
+    with ws.timed("evaluate"):
+        detectors = {s.name: feature_detectors(runs[0].outputs, s) for s in sessions}
         pairs = []
         for s in sessions:
             for t in sessions:
@@ -47,7 +47,7 @@ def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumb
                 if t.name == s.name:
                     row["same_session"] = True
                 else:
-                    row.update(_unknown_columns(fused, runs[0][1], detectors[s.name], s, t))
+                    row.update(_unknown_columns(fused, runs[0].outputs, detectors[s.name], s, t))
                     row["_correct"] = {
                         m: np.stack([np.argmax(lg[m], 1) == t.labels for lg in per_seed]) for m in per_seed[0]
                     }
@@ -78,11 +78,11 @@ def evaluate(ctx: Context, sessions: list[SessionData], runs: list[tuple], thumb
     }
 
 
-def method_logits(run, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
+def method_logits(run: SeedRun, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
     """Logits (or averaged probabilities) of every method of one seed's run on one pair."""
-    nets, outputs, fused, _ = run
-    out = {"ours": fused[(train, test)]}
-    for m in nets_modalities(nets, train):
+    outputs = run.outputs
+    out = {"ours": run.fused[(train, test)]}
+    for m in nets_modalities(run.nets, train):
         out[f"{m}_net"] = outputs[(train, m, test)]["logits"]
     if config.ablations.average:
         out["average"] = softmax(outputs[(train, "rgb", test)]["logits"]) + softmax(
@@ -104,55 +104,9 @@ def _gain_intervals(cross: list[dict], seed: int) -> dict:
     return out
 
 
-def rgb_baseline_features(sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
-    """Standardised RGB and gradient-magnitude thumbnails of every session (the RGB-only baselines)."""
-    sizes = _baselines.THUMB_SIZES
-    return {
-        "nn_rgb": {s.name: _baselines.thumbnails(s.cached.images, sizes["nn_rgb"]) for s in sessions},
-        "nn_gradient": {
-            s.name: _baselines.gradient_thumbnails(s.cached.images, sizes["nn_gradient"]) for s in sessions
-        },
-    }
-
-
-def baseline_features(ctx: Context, sessions: list[SessionData]) -> dict[str, dict[str, np.ndarray]]:
-    """Standardised thumbnails of every session for the nearest-neighbour baselines (``baselines`` module)."""
-    sizes = _baselines.THUMB_SIZES
-    feats = rgb_baseline_features(sessions)
-    feats["nn_hha"] = {s.name: _baselines.thumbnails(s.hha.data, sizes["nn_hha"]) for s in sessions}
-    if has_true_depth(sessions):
-        # Geometry alone: HHA of rendered depth (the same caches as depth.source=true, built once).
-        true = depth_and_hha_caches(ctx, sessions, "true")
-        feats["nn_hha_true"] = {
-            s.name: _baselines.thumbnails(h.data, sizes["nn_hha_true"])
-            for s, (_, h) in zip(sessions, true, strict=True)
-        }
-    return feats
-
-
-def pair_ceilings_and_baselines(s: SessionData, t: SessionData, thumbs: dict) -> dict[str, float]:
-    """Pose ceilings and 1-NN baselines of training session ``s`` on test session ``t`` (``thumbs``: name →
-    session → standardised thumbnails)."""
-    # The best any classifier trained on s can do: test frames in classes s never visited are errors.
-    row = {
-        "seen_class_fraction": float(np.isin(t.labels, np.unique(s.labels)).mean()),
-        "heading_ceiling": _baselines.heading_ceiling(s.cached.poses, s.labels, t.cached.poses, t.labels),
-    }
-    for name, feats in thumbs.items():
-        guess = _baselines.nearest_neighbour_labels(feats[s.name], s.labels, feats[t.name])
-        row[name] = float(np.mean(guess == t.labels))
-    return row
-
-
 def nets_modalities(nets: dict, session: str) -> list[str]:
     """The modalities of the nets trained on ``session`` (``nets``: (session, modality) → net), in training order."""
     return [m for (s, m) in nets if s == session]
-
-
-def fused_embedding(outputs: dict, train: str, test: str) -> np.ndarray:
-    """The fusion MLP's input on ``test``: ``[fc7_rgb, fc7_hha]`` of the nets trained on ``train``, float32
-    ``(N, D)``."""
-    return np.concatenate([np.asarray(outputs[(train, m, test)]["fc7"], np.float32) for m in ("rgb", "hha")], axis=1)
 
 
 def feature_detectors(outputs: dict, s: SessionData) -> dict[str, tuple[dict, float]]:

@@ -1,0 +1,19 @@
+"""``smoke``: the default's path at toy scale, for the tests: SimCampus, 4 seasons with a frame every 40 m (45–60
+frames, each season's whole route, so sessions share places) at 64×64, a 3×3 grid, the shipped frozen trunk
+(fc6–fc8 trained on cached features, 30 epochs of ~3 steps), rendered depth, 2 seeds; a couple of minutes on 2
+CPU cores."""
+
+from experiments.cross_season.config import base_config
+
+
+def get_config():
+    c = base_config()
+    c.preset = "smoke"
+    c.data.update(frame_spacing=40.0, image_size=(64, 64))
+    c.grid.n = 3
+    c.depth.source = "true"
+    c.n_seeds = 2
+    c.train.update(epochs=30, batch_size=16, warmup_steps=5, save_every=40, learning_rate=1e-3, optimizer="adamw")
+    c.mlp.update(hidden=64, epochs=10, batch_size=16, save_every=20)
+    c.eval.batch_size = 32
+    return c

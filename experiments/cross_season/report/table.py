@@ -1,0 +1,183 @@
+"""table.md: the cross-season results in the paper's Table I layout, the unseen-place and baseline tables."""
+
+from __future__ import annotations
+
+import os
+
+from placejax import io
+
+METHOD_NAMES = {
+    "ours": "Ours",
+    "rgb_net": "RGB-Net",
+    "hha_net": "HHA-Net",
+    "depth1_net": "Depth-Net (1-ch)",
+    "average": "Avg(RGB,HHA)",
+}
+
+
+# Extra columns of the unseen-place detection: results key → header.
+_UNKNOWN_COLUMNS = {
+    "unknown_msp_auroc": "AUROC msp",
+    "unknown_entropy_auroc": "AUROC entropy",
+    "unknown_energy_auroc": "AUROC energy",
+    "unknown_margin_auroc": "AUROC margin",
+    "unknown_rejected_unseen": "unseen rejected",
+    "unknown_rejected_seen": "seen rejected",
+    "unknown_seen_accuracy_accepted": "top-1 accepted seen",
+}
+
+
+def _unknown_cell(key: str, v: float | None) -> str:
+    if v is None:
+        return "–"
+    return f"{v:.2f}" if key.endswith("_auroc") else _pct(v)
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f}"
+
+
+def table_markdown(results: dict) -> str:
+    """Table I layout: train, test, Ours, RGB-Net, gain, HHA-Net, gain (top-1 %), ablations, then the mean."""
+    extra = [m for m in ("depth1_net", "average") if m in results["mean"]]
+    head = ["train", "test", "Ours", "RGB-Net", "gain", "HHA-Net", "gain"] + [METHOD_NAMES[m] for m in extra]
+    unknown = _UNKNOWN_COLUMNS if "unknown" in results else {}
+    head += list(unknown.values())
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+
+    n_seeds = len(results.get("seeds", {}).get("seeds", [0]))
+
+    def acc(r: dict, m: str, sd: dict | None = None) -> str:
+        sd_value = (sd or r).get(f"{m}_sd" if sd is None else m)
+        return _pct(r[m]) if n_seeds < 2 or sd_value is None else f"{_pct(r[m])} ± {_pct(sd_value)}"
+
+    def gain(r: dict, base: str, interval: dict | None) -> str:
+        text = f"{100 * (r['ours'] - r[base]):+.1f}"
+        if interval is None:
+            return text
+        mark = "*" if interval["excludes_zero"] else ""
+        return f"{text} [{100 * interval['lo']:+.1f}, {100 * interval['hi']:+.1f}]{mark}"
+
+    def row(train: str, test: str, r: dict, intervals: dict | None = None, sd: dict | None = None) -> str:
+        intervals = intervals if intervals is not None else {b: r.get(f"gain_vs_{b}") for b in ("rgb_net", "hha_net")}
+        cells = [
+            train,
+            test,
+            acc(r, "ours", sd),
+            acc(r, "rgb_net", sd),
+            gain(r, "rgb_net", intervals.get("rgb_net")),
+            acc(r, "hha_net", sd),
+            gain(r, "hha_net", intervals.get("hha_net")),
+        ]
+        cells += [acc(r, m, sd) for m in extra]
+        cells += [_unknown_cell(k, r.get(k)) for k in unknown]
+        return "| " + " | ".join(cells) + " |"
+
+    for p in results["pairs"]:
+        lines.append(row(p["train"], p["test"], p))
+    gains = results.get("gains", {})
+    mean_intervals = {b: gains.get(f"ours_vs_{b}") for b in ("rgb_net", "hha_net")}
+    mean_row = {**results["mean"], **results.get("unknown", {}).get("mean", {})}
+    lines.append(row("**mean**", "", mean_row, mean_intervals, results.get("mean_sd_over_seeds")))
+    seeds = (
+        f"mean ± sd over {n_seeds} seeds (the mean row's sd: of the per-seed means)"
+        if n_seeds > 1
+        else "one seed (no spread over seeds)"
+    )
+    note = (
+        f"\nTop-1 accuracy (%) on every other session; {results['num_classes']} place classes; test frames in "
+        f"classes the training session never visited count as errors; {seeds}. gain = Ours − baseline (points), "
+        "with its paired bootstrap 95 % interval over test frames (same frames for both methods, averaged over the "
+        "seeds; for the mean row, frames resampled within each pair); * marks a gain whose interval excludes "
+        "zero.\n"
+    )
+    if unknown:
+        u = results["unknown"]
+        note += (
+            f"\nUnseen-place detection (extra columns; the fusion's outputs; test frames in classes the training "
+            f"session never visited are the positives): AUROC of each score (msp = 1 − max softmax, entropy, "
+            f"energy = −logsumexp, margin = −(p1 − p2)); with the threshold of {u['score']} (the score PlaceClassifier "
+            f"uses; the unseen-place table below has every score) set on training-session frames to reject "
+            f"{100 * u['target_frr']:.0f}% of them: share of unseen / seen test frames rejected "
+            f"and top-1 on the accepted seen frames (%). '–': undefined for that pair (no unseen or no accepted "
+            f"frame); the mean is over the pairs where it is defined.\n"
+        )
+    from experiments.cross_season.report.route import route_markdown
+
+    return (
+        "\n".join(lines)
+        + "\n"
+        + note
+        + _baselines_markdown(results)
+        + unknown_markdown(results)
+        + route_markdown(results)
+    )
+
+
+def unknown_markdown(results: dict) -> str:
+    """The unseen-place table: per pair, every per-frame score's AUROC; then per score its mean AUROC and the mean
+    shares of seen / unseen test frames rejected at its training-session threshold (docs/route.md)."""
+    u = results.get("unknown", {})
+    if "scores" not in u:
+        return ""
+    scores = [k for k in u["scores"] if f"unknown_{k}_auroc" in u["mean"]]
+    auc = lambda v: "–" if v is None else f"{v:.2f}"
+    pct = lambda v: "–" if v is None else _pct(v)
+    head = ["train", "test", *scores]
+    lines = ["", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for p in results["pairs"]:
+        lines.append("| " + " | ".join([p["train"], p["test"], *[auc(p.get(f"unknown_{k}_auroc")) for k in scores]]))
+        lines[-1] += " |"
+    m = u["mean"]
+    lines.append("| " + " | ".join(["**mean AUROC**", "", *[auc(m.get(f"unknown_{k}_auroc")) for k in scores]]) + " |")
+    for what, label in (("seen", "**seen rejected %**"), ("unseen", "**unseen rejected %**")):
+        cells = [pct(m.get(f"unknown_{k}_rejected_{what}")) for k in scores]
+        lines.append("| " + " | ".join([label, "", *cells]) + " |")
+    f = u.get("feature_threshold", {})
+    note = (
+        "\nUnseen-place scores, one frame at a time (docs/route.md; the first seed's fusion; positives: test frames "
+        "in classes the training session never visited): AUROC per pair and its mean, and the mean shares of seen / "
+        f"unseen test frames rejected at each score's threshold ({100 * u['target_frr']:.0f} % of training frames "
+        "rejected). Logit scores (msp, entropy, energy, margin): threshold on the training session's own frames. "
+        "Feature scores of the fused fc7 (knn<k>: distance to the k-th nearest L2-normalised training embedding; "
+        "mahalanobis: class means, one Ledoit–Wolf-shrunk covariance): threshold on training frames held out of "
+        f"the reference (every {f.get('folds', '?')}th frame, the {f.get('gap', '?')} frames either side left out "
+        f"of the reference). `{u['score']}` is the score PlaceClassifier uses.\n"
+    )
+    return "\n".join(lines) + "\n" + note
+
+
+_BASELINE_COLUMNS = {
+    "seen_class_fraction": "ceiling: seen classes",
+    "heading_ceiling": "ceiling: seen class and heading ±45°",
+    "nn_rgb": "1-NN RGB 12²",
+    "nn_gradient": "1-NN gradient 12²",
+    "nn_hha": "1-NN HHA 16² (this run's depth)",
+    "nn_hha_true": "1-NN HHA 16² (rendered depth)",
+}
+
+
+def _baselines_markdown(results: dict) -> str:
+    """The second table: ceilings and nearest-neighbour baselines per pair (top-1 %), and their mean."""
+    if "ceilings_and_baselines" not in results:
+        return ""
+    cols = [k for k in _BASELINE_COLUMNS if k in results["ceilings_and_baselines"]]
+    head = ["train", "test", *[_BASELINE_COLUMNS[k] for k in cols]]
+    lines = ["", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for p in results["pairs"]:
+        lines.append("| " + " | ".join([p["train"], p["test"], *[_pct(p[k]) for k in cols]]) + " |")
+    mean = results["ceilings_and_baselines"]
+    lines.append("| " + " | ".join(["**mean**", "", *[_pct(mean[k]) for k in cols]]) + " |")
+    note = (
+        "\nCeilings and baselines (%): the best a classifier trained on the training session can score (test frames "
+        "in classes it visited; and also seen from within 45° of heading), and 1-nearest-neighbour on standardised "
+        "thumbnails — no learning — of RGB, of the gray image's gradient magnitude and of HHA images.\n"
+    )
+    return "\n".join(lines) + "\n" + note
+
+
+def write_table(results: dict, path: str | os.PathLike) -> None:
+    io.write_text(path, table_markdown(results))
+
+
+# ---------------------------------------------------------------------------------------------------- figures

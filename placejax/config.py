@@ -1,0 +1,155 @@
+"""How placejax states a configuration: one frozen dataclass per section, each field with its default, its help
+text and its checks, written once.
+
+Every stage of the method reads its settings from such a dataclass (``placejax.data.DataConfig``,
+``placejax.depth.DepthSourceConfig``, ``placejax.stages.TrainConfig``, ``placejax.route.FilterConfig``, …); an
+experiment composes them (``experiments.cross_season``: one ``ml_collections.ConfigDict`` section per dataclass,
+``TrainConfig(**config.train)``), and its presets only override values. The checks run in ``__post_init__``, so a
+section that breaks a range fails the moment it is built, with a message naming the field.
+
+Example:
+    >>> import dataclasses
+    >>> from placejax import config
+    >>> @dataclasses.dataclass(frozen=True)
+    ... class Demo:
+    ...     epochs: int = config.setting(3, "passes over the data")
+    ...     def __post_init__(self):
+    ...         config.check(self, positive_int=("epochs",))
+    >>> Demo(epochs=0)
+    Traceback (most recent call last):
+    ...
+    placejax.config.ConfigError: epochs=0: expected a positive int
+    >>> config.help_text(Demo, "epochs")
+    'passes over the data'
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+__all__ = ["ConfigError", "build", "check", "help_text", "section", "setting"]
+
+
+class ConfigError(ValueError):
+    """Configuration values outside their range or of the wrong type; each message names its field.
+
+    Attributes:
+        errors: one message per offending field (``"epochs=0: expected a positive int"``).
+    """
+
+    def __init__(self, *errors: str):
+        self.errors = list(errors)
+        super().__init__("; ".join(self.errors))
+
+
+def setting(default: Any, help: str) -> Any:
+    """A dataclass field with its default and its one-line help (shown by ``--help`` of the commands)."""
+    return dataclasses.field(default=default, metadata={"help": help})
+
+
+def help_text(cls: type, name: str) -> str:
+    """The help of field ``name`` of config dataclass ``cls`` ('' when it has none)."""
+    for f in dataclasses.fields(cls):
+        if f.name == name:
+            return str(f.metadata.get("help", ""))
+    raise KeyError(f"{cls.__name__} has no field {name!r}")
+
+
+def section(obj_or_cls: Any) -> dict[str, Any]:
+    """The fields of a config dataclass (instance, or class for its defaults) as a plain dict, in field order."""
+    obj = obj_or_cls() if isinstance(obj_or_cls, type) else obj_or_cls
+    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+
+
+def build(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:
+    """``cls(**values)``, with errors naming ``prefix.field`` (unknown keys are refused with the known ones)."""
+    known = [f.name for f in dataclasses.fields(cls)]
+    unknown = [k for k in values if k not in known]
+    if unknown:
+        raise ConfigError(f"unknown {prefix or cls.__name__} key(s) {unknown}; known: {', '.join(known)}")
+    try:
+        return cls(**dict(values))
+    except ConfigError as e:
+        raise ConfigError(*(f"{prefix}.{m}" if prefix else m for m in e.errors)) from None
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{prefix}: {e}" if prefix else str(e)) from None
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def check(
+    obj: Any,
+    *,
+    positive_int: Iterable[str] = (),
+    nonnegative_int: Iterable[str] = (),
+    positive: Iterable[str] = (),
+    nonnegative: Iterable[str] = (),
+    unit_interval: Iterable[str] = (),
+    rate: Iterable[str] = (),
+    boolean: Iterable[str] = (),
+    string: Iterable[str] = (),
+    choices: Mapping[str, Iterable[Any]] | None = None,
+) -> None:
+    """Checks the named fields of ``obj``; raises ``ConfigError`` listing every field out of range.
+
+    Args:
+        positive_int: ints ≥ 1 (never bools).
+        nonnegative_int: ints ≥ 0.
+        positive: finite numbers > 0.
+        nonnegative: finite numbers ≥ 0.
+        unit_interval: numbers in ``[0, 1)`` (probabilities that must leave something, e.g. a dropout rate).
+        rate: numbers in ``[0, 1]``.
+        boolean: ``True`` or ``False`` only.
+        string: str values.
+        choices: field → its allowed values.
+    """
+    errors = []
+
+    def bad(name: str, what: str) -> None:
+        errors.append(f"{name}={getattr(obj, name)!r}: expected {what}")
+
+    for name in positive_int:
+        v = getattr(obj, name)
+        if not (_is_int(v) and v >= 1):
+            bad(name, "a positive int")
+    for name in nonnegative_int:
+        v = getattr(obj, name)
+        if not (_is_int(v) and v >= 0):
+            bad(name, "an int >= 0")
+    for name in positive:
+        v = getattr(obj, name)
+        if not (_is_number(v) and v > 0):
+            bad(name, "a finite positive number")
+    for name in nonnegative:
+        v = getattr(obj, name)
+        if not (_is_number(v) and v >= 0):
+            bad(name, "a finite number >= 0")
+    for name in unit_interval:
+        v = getattr(obj, name)
+        if not (_is_number(v) and 0 <= v < 1):
+            bad(name, "a number in [0, 1)")
+    for name in rate:
+        v = getattr(obj, name)
+        if not (_is_number(v) and 0 <= v <= 1):
+            bad(name, "a number in [0, 1]")
+    for name in boolean:
+        if not isinstance(getattr(obj, name), bool):
+            bad(name, "True or False")
+    for name in string:
+        if not isinstance(getattr(obj, name), str):
+            bad(name, "a string")
+    for name, allowed in (choices or {}).items():
+        allowed = tuple(allowed)
+        if getattr(obj, name) not in allowed:
+            bad(name, f"one of {allowed}")
+    if errors:
+        raise ConfigError(*errors)

@@ -1,0 +1,151 @@
+"""The settings of the place classifiers and the fusion head: one dataclass per section of a run's config."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from placejax import config as _config
+
+__all__ = ["EvalConfig", "MLPConfig", "TrainConfig", "VGGConfig"]
+
+OPTIMIZERS = ("sgd", "adamw")
+
+
+@dataclasses.dataclass(frozen=True)
+class VGGConfig:
+    """The VGG16 of both place classifiers (the ``vgg`` section)."""
+
+    width: float = _config.setting(0.125, "channel multiplier of VGG16 (1.0 = VGG16)")
+    pretrained: bool = _config.setting(
+        True, "pretrained trunk: freeze the convs, cache their features, train fc6–fc8 only"
+    )
+    # The default trunks were pretrained on other SimCampus worlds (placejax.pretrain); the HHA net's on HHA of the
+    # default depth network's predictions, chosen on world 1 (docs/research-log.md, 2026-12-03).
+    weights: str = _config.setting(
+        "shipped:simcampus_places_w0125_s64",
+        "vgg16-397923af.pth path ('' = registry / download), shipped:NAME (placejax.pretrain's trunk) or an "
+        "experiments.pretrain_trunk --export .npz",
+    )
+    hha_weights: str = _config.setting(
+        "shipped:simcampus_places_hha_predicted_w0125_s64",
+        "the HHA net's trunk, given as vgg.weights is ('' = vgg.weights; the 1-ch net reads that)",
+    )
+    dropout: float = _config.setting(0.0, "dropout after fc6 and fc7")
+
+    def __post_init__(self):
+        _config.check(
+            self,
+            positive=("width",),
+            unit_interval=("dropout",),
+            boolean=("pretrained",),
+            string=("weights", "hha_weights"),
+        )
+        errors = []
+        if self.pretrained and not self.weights and self.width != 1.0:
+            errors.append("pretrained with the registry's ImageNet weights needs width=1.0 (or weights=PATH)")
+        if self.hha_weights and not self.pretrained:
+            errors.append("hha_weights needs pretrained=True (it is the HHA net's frozen trunk)")
+        if errors:
+            raise _config.ConfigError(*errors)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """How each place classifier is trained (the ``train`` section)."""
+
+    epochs: int = _config.setting(30, "epochs of each VGG16 place classifier")
+    batch_size: int = _config.setting(32, "global batch (divisible by the device count)")
+    learning_rate: float = _config.setting(3e-4, "peak learning rate (cosine decay)")
+    optimizer: str = _config.setting("adamw", "'sgd' (momentum 0.9) or 'adamw'")
+    warmup_steps: int = _config.setting(20, "linear warmup steps")
+    weight_decay: float = _config.setting(5e-4, "L2 / decoupled weight decay")
+    # A head on cached features trains in ~5 s and each orbax save costs ~0.15 s: rare saves (research log).
+    save_every: int = _config.setting(1000, "steps between orbax checkpoints (changes no result)")
+    shuffle_labels: bool = _config.setting(
+        False, "control: train every net and MLP on its session's labels permuted across frames"
+    )
+    jitter_copies: int = _config.setting(
+        0,
+        "with vgg.pretrained: jittered copies per training frame whose cached features the head also trains on "
+        "(0 = off; docs/lookup-gap.md)",
+    )
+    # Common fine-tuning magnitudes, set before any run, not tuned.
+    jitter_shift: float = _config.setting(
+        0.08, "jittered copies: largest shift, fraction of the image (placejax.data.ViewJitter)"
+    )
+    jitter_zoom: float = _config.setting(0.15, "jittered copies: zoom drawn from U(1, 1 + zoom)")
+    jitter_colour: float = _config.setting(
+        0.2, "jittered copies, RGB only: brightness, contrast and saturation magnitude"
+    )
+
+    def __post_init__(self):
+        _config.check(
+            self,
+            positive_int=("epochs", "batch_size", "save_every"),
+            nonnegative_int=("warmup_steps", "jitter_copies"),
+            positive=("learning_rate",),
+            nonnegative=("weight_decay",),
+            boolean=("shuffle_labels",),
+            choices={"optimizer": OPTIMIZERS},
+        )
+        from placejax.data import ViewJitter
+
+        try:
+            ViewJitter(shift=self.jitter_shift, zoom=self.jitter_zoom, brightness=self.jitter_colour)
+            ViewJitter(contrast=self.jitter_colour, saturation=self.jitter_colour)
+        except (TypeError, ValueError) as e:
+            raise _config.ConfigError(f"jitter_*: {e}") from None
+
+
+@dataclasses.dataclass(frozen=True)
+class MLPConfig:
+    """The fusion MLP on the two nets' concatenated fc7 and how it is trained (the ``mlp`` section)."""
+
+    hidden: int = _config.setting(1024, "hidden units of the fusion MLP (1024 in the paper)")
+    dropout: float = _config.setting(0.0, "dropout on the MLP hidden layer")
+    input_dropout: float = _config.setting(
+        0.0, "dropout on the MLP's concatenated input embeddings (docs/lookup-gap.md, round 3)"
+    )
+    modality_dropout: float = _config.setting(
+        0.0,
+        "probability per training example of dropping its RGB (and, separately, its HHA) embedding, the other "
+        "scaled up (ModDrop; at most 0.5)",
+    )
+    jittered: bool = _config.setting(
+        False, "with train.jitter_copies: the MLP also trains on the embeddings of the jittered copies"
+    )
+    epochs: int = _config.setting(20, "epochs of the fusion MLP")
+    batch_size: int = _config.setting(64, "fusion MLP batch")
+    learning_rate: float = _config.setting(1e-3, "fusion MLP peak learning rate")
+    optimizer: str = _config.setting("adamw", "fusion MLP optimiser: 'adamw' or 'sgd' (momentum 0.9)")
+    weight_decay: float = _config.setting(1e-4, "fusion MLP weight decay")
+    warmup_steps: int = _config.setting(0, "fusion MLP linear warmup steps")
+    save_every: int = _config.setting(1000, "MLP steps between orbax checkpoints (changes no result)")
+
+    def __post_init__(self):
+        _config.check(
+            self,
+            positive_int=("hidden", "epochs", "batch_size", "save_every"),
+            nonnegative_int=("warmup_steps",),
+            positive=("learning_rate",),
+            nonnegative=("weight_decay",),
+            unit_interval=("dropout", "input_dropout"),
+            boolean=("jittered",),
+            choices={"optimizer": OPTIMIZERS},
+        )
+        md = self.modality_dropout
+        if not (isinstance(md, int | float) and not isinstance(md, bool) and 0 <= md <= 0.5):
+            raise _config.ConfigError(
+                f"modality_dropout={md!r}: expected a number in [0, 0.5] (one of the two embeddings is dropped per "
+                "example, each with this probability)"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Inference over whole sessions (the ``eval`` section)."""
+
+    batch_size: int = _config.setting(128, "inference batch (divisible by the device count)")
+
+    def __post_init__(self):
+        _config.check(self, positive_int=("batch_size",))

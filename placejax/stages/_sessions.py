@@ -1,0 +1,47 @@
+"""Stages ``sessions`` and ``grid``: every session's RGB frames, decoded or rendered once and cached at the run's
+image size, and the ``n × n`` place grid over all sessions' viewpoints (``grid.json``) with every frame's label."""
+
+from __future__ import annotations
+
+import logging
+
+import jax
+import numpy as np
+
+from placejax.data import PlaceGrid, cache_session
+from placejax.data.sources import DataConfig, GridConfig, open_session
+from placejax.stages._workspace import SessionData, Workspace
+
+__all__ = ["fit_grid", "open_sessions"]
+
+log = logging.getLogger(__name__)
+
+
+def open_sessions(ws: Workspace, data: DataConfig) -> list[SessionData]:
+    """Opens every session of ``data.sessions`` and caches its RGB frames at ``data.image_size``."""
+    out = []
+    for name in data.sessions:
+        src = open_session(data, name, progress=ws.progress)
+        cached = cache_session(src, ws.cache_root, image_size=tuple(data.image_size), progress=ws.progress)
+        out.append(SessionData(name=name, cached=cached, source=src))
+    return out
+
+
+def fit_grid(ws: Workspace, sessions: list[SessionData], grid: GridConfig) -> PlaceGrid:
+    """The place grid over the bounding box of all sessions' viewpoints (paper §IV: 10 × 10); labels every frame
+    (``SessionData.labels``) and writes ``grid.json`` into the work directory."""
+    place_grid = PlaceGrid.fit([s.cached.poses for s in sessions], n=grid.n)
+    if jax.process_index() == 0:  # one writer for shared files
+        place_grid.save(ws.workdir / "grid.json")
+    for s in sessions:
+        s.labels = place_grid.label(s.cached.poses).astype(np.int32)
+    cells = [set(np.unique(s.labels).tolist()) for s in sessions]
+    for k, s in enumerate(sessions):
+        if not cells[k] & set().union(*(c for j, c in enumerate(cells) if j != k)):
+            # Nothing to recognise across sessions: usually a session in another map frame (own recordings).
+            log.warning(
+                "session %s shares no place cell with the other sessions: another map frame? "
+                "(python -m placejax.data check draws every trajectory over the grid)",
+                s.name,
+            )
+    return place_grid

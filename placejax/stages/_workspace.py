@@ -1,0 +1,108 @@
+"""Where the stages of a run work: its folder, its meshes, its progress switch and its stage timer; and the record
+of one session that the stages fill in."""
+
+from __future__ import annotations
+
+import dataclasses
+import resource
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from placejax.classify.run_layout import CACHE_DIR
+from placejax.training import data_mesh
+
+__all__ = ["SessionData", "Workspace", "peak_rss_mib"]
+
+
+@dataclasses.dataclass
+class Workspace:
+    """What every stage needs besides its own settings.
+
+    ``mesh`` spans every device of every process: training runs on it (all processes take part in each step).
+    ``local_mesh`` spans this process's devices: cached inference stages run on it, so that one process can build
+    a cache while the others wait for its file lock (a collective there would deadlock). With one process the
+    two are the same mesh.
+
+    Attributes:
+        workdir: the run's folder (checkpoints under ``nets/`` and ``mlp/``, caches under ``cache/``).
+        mesh: the data mesh training runs on.
+        local_mesh: this process's devices (default).
+        progress: show progress bars.
+        timings: stage → wall seconds so far (a stage may run once per seed or session).
+        peak_rss_mib: stage → the process's peak resident memory so far when that stage last ended (MiB).
+        on_stage: called with ``(stage, True)`` when a timed block starts and ``(stage, False)`` when it ends
+            (e.g. to sample memory per stage).
+    """
+
+    workdir: Path
+    mesh: jax.sharding.Mesh
+    local_mesh: jax.sharding.Mesh | None = None
+    progress: bool = True
+    timings: dict[str, float] = dataclasses.field(default_factory=dict)
+    peak_rss_mib: dict[str, float] = dataclasses.field(default_factory=dict)
+    on_stage: Callable[[str, bool], None] | None = None
+
+    def __post_init__(self):
+        self.workdir = Path(self.workdir)
+        if self.local_mesh is None:
+            self.local_mesh = data_mesh(jax.local_devices())
+
+    @property
+    def cache_root(self) -> Path:
+        """The run's array caches (``placejax.classify.run_layout``)."""
+        return self.workdir / CACHE_DIR
+
+    def timed(self, stage: str):
+        """A context manager adding its block's wall time to ``timings[stage]`` (seconds) and recording the peak
+        resident memory so far in ``peak_rss_mib[stage]``."""
+        ws = self
+
+        class _Timer:
+            def __enter__(self):
+                if ws.on_stage is not None:
+                    ws.on_stage(stage, True)
+                self.t0 = time.perf_counter()
+
+            def __exit__(self, *exc):
+                ws.timings[stage] = ws.timings.get(stage, 0.0) + time.perf_counter() - self.t0
+                ws.peak_rss_mib[stage] = peak_rss_mib()
+                if ws.on_stage is not None:
+                    ws.on_stage(stage, False)
+
+        return _Timer()
+
+
+@dataclasses.dataclass
+class SessionData:
+    """One session through the stages: cached RGB, labels and (after the depth stages) depth and HHA.
+
+    Attributes:
+        name: the session's name.
+        cached: its ``placejax.data.CachedSession`` (uint8 frames at the run's image size, poses, intrinsics).
+        source: the session as opened (SimCampus renders true depth; odometry where the source has it).
+        labels: int32 ``(N,)`` place classes (after ``fit_grid``).
+        depth: float32 ``(N, H, W)`` metric depth cache (after ``depth_and_hha``).
+        hha: uint8 ``(N, H, W, 3)`` HHA cache.
+    """
+
+    name: str
+    cached: Any
+    source: Any
+    labels: np.ndarray | None = None
+    depth: Any = None
+    hha: Any = None
+
+    def __len__(self) -> int:
+        return len(self.cached)
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident memory so far, MiB (``getrusage``: kB on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)
