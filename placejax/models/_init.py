@@ -49,7 +49,8 @@ def he_init(params: Any, key: jax.Array, *, last_layer: str = "fc8") -> dict:
 
     Args:
         params: a parameter tree whose leaves are conv kernels ``(kh, kw, in, out)``, dense kernels
-            ``(in, out)`` and biases.
+            ``(in, out)`` and biases: arrays, or only their shapes (``jax.eval_shape(model.init, ...)``), since
+            every value is drawn afresh.
         key: PRNG key.
         last_layer: name of the logits layer.
     """
@@ -59,7 +60,7 @@ def he_init(params: Any, key: jax.Array, *, last_layer: str = "fc8") -> dict:
     # Sorted paths: the order of jax.tree_util (sorted dict keys), so key i goes to the same leaf as there.
     for (path, leaf), k in zip(sorted(flat.items()), keys, strict=True):
         if path[-1] == "bias":
-            value = jnp.zeros_like(leaf)
+            value = jnp.zeros(leaf.shape, leaf.dtype)
         elif leaf.ndim == 4:  # conv kernel (kh, kw, in, out)
             fan_out = leaf.shape[0] * leaf.shape[1] * leaf.shape[3]
             value = jax.random.normal(k, leaf.shape, leaf.dtype) * jnp.sqrt(2.0 / fan_out)

@@ -281,7 +281,9 @@ def train_nets(
     h, w = sessions[0].cached.image_shape
     nets = {}
     trunks: dict[str, dict] = {}  # pretrained parameters by weights (the HHA net may read its own)
-    init = jax.jit(model.init)
+    # Shapes only: he_init draws every value afresh, so compiling the whole VGG16's init (~20 s on 2 loaded cores,
+    # per call) bought nothing.
+    shapes = jax.eval_shape(model.init, jax.random.key(0), jax.ShapeDtypeStruct((1, h, w, 3), jnp.float32))["params"]
     vgg_key = {k: v for k, v in dataclasses.asdict(vgg).items() if k not in ("weights", "hha_weights")}
     for modality in modalities:
         mi = MODALITIES.index(modality)
@@ -328,7 +330,7 @@ def train_nets(
                     "seed": seed,
                 }
                 init_key, run_key = jax.random.split(jax.random.fold_in(key, 1000 * mi + si))
-                params = he_init(init(init_key, jnp.zeros((1, h, w, 3)))["params"], init_key)
+                params = he_init(shapes, init_key)
                 if pretrained is not None:
                     # Paper §IV: pretrained convs frozen (features cached), fc6/fc7 fine-tuned, fc8 new; weights
                     # without fc6/fc7 (a shipped trunk) start them from He init.
