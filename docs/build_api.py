@@ -15,11 +15,14 @@ import re
 import warnings
 from pathlib import Path
 
-import jinja2
-import pdoc
-import pdoc.doc
-import pdoc.render
-import pdoc.render_helpers
+try:
+    import jinja2
+    import pdoc
+    import pdoc.doc
+    import pdoc.render
+    import pdoc.render_helpers
+except ImportError as e:  # the plain install has no pdoc: say which extra brings it
+    raise SystemExit(f'error: {e.name} is not installed: pip install -e ".[docs]" (pdoc and its jinja2)') from None
 
 # pdoc's syntax highlighting splits "a.b" into "a</span><span class="o">.</span><span class="n">b".
 _HIGHLIGHTED_DOT = re.compile(r'</span><span class="o">\.</span><span class="n">')
