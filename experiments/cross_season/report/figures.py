@@ -10,6 +10,15 @@ import numpy as np
 from experiments.cross_season.report.table import METHOD_NAMES
 from placejax import io
 
+# One colour per method in every figure, whichever methods a run has (the ablations come and go).
+METHOD_COLOURS = {
+    "ours": "tab:blue",
+    "rgb_net": "tab:orange",
+    "hha_net": "tab:green",
+    "depth1_net": "tab:purple",
+    "average": "tab:gray",
+}
+
 _FONT = {
     "font.size": 9,
     "axes.titlesize": 9,
@@ -225,7 +234,7 @@ def _write_figures(plt, results, sessions, grid, fused, folder: Path) -> list[Pa
     width = 0.8 / len(methods)
     xs = np.arange(len(pairs))
     for j, m in enumerate(methods):
-        ax.bar(xs + j * width, [100 * p[m] for p in pairs], width, label=METHOD_NAMES[m])
+        ax.bar(xs + j * width, [100 * p[m] for p in pairs], width, label=METHOD_NAMES[m], color=METHOD_COLOURS[m])
     chance = 100 / results["num_classes"]
     ax.axhline(chance, color="k", ls="--", lw=1, label=f"chance (1/{results['num_classes']} = {chance:.1f}%)")
     if all("seen_class_fraction" in p for p in pairs):

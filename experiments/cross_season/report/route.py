@@ -167,7 +167,10 @@ def write_route_figures(traces: dict, sessions: list[SessionData], folder: Path)
         fig, (ax, ax_u) = plt.subplots(
             2, 1, figsize=(9, 4.2), sharex=True, gridspec_kw={"height_ratios": [3, 1]}, constrained_layout=True
         )
-        ax.imshow(tr["cells"].T, aspect="auto", origin="lower", cmap="magma", vmin=0, vmax=1, interpolation="nearest")
+        im = ax.imshow(
+            tr["cells"].T, aspect="auto", origin="lower", cmap="magma", vmin=0, vmax=1, interpolation="nearest"
+        )
+        fig.colorbar(im, ax=ax, label="belief", pad=0.01)
         ax.plot(frames, t.labels, ".", color="white", ms=1.5, label="true cell")
         ax.plot(frames, tr["single"], "x", color="tab:cyan", ms=2.5, alpha=0.6, label="single frame")
         ax.set_ylabel("cell (class id)")
