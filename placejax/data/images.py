@@ -271,7 +271,7 @@ def decode(image: EncodedImage, flags: int | None = None) -> np.ndarray:
     finally:
         cv2.utils.logging.setLogLevel(level)
     if img is None:
-        raise ImageError(f"{image.path}: not an image file OpenCV can decode (a damaged {image.kind} file?)")
+        raise ImageError(f"{image.path}: OpenCV cannot decode this {image.kind} file (damaged or truncated data)")
     if img.shape[0] * img.shape[1] > image.width * image.height:  # the header lied (only a corrupt file can)
         raise ImageError(
             f"{image.path}: decoded to {img.shape[1]} × {img.shape[0]} pixels, more than its {image.kind} header's "

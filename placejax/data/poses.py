@@ -182,8 +182,16 @@ class Trajectory:
 
 
 def interp_exact(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
-    """``np.interp`` of int64 µs ``x`` over sorted ``xp``, whose value at a sample's exact time is that sample, bit
-    for bit (clamped outside ``xp``)."""
+    """``np.interp`` whose value at a sample's exact time is that sample, bit for bit (clamped outside ``xp``).
+
+    Args:
+        x: int64 ``(N,)`` times, µs.
+        xp: int64 ``(M,)`` sorted sample times, µs.
+        fp: float ``(M,)`` sample values.
+
+    Returns:
+        float64 ``(N,)``.
+    """
     out = np.interp(x.astype(np.float64), xp.astype(np.float64), fp)
     idx = np.clip(np.searchsorted(xp, x), 0, len(xp) - 1)
     hit = xp[idx] == x

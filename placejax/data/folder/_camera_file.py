@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from placejax.data.folder._errors import err, quote
+from placejax.data.folder._errors import _err, _quote
 from placejax.data.folder._formats import TIME_UNITS
 from placejax.data.folder._limits import (
     FOCAL_RANGE,
@@ -122,7 +122,7 @@ def _no_duplicates(pairs: list) -> dict:
     out = {}
     for k, v in pairs:
         if k in out:
-            raise _Refused(f"key {quote(k)} appears twice")
+            raise _Refused(f"key {_quote(k)} appears twice")
         out[k] = v
     return out
 
@@ -131,13 +131,13 @@ def _parse(path: Path, text: str) -> object:
     if path.suffix.lower() == ".json":
         depth = _nesting(text)
         if depth > MAX_CAMERA_NESTING:
-            raise err(path, None, f"JSON nested {depth} levels deep, more than {MAX_CAMERA_NESTING}")
+            raise _err(path, None, f"JSON nested {depth} levels deep, more than {MAX_CAMERA_NESTING}")
         try:
             return json.loads(text, parse_int=_int, parse_constant=_constant, object_pairs_hook=_no_duplicates)
         except json.JSONDecodeError as e:
-            raise err(path, e.lineno, f"malformed JSON ({e.msg})") from None
+            raise _err(path, e.lineno, f"malformed JSON ({e.msg})") from None
         except _Refused as e:
-            raise err(path, None, f"malformed JSON ({e})") from None
+            raise _err(path, None, f"malformed JSON ({e})") from None
     import yaml  # PyYAML ships with ml-collections, a placejax dependency
 
     try:
@@ -145,12 +145,12 @@ def _parse(path: Path, text: str) -> object:
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         problem = getattr(e, "problem", None) or type(e).__name__
-        raise err(path, None if mark is None else mark.line + 1, f"malformed YAML ({quote(problem)})") from None
+        raise _err(path, None if mark is None else mark.line + 1, f"malformed YAML ({_quote(problem)})") from None
     except RecursionError:
         msg = f"YAML nested too deep (a camera file nests {MAX_CAMERA_NESTING} levels at most)"
-        raise err(path, None, msg) from None
+        raise _err(path, None, msg) from None
     except ValueError as e:  # an integer beyond Python's digit limit for int()
-        raise err(path, None, f"malformed YAML ({quote(str(e))})") from None
+        raise _err(path, None, f"malformed YAML ({_quote(str(e))})") from None
 
 
 def read_camera(path: str | os.PathLike, limits: FolderLimits | None = None) -> CameraSpec:
@@ -171,41 +171,41 @@ def read_camera(path: str | os.PathLike, limits: FolderLimits | None = None) -> 
     path, limits = Path(path), limits or FolderLimits()
     try:
         if not path.is_file():
-            raise err(path, None, "camera file not found")
+            raise _err(path, None, "camera file not found")
         size = path.stat().st_size
         if size > MAX_CAMERA_BYTES:
-            raise err(path, None, f"{size} bytes, more than {MAX_CAMERA_BYTES} for a camera file (MAX_CAMERA_BYTES)")
+            raise _err(path, None, f"{size} bytes, more than {MAX_CAMERA_BYTES} for a camera file (MAX_CAMERA_BYTES)")
         raw = path.read_bytes()[: MAX_CAMERA_BYTES + 1]
     except OSError as e:
-        raise err(path, None, f"cannot be read ({e.strerror or e})") from None
+        raise _err(path, None, f"cannot be read ({e.strerror or e})") from None
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
-        raise err(path, None, f"not UTF-8 text (byte {e.start})") from None
+        raise _err(path, None, f"not UTF-8 text (byte {e.start})") from None
     d = _parse(path, text)
     if not isinstance(d, dict):
-        raise err(path, None, f"expected a mapping of camera fields, got {type(d).__name__}")
+        raise _err(path, None, f"expected a mapping of camera fields, got {type(d).__name__}")
     missing = [f for f in _CAMERA_FIELDS if f not in d]
     if missing:
-        raise err(path, None, f"missing camera field(s) {missing} (required: {list(_CAMERA_FIELDS)})")
-    unknown = sorted(quote(k, 40) for k in d if k not in _CAMERA_FIELDS + _CAMERA_OPTIONAL)
+        raise _err(path, None, f"missing camera field(s) {missing} (required: {list(_CAMERA_FIELDS)})")
+    unknown = sorted(_quote(k, 40) for k in d if k not in _CAMERA_FIELDS + _CAMERA_OPTIONAL)
     if unknown:
         allowed = list(_CAMERA_FIELDS + _CAMERA_OPTIONAL)
-        raise err(path, None, f"unknown camera field(s) [{', '.join(unknown)}] (allowed: {allowed})")
+        raise _err(path, None, f"unknown camera field(s) [{', '.join(unknown)}] (allowed: {allowed})")
     for f in ("width", "height"):
         if isinstance(d[f], bool) or not isinstance(d[f], int) or d[f] < 1:
-            raise err(path, None, f"{f} must be a positive int (pixels), got {quote(d[f])}")
+            raise _err(path, None, f"{f} must be a positive int (pixels), got {_quote(d[f])}")
     w, h = d["width"], d["height"]
     if w * h > limits.max_image_pixels:
-        raise err(path, None, f"{w} x {h} pixels, more than {limits.max_image_pixels} (FolderLimits.max_image_pixels)")
+        raise _err(path, None, f"{w} x {h} pixels, more than {limits.max_image_pixels} (FolderLimits.max_image_pixels)")
     for f in ("fx", "fy", "cx", "cy"):
         if not _real(d[f]):
-            raise err(path, None, f"{f} must be a finite number (pixels), got {quote(d[f])}")
+            raise _err(path, None, f"{f} must be a finite number (pixels), got {_quote(d[f])}")
     side = max(w, h)
     lo, hi = FOCAL_RANGE[0] * side, FOCAL_RANGE[1] * side
     for f in ("fx", "fy"):
         if not lo <= d[f] <= hi:
-            raise err(
+            raise _err(
                 path,
                 None,
                 f"{f} = {d[f]!r} pixels is outside [{lo:g}, {hi:g}], {FOCAL_RANGE[0]:g} to {FOCAL_RANGE[1]:g} times "
@@ -214,7 +214,7 @@ def read_camera(path: str | os.PathLike, limits: FolderLimits | None = None) -> 
     m = PRINCIPAL_POINT_MARGIN
     for f, n in (("cx", w), ("cy", h)):
         if not -m * n <= d[f] <= (1 + m) * n:
-            raise err(
+            raise _err(
                 path,
                 None,
                 f"{f} = {d[f]!r} pixels is outside [{-m * n:g}, {(1 + m) * n:g}] (the image's {n} pixels and "
@@ -222,10 +222,10 @@ def read_camera(path: str | os.PathLike, limits: FolderLimits | None = None) -> 
             )
     height = d["camera_height_m"]
     if height != "unknown" and not (_real(height) and 0 < height <= MAX_CAMERA_HEIGHT_M):
-        raise err(
+        raise _err(
             path,
             None,
-            f"camera_height_m must be metres in (0, {MAX_CAMERA_HEIGHT_M:g}] or 'unknown', got {quote(height)}",
+            f"camera_height_m must be metres in (0, {MAX_CAMERA_HEIGHT_M:g}] or 'unknown', got {_quote(height)}",
         )
     dist = d.get("distortion") or []
     if (
@@ -233,18 +233,18 @@ def read_camera(path: str | os.PathLike, limits: FolderLimits | None = None) -> 
         or len(dist) not in (0, 4, 5, 8)
         or not all(_real(v) and abs(v) <= MAX_DISTORTION for v in dist)
     ):
-        raise err(
+        raise _err(
             path,
             None,
             f"distortion must be 4, 5 or 8 OpenCV coefficients (k1 k2 p1 p2 k3 ...) within ±{MAX_DISTORTION:g}, "
-            f"got {quote(dist)}",
+            f"got {_quote(dist)}",
         )
     axis = d.get("vertical_axis", "z")
     if not isinstance(axis, str) or axis not in VERTICAL_AXES:
-        raise err(path, None, f"vertical_axis must be one of {list(VERTICAL_AXES)}, got {quote(axis)}")
+        raise _err(path, None, f"vertical_axis must be one of {list(VERTICAL_AXES)}, got {_quote(axis)}")
     unit = d.get("name_time_unit", "us")
     if not isinstance(unit, str) or unit not in TIME_UNITS:
-        raise err(path, None, f"name_time_unit must be one of {list(TIME_UNITS)}, got {quote(unit)}")
+        raise _err(path, None, f"name_time_unit must be one of {list(TIME_UNITS)}, got {_quote(unit)}")
     k = np.array([[d["fx"], 0.0, d["cx"]], [0.0, d["fy"], d["cy"]], [0.0, 0.0, 1.0]], np.float64)
     return CameraSpec(
         width=w,

@@ -12,16 +12,16 @@ class FolderFormatError(ValueError):
     """A malformed session folder; the message starts with ``path:line:`` or ``path:``."""
 
 
-def err(path: Path | str, line: int | None, msg: str) -> FolderFormatError:
+def _err(path: Path | str, line: int | None, msg: str) -> FolderFormatError:
     """``FolderFormatError("path:line: msg")`` (``"path: msg"`` when no line is to blame)."""
     return FolderFormatError(f"{path}:{line}: {msg}" if line is not None else f"{path}: {msg}")
 
 
-def quote(value: object, limit: int = QUOTE_CHARS) -> str:
+def _quote(value: object, limit: int = QUOTE_CHARS) -> str:
     """``repr(value)`` of at most about ``limit`` characters, saying how long the whole was when it is cut.
 
     Example:
-        >>> quote("x" * 5000, 10)
+        >>> _quote("x" * 5000, 10)
         "'xxxxxxxxx'… (5000 characters)"
     """
     if isinstance(value, str) and len(value) > limit:

@@ -18,7 +18,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from placejax.data.folder._errors import err, quote
+from placejax.data.folder._errors import _err, _quote
 from placejax.data.folder._limits import (
     MAX_LINE_BYTES,
     MAX_NAME_BYTES,
@@ -39,7 +39,6 @@ __all__ = [
     "QUATERNION_NORM_TOLERANCE",
     "TIME_UNITS",
     "TUM_FILE",
-    "check_speed",
     "format_timestamp",
     "images_from_names",
     "parse_timestamp",
@@ -50,12 +49,17 @@ __all__ = [
 ]
 
 IMAGES_DIR = "images"
+"""The folder of a session's images."""
 IMAGE_TABLE = "images.csv"
+"""The optional table ``file,timestamp`` of a session's images."""
 TUM_FILE = "poses_tum.txt"
+"""The TUM RGB-D trajectory of a session (one of the two pose files)."""
 KITTI_FILE = "poses_kitti.txt"
+"""The KITTI pose file of a session, one pose per image (one of the two pose files)."""
 ODOMETRY_FILE = "odometry.csv"
-# Suffixes taken as images in images/ when there is no images.csv (what cv2.imread decodes).
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm", ".jp2")
+"""The optional wheel odometry of a session."""
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
+"""Suffixes taken as images in ``images/`` when there is no ``images.csv`` (formats whose header is checked)."""
 TIME_UNITS = {"s": 0, "ms": 3, "us": 6, "ns": 9}  # decimal places below the second
 QUATERNION_NORM_TOLERANCE = 1e-3
 """A quaternion whose norm is farther than this from 1 is an error, not rounding (TUM files carry 4–7 digits)."""
@@ -91,7 +95,7 @@ def parse_timestamp(text: str, unit: str = "s") -> int:
         raise ValueError(f"time unit must be one of {tuple(TIME_UNITS)}, got {unit!r}")
     s = text.strip()
     if not _DECIMAL.fullmatch(s):
-        raise ValueError(f"timestamp {quote(s)} is not a non-negative decimal number")
+        raise ValueError(f"timestamp {_quote(s)} is not a non-negative decimal number")
     d = decimal.Decimal(s)
     if d.is_zero() or d.adjusted() < -30:  # below 1e-30 s: 0 µs after rounding, whatever the unit
         return 0
@@ -100,7 +104,7 @@ def parse_timestamp(text: str, unit: str = "s") -> int:
         us = int(d.scaleb(6 - TIME_UNITS[unit], _EXACT).to_integral_value(decimal.ROUND_HALF_EVEN, _EXACT))
     if us is None or us > MAX_TIMESTAMP_US:
         raise ValueError(
-            f"timestamp {quote(s, 40)} {unit} is later than 2**53 µs (the year 2255, MAX_TIMESTAMP_US): "
+            f"timestamp {_quote(s, 40)} {unit} is later than 2**53 µs (the year 2255, MAX_TIMESTAMP_US): "
             "nanoseconds or milliseconds read as seconds?"
         )
     return us
@@ -116,7 +120,7 @@ def _check_increasing(utimes: Sequence[int], lines: Sequence[int], path: Path, w
     for k in range(1, len(utimes)):
         if utimes[k] <= utimes[k - 1]:
             kind = "duplicate" if utimes[k] == utimes[k - 1] else "unsorted"
-            raise err(
+            raise _err(
                 path,
                 lines[k],
                 f"{kind} {what} timestamp {format_timestamp(utimes[k])} s (line {lines[k - 1]} has "
@@ -132,28 +136,28 @@ def _data_lines(path: Path, limits: FolderLimits) -> Iterator[tuple[int, str]]:
     try:
         size = path.stat().st_size
     except OSError as e:
-        raise err(path, None, f"cannot be read ({e.strerror or e})") from None
+        raise _err(path, None, f"cannot be read ({e.strerror or e})") from None
     if size > limits.max_text_bytes:
-        raise err(path, None, f"{size} bytes, more than {limits.max_text_bytes} (FolderLimits.max_text_bytes)")
+        raise _err(path, None, f"{size} bytes, more than {limits.max_text_bytes} (FolderLimits.max_text_bytes)")
     try:
         f = path.open("rb")
     except OSError as e:
-        raise err(path, None, f"cannot be read ({e.strerror or e})") from None
+        raise _err(path, None, f"cannot be read ({e.strerror or e})") from None
     with f:
         n, read = 0, 0
         while raw := f.readline(MAX_LINE_BYTES + 1):
             n += 1
             read += len(raw)
             if n > limits.max_text_lines:
-                raise err(path, n, f"more than {limits.max_text_lines} lines (FolderLimits.max_text_lines)")
+                raise _err(path, n, f"more than {limits.max_text_lines} lines (FolderLimits.max_text_lines)")
             if read > limits.max_text_bytes:  # the file grew while being read
-                raise err(path, n, f"more than {limits.max_text_bytes} bytes (FolderLimits.max_text_bytes)")
+                raise _err(path, n, f"more than {limits.max_text_bytes} bytes (FolderLimits.max_text_bytes)")
             if len(raw) > MAX_LINE_BYTES:
-                raise err(path, n, f"a line longer than {MAX_LINE_BYTES} bytes (MAX_LINE_BYTES)")
+                raise _err(path, n, f"a line longer than {MAX_LINE_BYTES} bytes (MAX_LINE_BYTES)")
             try:
                 s = raw.decode("utf-8-sig" if n == 1 else "utf-8").strip()
             except UnicodeDecodeError:
-                raise err(path, n, "not UTF-8 text") from None
+                raise _err(path, n, "not UTF-8 text") from None
             if s and not s.startswith("#"):
                 yield n, s
 
@@ -162,30 +166,30 @@ def _floats(path: Path, n: int, fields: list[str], what: str) -> list[float]:
     try:
         return [float(f) for f in fields]
     except ValueError:
-        raise err(path, n, f"{what}: non-number in {quote(' '.join(fields))}") from None
+        raise _err(path, n, f"{what}: non-number in {_quote(' '.join(fields))}") from None
 
 
 def _timestamp(path: Path, n: int, text: str) -> int:
     try:
         return parse_timestamp(text)
     except ValueError as e:
-        raise err(path, n, str(e)) from None
+        raise _err(path, n, str(e)) from None
 
 
 def _check_position(path: Path, n: int, v: Sequence[float], limits: FolderLimits, what: str) -> None:
     if not all(math.isfinite(x) for x in v):
-        raise err(path, n, f"{what} = {quote(list(v))} is not finite")
+        raise _err(path, n, f"{what} = {_quote(list(v))} is not finite")
     bound = limits.max_coordinate_m
     if any(abs(x) > bound for x in v):
-        raise err(
+        raise _err(
             path,
             n,
-            f"{what} = {quote(list(v))} m is farther than {bound:g} m from the origin on an axis "
+            f"{what} = {_quote(list(v))} m is farther than {bound:g} m from the origin on an axis "
             "(FolderLimits.max_coordinate_m): not a position a robot drives to",
         )
 
 
-def check_speed(
+def _check_speed(
     path: Path, utimes: np.ndarray, xyz: np.ndarray, lines: np.ndarray, max_speed_mps: float | None, what: str
 ) -> None:
     """Raises at the first of consecutive samples that move faster than ``max_speed_mps`` (None: no check).
@@ -205,7 +209,7 @@ def check_speed(
     fast = np.flatnonzero(dist > max_speed_mps * dt)
     if fast.size:
         k = int(fast[0])
-        raise err(
+        raise _err(
             path,
             int(lines[k + 1]),
             f"{what} moves {dist[k]:.4g} m in {dt[k]:.6g} s since line {int(lines[k])} ({dist[k] / dt[k]:.4g} m/s, "
@@ -219,18 +223,18 @@ def check_speed(
 
 def _unit_quaternion(path: Path, n: int, q: list[float]) -> list[float]:
     if not all(math.isfinite(v) for v in q):
-        raise err(path, n, f"quaternion (qx qy qz qw) = {quote(q)} is not finite")
+        raise _err(path, n, f"quaternion (qx qy qz qw) = {_quote(q)} is not finite")
     norm = math.sqrt(sum(v * v for v in q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise err(
-            path, n, f"quaternion (qx qy qz qw) = {quote(q)} has norm {norm:.6g}, not 1 (±{QUATERNION_NORM_TOLERANCE})"
+        raise _err(
+            path, n, f"quaternion (qx qy qz qw) = {_quote(q)} has norm {norm:.6g}, not 1 (±{QUATERNION_NORM_TOLERANCE})"
         )
     return [v / norm for v in q]
 
 
 def _missing(path: Path, what: str) -> None:
     if not path.is_file():
-        raise err(path, None, f"{what} not found")
+        raise _err(path, None, f"{what} not found")
 
 
 def read_tum(path: str | os.PathLike, limits: FolderLimits | None = None) -> Trajectory:
@@ -256,7 +260,7 @@ def read_tum(path: str | os.PathLike, limits: FolderLimits | None = None) -> Tra
     for n, line in _data_lines(path, limits):
         fields = line.replace(",", " ").split()
         if len(fields) != 8:
-            raise err(path, n, f"expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(fields)}")
+            raise _err(path, n, f"expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(fields)}")
         t = _timestamp(path, n, fields[0])
         v = _floats(path, n, fields[1:], "pose")
         _check_position(path, n, v[:3], limits, "position (tx ty tz)")
@@ -265,7 +269,7 @@ def read_tum(path: str | os.PathLike, limits: FolderLimits | None = None) -> Tra
         quat.extend(_unit_quaternion(path, n, v[3:]))
         lines.append(n)
     if not ts:
-        raise err(path, None, "no pose in the trajectory file (empty session)")
+        raise _err(path, None, "no pose in the trajectory file (empty session)")
     _check_increasing(ts, lines, path, "pose")
     traj = Trajectory(
         np.frombuffer(ts, np.int64).copy(),
@@ -274,7 +278,7 @@ def read_tum(path: str | os.PathLike, limits: FolderLimits | None = None) -> Tra
         np.frombuffer(lines, np.int64).copy(),
         path,
     )
-    check_speed(path, traj.utimes, traj.positions, traj.lines, limits.max_speed_mps, "the camera")
+    _check_speed(path, traj.utimes, traj.positions, traj.lines, limits.max_speed_mps, "the camera")
     return traj
 
 
@@ -298,20 +302,20 @@ def read_kitti_poses(path: str | os.PathLike, limits: FolderLimits | None = None
     for n, line in _data_lines(path, limits):
         fields = line.split()
         if len(fields) != 12:
-            raise err(path, n, f"expected 12 numbers (a row-major 3 x 4 [R | t]), got {len(fields)}")
+            raise _err(path, n, f"expected 12 numbers (a row-major 3 x 4 [R | t]), got {len(fields)}")
         m = np.array(_floats(path, n, fields, "pose")).reshape(3, 4)
         if not np.isfinite(m).all():
-            raise err(path, n, "pose is not finite")
+            raise _err(path, n, "pose is not finite")
         _check_position(path, n, m[:, 3].tolist(), limits, "position (t)")
         r = m[:, :3]
         error = np.abs(r @ r.T - np.eye(3)).max()
         if error > QUATERNION_NORM_TOLERANCE or abs(np.linalg.det(r) - 1.0) > QUATERNION_NORM_TOLERANCE:
-            raise err(path, n, f"rotation is not orthonormal with determinant 1 (|R Rᵀ − I| = {error:.3g})")
+            raise _err(path, n, f"rotation is not orthonormal with determinant 1 (|R Rᵀ − I| = {error:.3g})")
         pos.extend(m[:, 3])
         rot.extend(r.ravel())
         lines.append(n)
     if not pos:
-        raise err(path, None, "no pose in the pose file (empty session)")
+        raise _err(path, None, "no pose in the pose file (empty session)")
     quat = matrix_to_quaternion(np.frombuffer(rot, np.float64).reshape(-1, 3, 3))
     positions = np.frombuffer(pos, np.float64).reshape(-1, 3).copy()
     return Trajectory(
@@ -325,20 +329,20 @@ def read_kitti_poses(path: str | os.PathLike, limits: FolderLimits | None = None
 def _table_path(path: Path, n: int, name: str, allow_outside: bool) -> None:
     """Refuses a file name of ``images.csv`` that the file system cannot hold or that leaves the session folder."""
     if len(name) > MAX_TABLE_PATH_CHARS:
-        raise err(path, n, f"file name {quote(name)} is longer than {MAX_TABLE_PATH_CHARS} characters")
+        raise _err(path, n, f"file name {_quote(name)} is longer than {MAX_TABLE_PATH_CHARS} characters")
     if "\0" in name:
-        raise err(path, n, f"file name {quote(name)} holds a NUL character")
+        raise _err(path, n, f"file name {_quote(name)} holds a NUL character")
     p = PurePosixPath(name)
     long = [c for c in p.parts if len(c.encode()) > MAX_NAME_BYTES]
     if long:
-        raise err(
-            path, n, f"file name {quote(name)}: a part of {len(long[0].encode())} bytes, more than {MAX_NAME_BYTES}"
+        raise _err(
+            path, n, f"file name {_quote(name)}: a part of {len(long[0].encode())} bytes, more than {MAX_NAME_BYTES}"
         )
     if not allow_outside and (p.is_absolute() or ".." in p.parts):
-        raise err(
+        raise _err(
             path,
             n,
-            f"file name {quote(name)} points outside the session folder: images are named relative to it, without "
+            f"file name {_quote(name)} points outside the session folder: images are named relative to it, without "
             "'..' (allow_outside=True, check --allow-outside: read images elsewhere)",
         )
 
@@ -365,26 +369,26 @@ def read_image_table(
     rows = _data_lines(path, limits)
     first = next(rows, None)
     if first is None:
-        raise err(path, None, "empty image table (expected a header 'file,timestamp' and one line per image)")
+        raise _err(path, None, "empty image table (expected a header 'file,timestamp' and one line per image)")
     n0, header = first
     if [h.strip().lower() for h in header.split(",")] != ["file", "timestamp"]:
-        raise err(path, n0, f"header must be 'file,timestamp', got {quote(header)}")
+        raise _err(path, n0, f"header must be 'file,timestamp', got {_quote(header)}")
     files, ts, lines, seen = [], [], [], {}
     for n, line in rows:
         fields = [f.strip() for f in line.rsplit(",", 1)]
         if len(fields) != 2 or not fields[0]:
-            raise err(path, n, f"expected 'file,timestamp', got {quote(line)}")
+            raise _err(path, n, f"expected 'file,timestamp', got {_quote(line)}")
         if len(files) == limits.max_images:
-            raise err(path, n, f"more than {limits.max_images} images (FolderLimits.max_images)")
+            raise _err(path, n, f"more than {limits.max_images} images (FolderLimits.max_images)")
         _table_path(path, n, fields[0], allow_outside)
         if fields[0] in seen:
-            raise err(path, n, f"image {quote(fields[0])} already listed at line {seen[fields[0]]}")
+            raise _err(path, n, f"image {_quote(fields[0])} already listed at line {seen[fields[0]]}")
         seen[fields[0]] = n
         ts.append(_timestamp(path, n, fields[1]))
         files.append(fields[0])
         lines.append(n)
     if not files:
-        raise err(path, None, "no image listed (empty session)")
+        raise _err(path, None, "no image listed (empty session)")
     _check_increasing(ts, lines, path, "image")
     return files, np.array(ts, np.int64), np.array(lines, np.int64)
 
@@ -404,20 +408,20 @@ def images_from_names(
     limits = limits or FolderLimits()
     images = folder / IMAGES_DIR
     if not images.is_dir():
-        raise err(folder, None, f"no {IMAGE_TABLE} and no {IMAGES_DIR}/ folder (see {_DOCS})")
+        raise _err(folder, None, f"no {IMAGE_TABLE} and no {IMAGES_DIR}/ folder (see {_DOCS})")
     names = []
     with os.scandir(images) as it:
         for e in it:
             if os.path.splitext(e.name)[1].lower() in IMAGE_SUFFIXES:
                 if len(names) == limits.max_images:
-                    raise err(images, None, f"more than {limits.max_images} images (FolderLimits.max_images)")
+                    raise _err(images, None, f"more than {limits.max_images} images (FolderLimits.max_images)")
                 names.append(e.name)
     entries = []
     for name in sorted(names):
         stem = os.path.splitext(name)[0]
         decimal_point = re.fullmatch(r"[0-9]+\.[0-9]+", stem) is not None
         if not (decimal_point or re.fullmatch(r"[0-9]+", stem)):
-            raise err(
+            raise _err(
                 images / name,
                 None,
                 f"image name is not a timestamp: without {IMAGE_TABLE} each image's name is its time (seconds, "
@@ -427,14 +431,14 @@ def images_from_names(
         try:
             t = parse_timestamp(stem, "s" if decimal_point else unit)
         except ValueError as ex:
-            raise err(images / name, None, str(ex)) from None
+            raise _err(images / name, None, str(ex)) from None
         entries.append((t, f"{IMAGES_DIR}/{name}"))
     if not entries:
-        raise err(images, None, "no image (empty session)")
+        raise _err(images, None, "no image (empty session)")
     entries.sort()
     for (t0, f0), (t1, f1) in itertools.pairwise(entries):
         if t0 == t1:
-            raise err(folder / f1, None, f"same timestamp as {f0} (duplicate timestamp)")
+            raise _err(folder / f1, None, f"same timestamp as {f0} (duplicate timestamp)")
     return [f for _, f in entries], np.array([t for t, _ in entries], np.int64), np.full(len(entries), -1)
 
 
@@ -466,32 +470,32 @@ def read_odometry(
     first = next(rows, None)
     header = tuple(h.strip().lower() for h in first[1].split(",")) if first else ()
     if header not in _ODOMETRY_HEADERS:
-        raise err(path, first[0] if first else None, "header must be 'timestamp,x,y,yaw' or 'timestamp,travelled_m'")
+        raise _err(path, first[0] if first else None, "header must be 'timestamp,x,y,yaw' or 'timestamp,travelled_m'")
     ts, vals, lines = [], [], []
     for n, line in rows:
         fields = line.split(",")
         if len(fields) != len(header):
-            raise err(path, n, f"expected {len(header)} values {','.join(header)!r}, got {len(fields)}")
+            raise _err(path, n, f"expected {len(header)} values {','.join(header)!r}, got {len(fields)}")
         ts.append(_timestamp(path, n, fields[0]))
         v = _floats(path, n, fields[1:], "odometry")
         if len(v) == 3:
             _check_position(path, n, v[:2], limits, "odometry (x y)")
             if not (math.isfinite(v[2]) and abs(v[2]) <= MAX_YAW_RAD):
-                raise err(
-                    path, n, f"odometry yaw {quote(v[2])} rad is not finite within ±{MAX_YAW_RAD:g} (MAX_YAW_RAD)"
+                raise _err(
+                    path, n, f"odometry yaw {_quote(v[2])} rad is not finite within ±{MAX_YAW_RAD:g} (MAX_YAW_RAD)"
                 )
         else:
             if not (math.isfinite(v[0]) and abs(v[0]) <= MAX_ODOMETER_M):
-                raise err(
-                    path, n, f"travelled_m {quote(v[0])} is not finite within ±{MAX_ODOMETER_M:g} m (MAX_ODOMETER_M)"
+                raise _err(
+                    path, n, f"travelled_m {_quote(v[0])} is not finite within ±{MAX_ODOMETER_M:g} m (MAX_ODOMETER_M)"
                 )
             if vals and v[0] < vals[-1][0]:
-                raise err(path, n, f"travelled_m {v[0]!r} is below the previous line's {vals[-1][0]!r} (an odometer)")
+                raise _err(path, n, f"travelled_m {v[0]!r} is below the previous line's {vals[-1][0]!r} (an odometer)")
         vals.append(v)
         lines.append(n)
     if not ts:
-        raise err(path, None, "no odometry row")
+        raise _err(path, None, "no odometry row")
     _check_increasing(ts, lines, path, "odometry")
     utimes, values = np.array(ts, np.int64), np.array(vals, np.float64)
-    check_speed(path, utimes, values[:, :2], np.array(lines), limits.max_speed_mps, "the odometry")
+    _check_speed(path, utimes, values[:, :2], np.array(lines), limits.max_speed_mps, "the odometry")
     return utimes, values, header

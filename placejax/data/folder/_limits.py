@@ -20,8 +20,6 @@ __all__ = [
     "MAX_COORDINATE_M",
     "MAX_DISTORTION",
     "MAX_IMAGES",
-    "MAX_IMAGE_FILE_BYTES",
-    "MAX_IMAGE_PIXELS",
     "MAX_LINE_BYTES",
     "MAX_NAME_BYTES",
     "MAX_ODOMETER_M",

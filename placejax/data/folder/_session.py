@@ -16,20 +16,20 @@ import numpy as np
 
 from placejax.data import camera as _camera
 from placejax.data.folder._camera_file import CAMERA_FILE, CAMERA_FILES, CameraSpec, read_camera
-from placejax.data.folder._errors import err, quote
+from placejax.data.folder._errors import _err, _quote
 from placejax.data.folder._formats import (
     IMAGE_TABLE,
     KITTI_FILE,
     ODOMETRY_FILE,
     TUM_FILE,
-    check_speed,
+    _check_speed,
     images_from_names,
     read_image_table,
     read_kitti_poses,
     read_odometry,
     read_tum,
 )
-from placejax.data.folder._frames import DEPTH_DIR, decode_depth, decode_image, depth_files, is_file
+from placejax.data.folder._frames import DEPTH_DIR, _decode_depth, _decode_image, _depth_files, _is_file
 from placejax.data.folder._limits import FolderLimits
 from placejax.data.poses import interp_exact, interpolate_poses, planar_poses, quaternion_to_matrix
 
@@ -153,7 +153,7 @@ class FolderSession:
 
     def raw_image(self, i: int) -> np.ndarray:
         """Frame ``i`` as stored, RGB uint8 ``(height, width, 3)`` of ``camera.json``; errors name the file."""
-        return decode_image(self.files[self._check(i)], self.raw_shape, self.limits)
+        return _decode_image(self.files[self._check(i)], self.raw_shape, self.limits)
 
     def image(self, i: int) -> np.ndarray:
         """Upright RGB uint8 ``(H, W, 3)`` of frame ``i``: decoded, undistorted (with distortion given), resized."""
@@ -181,7 +181,7 @@ class FolderSession:
         """
         if self.depth_files is None:
             raise FileNotFoundError(f"{self.folder}: session {self.name!r} has no {DEPTH_DIR}/ folder")
-        d = decode_depth(self.depth_files[self._check(i)], self.raw_shape, self.limits)
+        d = _decode_depth(self.depth_files[self._check(i)], self.raw_shape, self.limits)
         if d.shape != self.image_shape:
             d = cv2.resize(d, self.image_shape[::-1], interpolation=cv2.INTER_NEAREST)
         return d
@@ -221,7 +221,7 @@ def _pose_file(folder: Path) -> Path:
     present = [folder / f for f in (TUM_FILE, KITTI_FILE) if (folder / f).is_file()]
     if len(present) != 1:
         found = "both" if present else "neither"
-        raise err(folder, None, f"expected exactly one pose file, {TUM_FILE} or {KITTI_FILE}; found {found}")
+        raise _err(folder, None, f"expected exactly one pose file, {TUM_FILE} or {KITTI_FILE}; found {found}")
     return present[0]
 
 
@@ -229,7 +229,7 @@ def _camera_file(folder: Path) -> Path:
     for name in CAMERA_FILES:
         if (folder / name).is_file():
             return folder / name
-    raise err(folder, None, f"no {CAMERA_FILE} (image size, fx fy cx cy, camera_height_m; see {_DOCS})")
+    raise _err(folder, None, f"no {CAMERA_FILE} (image size, fx fy cx cy, camera_height_m; see {_DOCS})")
 
 
 def _seconds(us: int) -> str:
@@ -253,7 +253,7 @@ def _nothing_kept(folder, report, pose_path, names, utimes, traj, from_names: bo
             "every image is farther than tolerance_s from its nearest pose "
             f"(largest pose gap {report.max_pose_gap_s:.3f} s)"
         )
-    return err(folder, None, f"no frame left after matching the images to {pose_path.name} ({report}): {why}")
+    return _err(folder, None, f"no frame left after matching the images to {pose_path.name} ({report}): {why}")
 
 
 def _check_args(tolerance_s, stride, max_frames, image_size) -> None:
@@ -309,7 +309,7 @@ def load_session(
     folder, limits = Path(folder), limits or FolderLimits()
     _check_args(tolerance_s, stride, max_frames, image_size)
     if not folder.is_dir():
-        raise err(folder, None, "session folder not found")
+        raise _err(folder, None, "session folder not found")
     cam = read_camera(_camera_file(folder), limits)
     table = folder / IMAGE_TABLE
     from_names = not table.is_file()
@@ -322,9 +322,9 @@ def load_session(
         traj = read_kitti_poses(pose_path, limits)
         if len(traj) != len(names):
             msg = f"{len(traj)} poses for {len(names)} images: KITTI files have one pose per image"
-            raise err(pose_path, None, msg)
+            raise _err(pose_path, None, msg)
         speed = limits.max_speed_mps
-        check_speed(pose_path, utimes, traj.positions, traj.lines, speed, "the camera (at the image times)")
+        _check_speed(pose_path, utimes, traj.positions, traj.lines, speed, "the camera (at the image times)")
         positions, quats = traj.positions, traj.quaternions
         outside = too_far = np.zeros(len(names), bool)
         gap = 0.0
@@ -343,9 +343,9 @@ def load_session(
     if max_frames is not None:
         keep &= np.cumsum(keep) <= max_frames
     for k in np.flatnonzero(keep):
-        if not is_file(files[k]):
+        if not _is_file(files[k]):
             where = (table, int(lines[k])) if lines[k] >= 0 else (files[k], None)
-            raise err(*where, f"image file {names[k]} missing")
+            raise _err(*where, f"image file {names[k]} missing")
     report = FolderReport(
         name=name or folder.name,
         n_images=len(files),
@@ -361,11 +361,11 @@ def load_session(
     kept_files = [f for f, k in zip(files, keep, strict=True) if k]
     raw_shape = (cam.height, cam.width)
     for f in kept_files if verify_images else kept_files[:1]:
-        decode_image(f, raw_shape, limits)
-    depth = depth_files(folder, kept_files, limits)
+        _decode_image(f, raw_shape, limits)
+    depth = _depth_files(folder, kept_files, limits)
     if verify_images and depth is not None:
         for f in depth:
-            decode_depth(f, raw_shape, limits)
+            _decode_depth(f, raw_shape, limits)
     odo = travelled = None
     if (folder / ODOMETRY_FILE).is_file():
         odo, travelled, n_out = _odometry(folder / ODOMETRY_FILE, utimes[keep], limits)
@@ -410,7 +410,7 @@ def session_folders(root: str | os.PathLike) -> list[Path]:
     """The session folders directly inside ``root`` (sub-folders holding a camera file), sorted by name."""
     root = Path(root)
     if not root.is_dir():
-        raise err(root, None, "folder of sessions not found")
+        raise _err(root, None, "folder of sessions not found")
     return sorted(p for p in root.iterdir() if p.is_dir() and any((p / c).is_file() for c in CAMERA_FILES))
 
 
@@ -429,14 +429,14 @@ def require_sessions(root: str | os.PathLike, names: Sequence[str]) -> list[Path
     if missing:
         there = [p.name for p in found]
         more = f" and {len(there) - 20} more" if len(there) > 20 else ""
-        listed = ", ".join(quote(n, 40) for n in there[:20]) + more
+        listed = ", ".join(_quote(n, 40) for n in there[:20]) + more
         fix = (
             f"the session folders in {root} are {listed}: set data.sessions=({','.join(repr(n) for n in there[:20])})"
             f" or put the missing folders there ({_DOCS})"
             if there
             else f"{root} holds no session folder (a folder with {CAMERA_FILE}, {_DOCS})"
         )
-        raise err(root, None, f"no session folder {', '.join(quote(n, 40) for n in missing)} (data.sessions); {fix}")
+        raise _err(root, None, f"no session folder {', '.join(_quote(n, 40) for n in missing)} (data.sessions); {fix}")
     return [root / n for n in names]
 
 
