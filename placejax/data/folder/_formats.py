@@ -105,7 +105,7 @@ def parse_timestamp(text: str, unit: str = "s") -> int:
     if us is None or us > MAX_TIMESTAMP_US:
         raise ValueError(
             f"timestamp {_quote(s, 40)} {unit} is later than 2**53 µs (the year 2255, MAX_TIMESTAMP_US): "
-            "nanoseconds or milliseconds read as seconds?"
+            "nanoseconds or milliseconds read as a larger unit?"
         )
     return us
 

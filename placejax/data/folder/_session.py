@@ -431,7 +431,8 @@ def require_sessions(root: str | os.PathLike, names: Sequence[str]) -> list[Path
         more = f" and {len(there) - 20} more" if len(there) > 20 else ""
         listed = ", ".join(_quote(n, 40) for n in there[:20]) + more
         fix = (
-            f"the session folders in {root} are {listed}: set data.sessions=({','.join(repr(n) for n in there[:20])})"
+            f"the session folders in {root} are {listed}: set data.sessions=({','.join(map(repr, there[:20]))}"
+            f"{',' if len(there) == 1 else ''})"
             f" or put the missing folders there ({_DOCS})"
             if there
             else f"{root} holds no session folder (a folder with {CAMERA_FILE}, {_DOCS})"
