@@ -121,6 +121,10 @@ def _cases() -> dict[str, tuple]:
         pos[3, 0] += 1000.0
         folder.write_poses(d, traj.utimes, pos, traj.quaternions, "kitti")
 
+    def kitti_rotation_1e300(d: Path):
+        kitti_jump(d)
+        edit_field(d / folder.KITTI_FILE, 2, 0, "1e300")
+
     def big_comment_file(d: Path):  # 200 MB of comment lines before the poses (1.25 GiB peak before the fix)
         body = (d / tum).read_bytes()
         with (d / tum).open("wb") as f:
@@ -177,6 +181,12 @@ def _cases() -> dict[str, tuple]:
             folder.KITTI_FILE,
             4,
             r"moves .* in 0\.5 s since line 3 .*faster than 50 m/s",
+        ),
+        "kitti_rotation_1e300": (
+            kitti_rotation_1e300,
+            folder.KITTI_FILE,
+            2,
+            r"rotation is not orthonormal with determinant 1 \(\|R Rᵀ − I\| = inf\)",
         ),
         "odometry_xy_1e308": (
             odometry([f"{t[0]},0,0,0", f"{t[1]},1e308,0,0"]),

@@ -308,7 +308,8 @@ def read_kitti_poses(path: str | os.PathLike, limits: FolderLimits | None = None
             raise _err(path, n, "pose is not finite")
         _check_position(path, n, m[:, 3].tolist(), limits, "position (t)")
         r = m[:, :3]
-        error = np.abs(r @ r.T - np.eye(3)).max()
+        # Entries beyond ±1 are no rotation's, and would overflow the products below.
+        error = np.abs(r @ r.T - np.eye(3)).max() if np.abs(r).max() <= 2.0 else np.inf
         if error > QUATERNION_NORM_TOLERANCE or abs(np.linalg.det(r) - 1.0) > QUATERNION_NORM_TOLERANCE:
             raise _err(path, n, f"rotation is not orthonormal with determinant 1 (|R Rᵀ − I| = {error:.3g})")
         pos.extend(m[:, 3])
@@ -410,12 +411,15 @@ def images_from_names(
     if not images.is_dir():
         raise _err(folder, None, f"no {IMAGE_TABLE} and no {IMAGES_DIR}/ folder (see {_DOCS})")
     names = []
-    with os.scandir(images) as it:
-        for e in it:
-            if os.path.splitext(e.name)[1].lower() in IMAGE_SUFFIXES:
-                if len(names) == limits.max_images:
-                    raise _err(images, None, f"more than {limits.max_images} images (FolderLimits.max_images)")
-                names.append(e.name)
+    try:
+        with os.scandir(images) as it:
+            for e in it:
+                if os.path.splitext(e.name)[1].lower() in IMAGE_SUFFIXES:
+                    if len(names) == limits.max_images:
+                        raise _err(images, None, f"more than {limits.max_images} images (FolderLimits.max_images)")
+                    names.append(e.name)
+    except OSError as e:
+        raise _err(images, None, f"cannot be listed ({e.strerror or e})") from None
     entries = []
     for name in sorted(names):
         stem = os.path.splitext(name)[0]

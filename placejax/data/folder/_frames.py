@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from placejax.data import images
-from placejax.data.folder._errors import FolderFormatError, _err
+from placejax.data.folder._errors import FolderFormatError, _err, _quote
 from placejax.data.folder._limits import FolderLimits
 
 __all__ = ["DEPTH_DIR", "DEPTH_SUFFIXES"]
@@ -27,7 +27,7 @@ def _is_file(path: Path) -> bool:
     try:
         return path.is_file()
     except OSError as e:
-        raise _err(path.parent, None, f"cannot look for {path.name[:80]!r}... ({e.strerror or e})") from None
+        raise _err(path.parent, None, f"cannot look for {_quote(path.name)} ({e.strerror or e})") from None
 
 
 def _encoded(path: Path, what: str, shape: tuple[int, int], limits: FolderLimits) -> images.EncodedImage:
@@ -142,18 +142,22 @@ def _depth_files(folder: Path, files: Sequence[Path], limits: FolderLimits) -> t
     d = folder / DEPTH_DIR
     if not d.is_dir():
         return None
+    names = []
+    try:
+        with os.scandir(d) as it:
+            for e in it:
+                if os.path.splitext(e.name)[1].lower() in DEPTH_SUFFIXES:
+                    if len(names) == limits.max_images:
+                        raise _err(d, None, f"more than {limits.max_images} depth files (FolderLimits.max_images)")
+                    names.append(e.name)
+    except OSError as e:
+        raise _err(d, None, f"cannot be listed ({e.strerror or e})") from None
     by_stem: dict[str, Path] = {}
-    with os.scandir(d) as it:
-        for e in it:
-            stem, suffix = os.path.splitext(e.name)
-            if suffix.lower() not in DEPTH_SUFFIXES:
-                continue
-            if len(by_stem) == limits.max_images:
-                raise _err(d, None, f"more than {limits.max_images} depth files (FolderLimits.max_images)")
-            if stem in by_stem:
-                a, b = sorted([by_stem[stem].name, e.name])
-                raise _err(d / b, None, f"two depth files for image {stem!r}: {a} and {b}")
-            by_stem[stem] = d / e.name
+    for name in sorted(names):
+        stem = os.path.splitext(name)[0]
+        if stem in by_stem:
+            raise _err(d / name, None, f"two depth files for image {stem!r}: {by_stem[stem].name} and {name}")
+        by_stem[stem] = d / name
     out = []
     for f in files:
         if f.stem not in by_stem:

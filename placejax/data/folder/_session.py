@@ -308,8 +308,11 @@ def load_session(
     """
     folder, limits = Path(folder), limits or FolderLimits()
     _check_args(tolerance_s, stride, max_frames, image_size)
-    if not folder.is_dir():
-        raise _err(folder, None, "session folder not found")
+    try:
+        if not folder.is_dir():
+            raise _err(folder, None, "session folder not found")
+    except OSError as e:  # a name the file system refuses
+        raise _err(_quote(str(folder)), None, f"cannot be read ({e.strerror or e})") from None
     cam = read_camera(_camera_file(folder), limits)
     table = folder / IMAGE_TABLE
     from_names = not table.is_file()
@@ -409,9 +412,12 @@ def _odometry(path: Path, ku: np.ndarray, limits: FolderLimits) -> tuple[np.ndar
 def session_folders(root: str | os.PathLike) -> list[Path]:
     """The session folders directly inside ``root`` (sub-folders holding a camera file), sorted by name."""
     root = Path(root)
-    if not root.is_dir():
-        raise _err(root, None, "folder of sessions not found")
-    return sorted(p for p in root.iterdir() if p.is_dir() and any((p / c).is_file() for c in CAMERA_FILES))
+    try:
+        if not root.is_dir():
+            raise _err(root, None, "folder of sessions not found")
+        return sorted(p for p in root.iterdir() if p.is_dir() and any((p / c).is_file() for c in CAMERA_FILES))
+    except OSError as e:  # no permission, a name the file system refuses
+        raise _err(_quote(str(root)), None, f"cannot be read ({e.strerror or e})") from None
 
 
 def require_sessions(root: str | os.PathLike, names: Sequence[str]) -> list[Path]:
