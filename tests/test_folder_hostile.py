@@ -408,6 +408,12 @@ def _cases() -> dict[str, tuple]:
 
 
 CASES = sorted(_cases())
+# Jobs that show the measure sees what it must: 300 MiB allocated, 0.5 s of CPU, a fork over a 1 s CPU cap.
+CALIBRATION = [
+    {"kind": "calibrate", "mib": 300},
+    {"kind": "calibrate", "spin_s": 0.5},
+    {"kind": "calibrate", "spin_s": 5.0, "cap": 1},
+]
 
 
 def build_cases(root: Path) -> dict[str, tuple[Path, Path, int | None, str]]:
@@ -451,9 +457,21 @@ def check(argv):
             code = f"raised {type(e).__name__}: {e}"
     return {"code": code, "stderr": err.getvalue()}
 
+def calibrate(job):
+    # what the measure must see: an allocation of job["mib"] MiB, or job["spin_s"] of CPU
+    if "mib" in job:
+        block = bytearray(job["mib"] << 20)
+        block[:: 4096] = b"x" * len(block[:: 4096])  # touch every page
+        return {"outcome": "allocated"}
+    import time
+    end = time.process_time() + job["spin_s"]
+    while time.process_time() < end:
+        pass
+    return {"outcome": "spun"}
+
 jobs, cap = json.load(open(sys.argv[1])), int(sys.argv[2])
 warm = jobs.pop(0)
-read(warm["path"], False), check([warm["path"]])  # imports and first calls before the baseline
+read(warm["path"], False), check([warm["path"]])  # imports and first calls before the forks
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 results = []
 for job in jobs:
@@ -461,8 +479,12 @@ for job in jobs:
     pid = os.fork()
     if pid == 0:
         os.close(r)
-        resource.setrlimit(resource.RLIMIT_CPU, (cap, cap))
-        out = read(job["path"], job.get("allow_outside", False)) if job["kind"] == "read" else check(job["argv"])
+        limit = job.get("cap", cap)
+        resource.setrlimit(resource.RLIMIT_CPU, (limit, limit))
+        start = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # the fork's RSS: its high-water mark
+        kind = job["kind"]
+        out = read(job["path"], False) if kind == "read" else check(job["argv"]) if kind == "check" else calibrate(job)
+        out["start"] = start
         with os.fdopen(w, "w") as f:
             f.write(json.dumps(out))
         os._exit(0)
@@ -470,8 +492,9 @@ for job in jobs:
     with os.fdopen(r) as f:
         data = f.read()
     _, status, usage = os.wait4(pid, 0)
-    res = json.loads(data) if data else {"outcome": "no result"}
-    res.update(status=status, cpu_s=usage.ru_utime + usage.ru_stime, over_base=usage.ru_maxrss * 1024 - base)
+    res = json.loads(data) if data else {"outcome": "no result", "start": 0}
+    peak = usage.ru_maxrss * 1024
+    res.update(status=status, cpu_s=usage.ru_utime + usage.ru_stime, peak=peak, over_start=peak - res["start"])
     results.append(res)
 print(json.dumps({"base": base, "results": results}))
 """
@@ -492,17 +515,18 @@ def outcomes(tmp_path_factory):
     """Every case read and checked, each in its own fork: ``(cases, {case: (read, check)}, baseline bytes)``."""
     root = tmp_path_factory.mktemp("hostile")
     cases = build_cases(root)
-    jobs = [{"path": str(root / "base")}]
+    jobs = [{"path": str(root / "base")}, *CALIBRATION]
     for d, *_ in cases.values():
         jobs += [{"kind": "read", "path": str(d)}, {"kind": "check", "argv": [str(d)]}]
     spec = root / "jobs.json"
     spec.write_text(json.dumps(jobs))
     report = json.loads(run_child(_RUNNER, str(spec), str(CPU_CAP_S)))
     results = iter(report["results"])
+    calibration = [next(results) for _ in CALIBRATION]
     got = {name: (next(results), next(results)) for name in cases}
     for d, *_ in cases.values():  # the 200 MB and 20 MB files go as soon as they have been read
         shutil.rmtree(d)
-    return cases, got, report["base"]
+    return cases, got, calibration
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -517,7 +541,7 @@ def test_hostile_folder_is_refused_naming_file_and_line(outcomes, case):
     prefix = f"{path}:{line}: " if line is not None else f"{path}: "
     for r in (read, check):
         assert r["status"] == 0, (case, r)  # a fork killed by SIGXCPU (the cap) or anything else: non-zero
-        assert r["over_base"] < GIB, (case, r["over_base"])
+        assert r["peak"] < GIB, (case, r["peak"])  # the whole process, imported libraries included
     assert read["outcome"] == "FolderFormatError", (case, read)
     assert read["message"].startswith(prefix), (case, prefix, read["message"][:300])
     assert re.search(regex, read["message"]), (case, regex, read["message"][:300])
@@ -527,13 +551,20 @@ def test_hostile_folder_is_refused_naming_file_and_line(outcomes, case):
     assert lines == [f"error: {read['message']}"], (case, lines[:3])
 
 
-def test_every_case_costs_little(outcomes):
-    """All together: peak RSS above the baseline and CPU time of the worst case, each far below its bound."""
-    _, got, base = outcomes
+def test_every_case_costs_little_and_the_measure_sees_costs(outcomes):
+    """All together: the worst case's peak RSS above its fork's start and its CPU time, each far below its bound;
+    and the same measure sees a 300 MiB allocation, half a second of CPU, and a fork killed at its CPU cap."""
+    import signal
+
+    _, got, (alloc, spin, capped) = outcomes
     assert len(got) == len(CASES) >= 40
-    worst_rss = max(r["over_base"] for pair in got.values() for r in pair)
+    worst_rss = max(r["over_start"] for pair in got.values() for r in pair)
     worst_cpu = max(r["cpu_s"] for pair in got.values() for r in pair)
-    assert worst_rss < 256 << 20 and worst_cpu < CPU_CAP_S / 2, (worst_rss, worst_cpu, base)
+    assert worst_rss < 64 << 20 and worst_cpu < CPU_CAP_S / 4, (worst_rss, worst_cpu)
+    assert alloc["status"] == 0 and 290 << 20 <= alloc["over_start"] < 330 << 20, alloc
+    assert spin["status"] == 0 and 0.5 <= spin["cpu_s"] < 2.0, spin
+    assert os.WIFSIGNALED(capped["status"]) and os.WTERMSIG(capped["status"]) in (signal.SIGXCPU, signal.SIGKILL)
+    assert capped["outcome"] == "no result" and capped["cpu_s"] < 2.5, capped
 
 
 def test_the_command_in_a_fresh_process_prints_one_line_and_exits_1(tmp_path):
