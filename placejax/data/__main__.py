@@ -112,7 +112,7 @@ def check(args: argparse.Namespace) -> int:
                     allow_outside=args.allow_outside,
                 )
             )
-    except folder.FolderFormatError as e:
+    except (folder.FolderFormatError, OSError) as e:  # OSError: a DIR argument the file system refuses
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(
