@@ -23,6 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from placejax.data import folder, poses
 
@@ -666,3 +668,45 @@ def test_timestamps_are_exact_with_many_digits():
 def test_limits_are_checked(bad):
     with pytest.raises(ValueError, match=rf"FolderLimits\.{next(iter(bad))} must be a positive"):
         folder.FolderLimits(**bad)
+
+
+@pytest.fixture(scope="module")
+def valid_folder(tmp_path_factory) -> Path:
+    d = make_session(tmp_path_factory.mktemp("valid") / "s")
+    t = [folder.format_timestamp(T0 + 500_000 * k) for k in range(6)]
+    rows = "".join(f"{t[k]},{k * 0.3},0,0.1\n" for k in range(6))
+    (d / folder.ODOMETRY_FILE).write_text("timestamp,x,y,yaw\n" + rows)
+    return d
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    name=st.sampled_from([folder.TUM_FILE, folder.IMAGE_TABLE, folder.CAMERA_FILE, folder.ODOMETRY_FILE]),
+    edits=st.lists(
+        st.tuples(st.floats(0, 1), st.integers(0, 255), st.sampled_from(["set", "insert", "cut"])),
+        min_size=1,
+        max_size=4,
+    ),
+)
+def test_random_byte_edits_load_or_are_refused_by_name(valid_folder, tmp_path_factory, name, edits):
+    """Any few bytes changed, inserted or cut in a text file of a valid folder: the session loads (every frame
+    readable) or a FolderFormatError names a file of the folder, never another exception."""
+    d = tmp_path_factory.mktemp("edit") / "s"
+    shutil.copytree(valid_folder, d)
+    data = bytearray((d / name).read_bytes())
+    for where, byte, how in edits:
+        k = min(int(where * len(data)), len(data) - 1)
+        if how == "set":
+            data[k] = byte
+        elif how == "insert":
+            data[k:k] = bytes([byte])
+        else:
+            del data[k : k + 1 + byte % 8]
+    (d / name).write_bytes(bytes(data))
+    try:
+        s = folder.load_session(d, verify_images=True)
+    except folder.FolderFormatError as e:
+        assert str(e).startswith(str(d)) and len(str(e)) < 1000, str(e)
+    else:
+        assert len(s) >= 1 and s.image(0).shape == (12, 16, 3)
+        assert np.isfinite(s.poses).all() and np.abs(s.positions).max() <= folder.MAX_COORDINATE_M
