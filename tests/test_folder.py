@@ -561,8 +561,9 @@ def test_missing_session_folders_named_in_one_error(tmp_path):
     for name in ("2026-01-10", "2026-03-02"):
         _session(tmp_path / name)
     (tmp_path / "notes").mkdir()
-    with pytest.raises(folder.FolderFormatError) as e:
+    with pytest.raises(folder.MissingSessionError) as e:
         folder.load_sessions(tmp_path, ["WI", "2026-01-10", "SP"])
+    assert isinstance(e.value, folder.FolderFormatError) and isinstance(e.value, FileNotFoundError)
     assert str(e.value) == (
         f"{tmp_path}: no session folder 'WI', 'SP' (data.sessions); the session folders in {tmp_path} are "
         f"'2026-01-10', '2026-03-02': set data.sessions=('2026-01-10','2026-03-02') or put the missing folders there "
@@ -575,6 +576,10 @@ def test_missing_session_folders_named_in_one_error(tmp_path):
     ]
     with pytest.raises(folder.FolderFormatError, match=r"no session folder 'x' \(data.sessions\); .* holds no session"):
         folder.require_sessions(tmp_path / "notes", ["x"])
+    with pytest.raises(FileNotFoundError, match=r"nowhere: folder of sessions not found"):
+        folder.load_sessions(tmp_path / "nowhere", ["a"])
+    with pytest.raises(folder.MissingSessionError, match=r"2026-01-10/x: session folder not found"):
+        folder.load_session(tmp_path / "2026-01-10" / "x")
 
 
 # --------------------------------------------------------------------------------------------------- exporters

@@ -42,7 +42,7 @@ slerp and interpolation are :mod:`placejax.data.poses`.
 """
 
 from placejax.data.folder._camera_file import CAMERA_FILE, CAMERA_FILES, CameraSpec, read_camera
-from placejax.data.folder._errors import FolderFormatError
+from placejax.data.folder._errors import FolderFormatError, MissingSessionError
 from placejax.data.folder._formats import (
     IMAGE_SUFFIXES,
     IMAGE_TABLE,
@@ -132,6 +132,7 @@ __all__ = [
     "FolderLimits",
     "FolderReport",
     "FolderSession",
+    "MissingSessionError",
     "Trajectory",
     "format_timestamp",
     "images_from_names",

@@ -12,9 +12,13 @@ class FolderFormatError(ValueError):
     """A malformed session folder; the message starts with ``path:line:`` or ``path:``."""
 
 
-def _err(path: Path | str, line: int | None, msg: str) -> FolderFormatError:
-    """``FolderFormatError("path:line: msg")`` (``"path: msg"`` when no line is to blame)."""
-    return FolderFormatError(f"{path}:{line}: {msg}" if line is not None else f"{path}: {msg}")
+class MissingSessionError(FolderFormatError, FileNotFoundError):
+    """A session folder (or the folder of sessions) that is not there; also a :class:`FileNotFoundError`."""
+
+
+def _err(path: Path | str, line: int | None, msg: str, kind: type[FolderFormatError] = FolderFormatError):
+    """``kind("path:line: msg")`` (``"path: msg"`` when no line is to blame)."""
+    return kind(f"{path}:{line}: {msg}" if line is not None else f"{path}: {msg}")
 
 
 def _quote(value: object, limit: int = QUOTE_CHARS) -> str:

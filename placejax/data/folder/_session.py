@@ -16,7 +16,7 @@ import numpy as np
 
 from placejax.data import camera as _camera
 from placejax.data.folder._camera_file import CAMERA_FILE, CAMERA_FILES, CameraSpec, read_camera
-from placejax.data.folder._errors import _err, _quote
+from placejax.data.folder._errors import MissingSessionError, _err, _quote
 from placejax.data.folder._formats import (
     IMAGE_TABLE,
     KITTI_FILE,
@@ -309,10 +309,11 @@ def load_session(
     folder, limits = Path(folder), limits or FolderLimits()
     _check_args(tolerance_s, stride, max_frames, image_size)
     try:
-        if not folder.is_dir():
-            raise _err(folder, None, "session folder not found")
+        found = folder.is_dir()
     except OSError as e:  # a name the file system refuses
         raise _err(_quote(str(folder)), None, f"cannot be read ({e.strerror or e})") from None
+    if not found:
+        raise _err(folder, None, "session folder not found", MissingSessionError)
     cam = read_camera(_camera_file(folder), limits)
     table = folder / IMAGE_TABLE
     from_names = not table.is_file()
@@ -413,11 +414,14 @@ def session_folders(root: str | os.PathLike) -> list[Path]:
     """The session folders directly inside ``root`` (sub-folders holding a camera file), sorted by name."""
     root = Path(root)
     try:
-        if not root.is_dir():
-            raise _err(root, None, "folder of sessions not found")
-        return sorted(p for p in root.iterdir() if p.is_dir() and any((p / c).is_file() for c in CAMERA_FILES))
+        found = root.is_dir()
+        inside = sorted(p for p in root.iterdir() if p.is_dir()) if found else []
+        sessions = [p for p in inside if any((p / c).is_file() for c in CAMERA_FILES)]
     except OSError as e:  # no permission, a name the file system refuses
         raise _err(_quote(str(root)), None, f"cannot be read ({e.strerror or e})") from None
+    if not found:
+        raise _err(root, None, "folder of sessions not found", MissingSessionError)
+    return sessions
 
 
 def require_sessions(root: str | os.PathLike, names: Sequence[str]) -> list[Path]:
@@ -426,8 +430,8 @@ def require_sessions(root: str | os.PathLike, names: Sequence[str]) -> list[Path
     What an experiment calls before loading ``data.sessions`` from ``data.root``.
 
     Raises:
-        FolderFormatError: ``root: no session folder 'WI', 'SP' ...; the session folders in root are ...: set
-            data.sessions=(...)``.
+        MissingSessionError: (a ``FolderFormatError`` and a ``FileNotFoundError``) ``root: no session folder 'WI',
+            'SP' ...; the session folders in root are ...: set data.sessions=(...)``.
     """
     root = Path(root)
     found = session_folders(root)
@@ -443,7 +447,8 @@ def require_sessions(root: str | os.PathLike, names: Sequence[str]) -> list[Path
             if there
             else f"{root} holds no session folder (a folder with {CAMERA_FILE}, {_DOCS})"
         )
-        raise _err(root, None, f"no session folder {', '.join(_quote(n, 40) for n in missing)} (data.sessions); {fix}")
+        names = ", ".join(_quote(n, 40) for n in missing)
+        raise _err(root, None, f"no session folder {names} (data.sessions); {fix}", MissingSessionError)
     return [root / n for n in names]
 
 
