@@ -72,7 +72,8 @@ def trajectories(draw):
     n = draw(st.integers(1, 12))
     steps = draw(st.lists(st.integers(1, 10**7), min_size=n, max_size=n))
     utimes = draw(st.integers(0, 2**52)) + np.cumsum(steps).astype(np.int64)
-    pos = np.array(draw(st.lists(st.tuples(*[st.floats(-1e6, 1e6)] * 3), min_size=n, max_size=n)), np.float64)
+    bound = folder.MAX_COORDINATE_M
+    pos = np.array(draw(st.lists(st.tuples(*[st.floats(-bound, bound)] * 3), min_size=n, max_size=n)), np.float64)
     q = _unit_quats(draw, n)
     k = min(len(q), n)
     return utimes[:k], pos[:k], q[:k]
@@ -86,7 +87,8 @@ def test_pose_files_round_trip(tmp_path_factory, traj, fmt):
         return
     d = tmp_path_factory.mktemp("poses")
     path = folder.write_poses(d, utimes, pos, q, fmt)
-    t = folder.read_tum(path) if fmt == "tum" else folder.read_kitti_poses(path)
+    any_speed = folder.FolderLimits(max_speed_mps=None)  # random positions at random times: round trips only
+    t = folder.read_tum(path, any_speed) if fmt == "tum" else folder.read_kitti_poses(path, any_speed)
     assert len(t) == len(q)
     if fmt == "tum":  # text in round-trip precision: bit for bit
         np.testing.assert_array_equal(t.utimes, utimes)
@@ -367,7 +369,7 @@ def _break(d: Path, how: str) -> str:
         return r"images\.csv:5: image file images/000003\.png missing"
     if how == "unreadable image":
         (d / "images" / "000002.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
-        return r"images/000002\.png: unreadable or truncated image"
+        return r"images/000002\.png: a PNG file whose header gives no usable image size: truncated or corrupt"
     if how == "image of another size":
         cv2.imwrite(str(d / "images" / "000004.png"), np.zeros((12, 15, 3), np.uint8))
         return r"images/000004\.png: image is 15 x 12 \(W x H\), camera\.json says 16 x 12"
@@ -441,6 +443,143 @@ def test_check_warns_about_a_session_elsewhere(tmp_path, capsys):
     folder.write_poses(d, utimes, pos + np.array([1000.0, 0, 0]), q, "tum")
     assert data_main(["check", str(tmp_path / "a"), str(tmp_path / "b"), "--map", str(tmp_path / "m.png")]) == 0
     assert "warning: b shares no place cell with the other sessions" in capsys.readouterr().out
+
+
+def _loop_session(tmp: Path, *, swap_yz: bool = False) -> Path:
+    """A campus drive: a 250 m × 180 m loop at 1.5 m/s over gentle hills (6.5 m up and down), a frame every 2 s,
+    the camera level and looking ahead; ``swap_yz`` writes y and z swapped in the pose file (a newcomer's slip)."""
+    side = np.array([250.0, 180.0, 250.0, 180.0])
+    s = np.arange(0.0, side.sum(), 3.0)  # 3 m between frames
+    corner = np.concatenate([[0.0], np.cumsum(side)])
+    k = np.searchsorted(corner, s, side="right") - 1
+    along = s - corner[k]
+    start = np.array([[0, 0], [250, 0], [250, 180], [0, 180]], float)[k]
+    heading = np.array([0, np.pi / 2, np.pi, -np.pi / 2])[k]
+    xy = start + along[:, None] * np.stack([np.cos(heading), np.sin(heading)], -1)
+    z = 1.3 + 3.25 * np.sin(s / 60)
+    pos = np.column_stack([xy, z])
+    q = folder.matrix_to_quaternion(np.stack([_rot_z(h) for h in heading]))
+    if swap_yz:
+        pos = pos[:, [0, 2, 1]]
+    utimes = T0 + 2_000_000 * np.arange(len(s), dtype=np.int64)
+    images = np.zeros((len(s), 4, 4, 3), np.uint8)
+    k_ = np.array([[4.0, 0, 1.5], [0, 4.0, 1.5], [0, 0, 1]])
+    cam = folder.CameraSpec(width=4, height=4, intrinsics=k_, camera_height_m=1.3)
+    folder.write_session(tmp, cam, utimes, pos, q, images)
+    return tmp
+
+
+def test_check_warns_about_swapped_axes_with_numbers(tmp_path, capsys):
+    """Two axes swapped in the pose file read fine but draw a 250 m × 6.5 m strip: warnings give the numbers; the
+    same drive written right draws no warning."""
+    good = _loop_session(tmp_path / "good")
+    assert data_main(["check", str(good)]) == 0
+    assert "warning" not in capsys.readouterr().out
+    bad = _loop_session(tmp_path / "bad", swap_yz=True)
+    assert data_main(["check", str(bad)]) == 0  # warnings, not errors
+    out = capsys.readouterr().out
+    warnings = [line for line in out.splitlines() if line.startswith("warning: bad:")]
+    assert len(warnings) == 2, out
+    assert re.search(
+        r"spans 250 m along x but 6\.5 m along y \(ratio 0\.026 < 0\.05\): .*two axes swapped", warnings[0]
+    )
+    assert re.search(
+        r"camera height \(z, vertical_axis 'z'\) varies over 180 m .* horizontal extent of 250 m", warnings[1]
+    )
+
+
+def test_trajectory_warnings_speed_and_vertical_axis():
+    """Positions in millimetres (a 1000× too fast robot) and KITTI-style poses read with vertical_axis 'z' (the
+    camera looks along z, the vertical): each named with its numbers; the same poses right, none."""
+    n = 40
+    t = T0 + 1_000_000 * np.arange(n)
+    level = np.stack([_rot_z(0.3)] * n)
+    pos = np.column_stack([np.arange(n) * 1.2, np.arange(n) * 0.9, np.full(n, 1.1)])  # 1.5 m/s diagonally
+    assert folder.trajectory_warnings("a", t, pos, level, "z") == []
+    fast = folder.trajectory_warnings("a", t, pos * 1000, level, "z")
+    assert len(fast) == 1 and fast[0].startswith("a: the camera moves 1.5e+03 m/s (median), 1.5e+03 m/s (95th perc")
+    kitti = np.stack([np.eye(3)] * n)  # camera frame = world frame: looking along +z, y down
+    kitti_pos = np.column_stack([np.arange(n) * 0.3, np.full(n, -1.6), np.arange(n) * 1.4])
+    assert folder.trajectory_warnings("k", t, kitti_pos, kitti, "y") == []
+    wrong = folder.trajectory_warnings("k", t, kitti_pos, kitti, "z")
+    assert any("optical axis is 90° from the horizontal plane" in w and "'y'" in w for w in wrong), wrong
+
+
+def test_image_names_that_are_not_timestamps_say_so(tmp_path):
+    """``000000.png`` … without images.csv are read as 0 µs, 1 µs, …: the error says how names are read and points
+    at images.csv, in one line."""
+    d, *_ = _session(tmp_path / "s")
+    (d / folder.IMAGE_TABLE).unlink()
+    with pytest.raises(folder.FolderFormatError) as e:
+        folder.load_session(d)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{d}: no frame left")
+    assert "kept 0/6 frames, dropped 6 outside the trajectory" in msg
+    assert re.search(
+        r"image names are read as timestamps in seconds or in name_time_unit 'us' \(000000\.png is 0 s\), the images "
+        r"span 0–0\.000005 s, the poses 1700000000–1700000002\.5 s: name each image by its time or list "
+        r"'file,timestamp' per image in images\.csv \(docs/own-data\.md, 'The format'\)$",
+        msg,
+    ), msg
+
+
+def test_command_line_help_lists_both_subcommands_and_check_writes_no_map_unasked(tmp_path, monkeypatch, capsys):
+    with pytest.raises(SystemExit):
+        data_main(["--help"])
+    out = capsys.readouterr().out
+    assert "{check,nclt}" in out and "check session folders" in out and "NCLT sessions" in out
+    with pytest.raises(SystemExit) as e:
+        data_main([])
+    assert e.value.code == 2 and "choose a subcommand" in capsys.readouterr().err
+    _session(tmp_path / "data" / "a")
+    monkeypatch.chdir(tmp_path)
+    assert data_main(["check", "data"]) == 0
+    assert "map ->" not in capsys.readouterr().out and not (tmp_path / "sessions_map.png").exists()
+
+
+def test_check_map_draws_x_rightwards_y_upwards(tmp_path, monkeypatch):
+    """The map is drawn as the experiment's workspace_map.png: x horizontal, y vertical, equal aspect."""
+    from placejax import io
+
+    figures = []
+    monkeypatch.setattr(io, "save_figure", lambda fig, path, **kw: figures.append(fig))
+    d, _, pos, *_ = _session(tmp_path / "a")
+    assert data_main(["check", str(d), "--map", str(tmp_path / "m.png"), "--grid-n", "3"]) == 0
+    (ax,) = figures[0].axes
+    trajectory = next(line for line in ax.lines if line.get_label() == "a (6 frames)")
+    np.testing.assert_array_equal(trajectory.get_xdata(), pos[:, 0])
+    np.testing.assert_array_equal(trajectory.get_ydata(), pos[:, 1])
+    assert ax.get_xlabel() == "x (m)" and ax.get_ylabel() == "y (m)" and ax.get_aspect() == 1.0
+    verticals = [line for line in ax.lines if np.ptp(line.get_xdata()) == 0 and len(line.get_xdata()) == 2]
+    assert len(verticals) == 4  # the grid's x edges are vertical lines
+    assert sorted(v.get_xdata()[0] for v in verticals) == pytest.approx(
+        np.linspace(pos[:, 0].min(), pos[:, 0].max(), 4)
+    )
+
+
+def test_missing_session_folders_named_in_one_error(tmp_path):
+    for name in ("2026-01-10", "2026-03-02"):
+        _session(tmp_path / name)
+    (tmp_path / "notes").mkdir()
+    with pytest.raises(folder.MissingSessionError) as e:
+        folder.load_sessions(tmp_path, ["WI", "2026-01-10", "SP"])
+    assert isinstance(e.value, folder.FolderFormatError) and isinstance(e.value, FileNotFoundError)
+    assert str(e.value) == (
+        f"{tmp_path}: no session folder 'WI', 'SP' (data.sessions); the session folders in {tmp_path} are "
+        f"'2026-01-10', '2026-03-02': set data.sessions=('2026-01-10','2026-03-02') or put the missing folders there "
+        "(docs/own-data.md)"
+    )
+    assert [p.name for p in folder.require_sessions(tmp_path, ["2026-03-02"])] == ["2026-03-02"]
+    assert [s.name for s in folder.load_sessions(tmp_path, ["2026-03-02", "2026-01-10"])] == [
+        "2026-03-02",
+        "2026-01-10",
+    ]
+    with pytest.raises(folder.FolderFormatError, match=r"no session folder 'x' \(data.sessions\); .* holds no session"):
+        folder.require_sessions(tmp_path / "notes", ["x"])
+    with pytest.raises(FileNotFoundError, match=r"nowhere: folder of sessions not found"):
+        folder.load_sessions(tmp_path / "nowhere", ["a"])
+    with pytest.raises(folder.MissingSessionError, match=r"2026-01-10/x: session folder not found"):
+        folder.load_session(tmp_path / "2026-01-10" / "x")
 
 
 # --------------------------------------------------------------------------------------------------- exporters

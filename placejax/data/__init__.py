@@ -9,6 +9,8 @@ Public surface:
         first use: it brings JAX).
     folder: one's own sessions as folders of images with a pose file (imported on first use).
     export: writes SimCampus or NCLT sessions as such folders (imported on first use).
+    poses: rotations (matrices, quaternions, Euler angles), slerp, planar poses, interpolation in time.
+    images: image files read with a pixel and file-size budget, the header checked before decoding.
     PlaceGrid: the n × n place classes over all sessions' viewpoints.
     cache_session, build_array_cache, ...: atomic, resumable on-disk caches.
     train_dataset, eval_dataset, Augment: grain pipelines, sharded by JAX process.
@@ -36,7 +38,7 @@ from placejax.data.sources import DataConfig, GridConfig, moved_m, open_session
 # Imported on first attribute access (PEP 562): SimCampus renders with JAX, which the rest of the data layer
 # does not need; nclt (and the others) are lazy too so that `python -m placejax.data.nclt` does not find its own
 # module already imported by the package (runpy's RuntimeWarning).
-_LAZY_SUBMODULES = ("export", "folder", "nclt", "simcampus")
+_LAZY_SUBMODULES = ("export", "folder", "images", "nclt", "poses", "simcampus")
 
 
 def __getattr__(name: str):
@@ -69,6 +71,7 @@ __all__ = [
     "eval_dataset",
     "export",
     "folder",
+    "images",
     "jittered_copies",
     "jittered_view",
     "moved_m",
@@ -76,6 +79,7 @@ __all__ = [
     "open_array_cache",
     "open_session",
     "open_session_cache",
+    "poses",
     "release_mapped_pages",
     "session_identity",
     "simcampus",

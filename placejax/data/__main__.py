@@ -1,18 +1,21 @@
 """Check session folders, or check NCLT sessions and build their image caches, from the command line.
 
     python -m placejax.data check DIR [DIR ...] [--map map.png] [--grid-n 10] [--tolerance-s 0.1]
+        [--max-speed-mps 50] [--allow-outside]
 
 Checks session folders (``placejax.data.folder``, ``docs/own-data.md``; a DIR holding session folders stands for
-all of them): prints per session its frames, duration, path length, bounding box, pose gaps, dropped frames and
-image size, draws the trajectories over the place grid to a PNG, and exits with status 1 and a one-line
+all of them): reads every frame's image and depth file, prints per session its frames, duration, path length,
+bounding box, pose gaps, dropped frames and image size, warns about implausible trajectories (with their numbers),
+draws the trajectories over the place grid to ``--map`` when given, and exits with status 1 and a one-line
 ``error: file:line: ...`` at the first defect.
 
-    python -m placejax.data --root /data/nclt --dates 2012-01-22 2012-03-31 2012-08-04 2012-11-17 \\
+    python -m placejax.data [nclt] --root /data/nclt --dates 2012-01-22 2012-03-31 2012-08-04 2012-11-17 \\
         [--camera 5] [--undistort] [--verify] [--skip-bad-frames] \\
         [--cache /data/placejax_cache --image-size 224 224] [--grid grid.json]
 
-Prints every session's kept / dropped frame counts; with ``--cache`` writes (or resumes, or reuses) each
-session's image cache; with ``--grid`` fits the 10 × 10 place grid over all given sessions and saves it.
+Prints every NCLT session's kept / dropped frame counts; with ``--cache`` writes (or resumes, or reuses) each
+session's image cache; with ``--grid`` fits the 10 × 10 place grid over all given sessions and saves it. The
+subcommand name ``nclt`` may be left out.
 """
 
 from __future__ import annotations
@@ -28,13 +31,15 @@ from placejax.data import folder, nclt
 from placejax.data.cache import cache_session
 from placejax.data.grid import PlaceGrid
 
+_COMMANDS = ("check", "nclt")
+
 
 def _session_dirs(dirs: list[Path]) -> list[Path]:
     """Each DIR, or the session folders directly inside it when it is not one itself."""
     out = []
     for d in dirs:
-        if d.is_dir() and not any((d / f).is_file() for f in (folder.CAMERA_FILE, "camera.yaml", "camera.yml")):
-            inner = sorted(p for p in d.iterdir() if p.is_dir() and (p / folder.CAMERA_FILE).is_file())
+        if d.is_dir() and not any((d / f).is_file() for f in folder.CAMERA_FILES):
+            inner = folder.session_folders(d)
             if inner:
                 out.extend(inner)
                 continue
@@ -51,44 +56,70 @@ def _draw_map(sessions: list[folder.FolderSession], grid: PlaceGrid, path: Path)
     from placejax import io
 
     fig, ax = plt.subplots(figsize=(7, 7), dpi=90)
+    # As the experiment's workspace_map.png draws a map frame: x rightwards, y upwards, one metre the same on both.
     for v in np.linspace(grid.x_min, grid.x_max, grid.n + 1):
-        ax.axhline(v, color="0.85", lw=0.6)
-    for v in np.linspace(grid.y_min, grid.y_max, grid.n + 1):
         ax.axvline(v, color="0.85", lw=0.6)
-    for s in sessions:  # grid rows run along x, columns along y: x is drawn upwards, y rightwards
-        ax.plot(s.poses[:, 1], s.poses[:, 0], lw=1.0, label=f"{s.name} ({len(s)} frames)")
-        ax.plot(s.poses[0, 1], s.poses[0, 0], "o", ms=4, color=ax.lines[-1].get_color())
-    ax.set_xlabel("y (m)")
-    ax.set_ylabel("x (m)")
+    for v in np.linspace(grid.y_min, grid.y_max, grid.n + 1):
+        ax.axhline(v, color="0.85", lw=0.6)
+    for s in sessions:
+        ax.plot(s.poses[:, 0], s.poses[:, 1], lw=1.0, label=f"{s.name} ({len(s)} frames)")
+        ax.plot(s.poses[0, 0], s.poses[0, 1], "o", ms=4, color=ax.lines[-1].get_color())
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
     ax.set_aspect("equal")
-    ax.set_title(f"trajectories over the {grid.n} × {grid.n} place grid (dots: starts)")
+    ax.set_title(f"trajectories over the {grid.n} × {grid.n} place grid (dots: starts; row = bin of x)")
     ax.legend(fontsize=8, loc="best")
     io.save_figure(fig, path, bbox_inches="tight")
     plt.close(fig)
 
 
-def check(argv: list[str]) -> int:
-    """``python -m placejax.data check DIR [DIR ...]``: summary, map, exit status 1 at the first defect."""
-    parser = argparse.ArgumentParser(prog="python -m placejax.data check", description="Check session folders.")
-    parser.add_argument("dirs", type=Path, nargs="+", help="session folders, or folders holding them")
-    parser.add_argument("--map", type=Path, default=Path("sessions_map.png"), help="PNG of the trajectories")
-    parser.add_argument("--grid-n", type=int, default=10, help="cells per axis of the place grid drawn")
-    parser.add_argument("--tolerance-s", type=float, default=0.1, help="largest image-to-pose gap kept (s)")
-    args = parser.parse_args(argv)
+def _check_parser(sub) -> None:
+    p = sub.add_parser(
+        "check",
+        help="check session folders (docs/own-data.md): every frame, bounds, plausibility, a map",
+        description="Check session folders: read every frame's files, print a summary and warnings, exit 1 with "
+        "one line 'error: FILE:LINE: ...' at the first defect.",
+    )
+    p.add_argument("dirs", type=Path, nargs="+", help="session folders, or folders holding them")
+    p.add_argument("--map", type=Path, help="write a PNG of the trajectories over the place grid here")
+    p.add_argument("--grid-n", type=int, default=10, help="cells per axis of the place grid drawn")
+    p.add_argument("--tolerance-s", type=float, default=0.1, help="largest image-to-pose gap kept (s)")
+    p.add_argument(
+        "--max-speed-mps",
+        type=float,
+        default=folder.MAX_SPEED_MPS,
+        help=f"refuse faster motion between poses (default {folder.MAX_SPEED_MPS:g} m/s; 0 or inf: no check)",
+    )
+    p.add_argument("--allow-outside", action="store_true", help="let images.csv name files outside the session folder")
+
+
+def check(args: argparse.Namespace) -> int:
+    """``python -m placejax.data check DIR [DIR ...]``: summary, warnings, map, exit status 1 at the first defect."""
+    if not args.max_speed_mps >= 0:
+        print(f"error: --max-speed-mps must be >= 0 (0: no check), got {args.max_speed_mps}", file=sys.stderr)
+        return 2
+    speed = args.max_speed_mps
+    limits = folder.FolderLimits(max_speed_mps=speed if 0 < speed < float("inf") else None)
     sessions = []
     try:
         for d in _session_dirs(args.dirs):
-            sessions.append(folder.load_session(d, tolerance_s=args.tolerance_s, verify_images=True))
-            s = sessions[-1]
-            if s.has_depth:
-                s.depth(0)  # a depth file of the wrong size or kind fails here, not in the experiment
-    except folder.FolderFormatError as e:
+            sessions.append(
+                folder.load_session(
+                    d,
+                    tolerance_s=args.tolerance_s,
+                    verify_images=True,  # every image and depth file, headers checked before decoding
+                    limits=limits,
+                    allow_outside=args.allow_outside,
+                )
+            )
+    except (folder.FolderFormatError, OSError) as e:  # OSError: a DIR argument the file system refuses
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(
         f"{'session':<16}{'frames':>7}{'dropped':>8}{'duration s':>11}{'path m':>9}{'max pose gap s':>15}"
         f"{'image':>10}  x range (m)        y range (m)"
     )
+    warnings = []
     for s in sessions:
         r, p = s.report, s.poses
         length = float(np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1).sum())
@@ -100,6 +131,9 @@ def check(argv: list[str]) -> int:
         )
         if r.n_dropped:
             print(f"  {s.name}: dropped {r.n_outside_poses} outside the trajectory, {r.n_no_pose} in pose gaps")
+        warnings += folder.trajectory_warnings(s.name, s.utimes, s.positions, s.rotations, s.camera.vertical_axis)
+    for w in warnings:
+        print(f"warning: {w}")
     try:
         grid = PlaceGrid.fit([s.poses[:, :2] for s in sessions], n=args.grid_n)
     except ValueError as e:
@@ -112,32 +146,50 @@ def check(argv: list[str]) -> int:
         if len(sessions) > 1 and shared == 0:
             print(f"warning: {s.name} shares no place cell with the other sessions (another map frame?)")
     print(f"place grid {grid}")
-    _draw_map(sessions, grid, args.map)
-    print(f"map -> {args.map}")
+    if args.map is not None:
+        _draw_map(sessions, grid, args.map)
+        print(f"map -> {args.map}")
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    """The command line (module docstring); returns the exit status."""
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["check"]:
-        return check(argv[1:])
-    parser = argparse.ArgumentParser(prog="python -m placejax.data", description=__doc__.split("\n")[0])
-    parser.add_argument("--root", type=Path, required=True, help="NCLT root (images/, ground_truth/, ...)")
-    parser.add_argument("--dates", nargs="+", required=True)
-    parser.add_argument("--camera", type=int, default=5)
-    parser.add_argument("--images-root", type=Path)
-    parser.add_argument("--ground-truth-root", type=Path)
-    parser.add_argument("--calib-root", type=Path)
-    parser.add_argument("--undistort", action="store_true")
-    parser.add_argument("--tolerance-s", type=float, default=0.1)
-    parser.add_argument("--verify", action="store_true", help="decode every image now")
-    parser.add_argument("--skip-bad-frames", action="store_true")
-    parser.add_argument("--cache", type=Path, help="cache folder; builds each session's image cache")
-    parser.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), default=(224, 224))
-    parser.add_argument("--grid", type=Path, help="fit the place grid over these sessions and save it here")
-    parser.add_argument("--grid-n", type=int, default=10)
-    args = parser.parse_args(argv)
+def _nclt_parser(sub) -> None:
+    p = sub.add_parser(
+        "nclt",
+        help="NCLT sessions: kept / dropped frames, image caches, the place grid (the default)",
+        description="Check NCLT sessions; build their image caches and place grid.",
+    )
+    p.add_argument("--root", type=Path, required=True, help="NCLT root (images/, ground_truth/, ...)")
+    p.add_argument("--dates", nargs="+", required=True)
+    p.add_argument("--camera", type=int, default=5)
+    p.add_argument("--images-root", type=Path)
+    p.add_argument("--ground-truth-root", type=Path)
+    p.add_argument("--calib-root", type=Path)
+    p.add_argument("--undistort", action="store_true")
+    p.add_argument("--tolerance-s", type=float, default=0.1)
+    p.add_argument("--verify", action="store_true", help="decode every image now")
+    p.add_argument("--skip-bad-frames", action="store_true")
+    p.add_argument("--cache", type=Path, help="cache folder; builds each session's image cache")
+    p.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), default=(224, 224))
+    p.add_argument("--grid", type=Path, help="fit the place grid over these sessions and save it here")
+    p.add_argument("--grid-n", type=int, default=10)
+
+
+def parser() -> argparse.ArgumentParser:
+    """The command line: subcommands ``check`` and ``nclt``."""
+    ap = argparse.ArgumentParser(
+        prog="python -m placejax.data",
+        description="Check session folders (check) or NCLT sessions (nclt).",
+        epilog="Without a subcommand the options are nclt's: python -m placejax.data --root DIR --dates ... "
+        "(python -m placejax.data check --help, python -m placejax.data nclt --help).",
+    )
+    sub = ap.add_subparsers(dest="command", metavar="{check,nclt}")
+    _check_parser(sub)
+    _nclt_parser(sub)
+    return ap
+
+
+def nclt_command(args: argparse.Namespace) -> int:
+    """``python -m placejax.data [nclt] --root ... --dates ...`` (module docstring)."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 
     sessions = []
@@ -175,6 +227,18 @@ def main(argv: list[str] | None = None) -> int:
             cached = cache_session(s, args.cache, image_size=tuple(args.image_size))
             print(f"{s.name}: {len(cached)} frames cached in {cached.path}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command line (module docstring); returns the exit status."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] not in (*_COMMANDS, "-h", "--help"):
+        argv = ["nclt", *argv]  # the NCLT options without their subcommand, as before subcommands existed
+    ap = parser()
+    args = ap.parse_args(argv)
+    if args.command is None:
+        ap.error("choose a subcommand: check (session folders) or nclt")
+    return check(args) if args.command == "check" else nclt_command(args)
 
 
 if __name__ == "__main__":

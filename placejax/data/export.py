@@ -18,6 +18,7 @@ import numpy as np
 
 from placejax import io
 from placejax.data import folder as _folder
+from placejax.data import poses
 
 __all__ = [
     "SIMCAMPUS_RENDER_PRESETS",
@@ -43,17 +44,11 @@ def simcampus_world_from_camera(yaw: np.ndarray, pitch: np.ndarray, roll: np.nda
     """Camera-to-world rotations ``float64 (N, 3, 3)`` of SimCampus cameras (OpenCV camera axes).
 
     The float64 twin of the renderer's ``world_from_camera``: yaw turns the heading counter-clockwise from +x,
-    pitch raises the optical axis, roll turns the image clockwise about it; world z is up.
+    pitch raises the optical axis, roll turns the image clockwise about it; world z is up. The body (x forward,
+    y left, z up) is ``Rz(yaw) · Ry(−pitch) · Rx(roll)``: a positive pitch about +y would lower the nose.
     """
     yaw, pitch, roll = (np.asarray(a, np.float64) for a in (yaw, pitch, roll))
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    zero = np.zeros_like(yaw)
-    fwd = np.stack([cy * cp, sy * cp, sp], -1)
-    left0 = np.stack([-sy, cy, zero], -1)
-    up0 = np.stack([-sp * cy, -sp * sy, cp], -1)
-    left = cr[:, None] * left0 + sr[:, None] * up0
-    up = -sr[:, None] * left0 + cr[:, None] * up0
-    return np.stack([-left, -up, fwd], axis=-1)
+    return poses.rotation_zyx(roll, -pitch, yaw) @ poses.CAMERA_IN_FLU
 
 
 def export_simcampus(
@@ -113,7 +108,7 @@ def export_simcampus(
             cam,
             s.utimes,
             p6[:, :3],
-            _folder.matrix_to_quaternion(rot),
+            poses.matrix_to_quaternion(rot),
             chunks("rgb"),
             depths=chunks("depth") if depth else None,
             travelled_m=s.travelled_m,  # the simulated wheel odometry the route filter reads
@@ -131,17 +126,10 @@ def export_simcampus(
 def _nclt_camera_to_world(xyzrpy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(positions (N, 3), rotations (N, 3, 3))`` of NCLT ground-truth rows, the camera looking along the body's x.
 
-    NCLT's body frame (NED) has x forward, y right, z down, and ``R = Rz(yaw) Ry(pitch) Rx(roll)``; an OpenCV
-    camera looking forward has x = body y, y = body z, z = body x.
+    NCLT's body frame (NED) has x forward, y right, z down, and ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
     """
     x, y, z, roll, pitch, yaw = xyzrpy.T
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    r = np.empty((len(x), 3, 3))
-    r[:, 0] = np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1)
-    r[:, 1] = np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1)
-    r[:, 2] = np.stack([-sp, cp * sr, cp * cr], -1)
-    body_from_camera = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    return np.stack([x, y, z], -1), r @ body_from_camera
+    return np.stack([x, y, z], -1), poses.rotation_zyx(roll, pitch, yaw) @ poses.CAMERA_IN_FRD
 
 
 def export_nclt(
@@ -185,7 +173,7 @@ def export_nclt(
             cam,
             s.utimes,
             positions,
-            _folder.matrix_to_quaternion(rot),
+            poses.matrix_to_quaternion(rot),
             frames,
             pose_format=pose_format,
         )
