@@ -18,7 +18,16 @@ log = logging.getLogger(__name__)
 
 
 def open_sessions(ws: Workspace, data: DataConfig) -> list[SessionData]:
-    """Opens every session of ``data.sessions`` and caches its RGB frames at ``data.image_size``."""
+    """Opens every session of ``data.sessions`` and caches its RGB frames at ``data.image_size``.
+
+    Raises:
+        placejax.data.folder.MissingSessionError: with ``source='folder'``, every session folder missing from
+            ``data.root``, named in one error with the session folders that are there.
+    """
+    if data.source == "folder":
+        from placejax.data import folder
+
+        folder.require_sessions(data.root, data.sessions)  # all missing names at once, before any work
     out = []
     for name in data.sessions:
         src = open_session(data, name, progress=ws.progress)
@@ -41,7 +50,7 @@ def fit_grid(ws: Workspace, sessions: list[SessionData], grid: GridConfig) -> Pl
             # Nothing to recognise across sessions: usually a session in another map frame (own recordings).
             log.warning(
                 "session %s shares no place cell with the other sessions: another map frame? "
-                "(python -m placejax.data check draws every trajectory over the grid)",
+                "(python -m placejax.data check DIR --map map.png draws every trajectory over the grid)",
                 s.name,
             )
     return place_grid
