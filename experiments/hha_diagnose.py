@@ -38,8 +38,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from experiments.cross_season import baselines
-from placejax import hha
+from placejax import hha, stages
 from placejax.classify import run_layout
 from placejax.data import PlaceGrid, open_array_cache
 from placejax.data.simcampus import SKY_DEPTH
@@ -125,7 +124,7 @@ def cross_season_nn(thumbs: dict[str, np.ndarray], labels: dict[str, np.ndarray]
     """Mean over the ordered session pairs of 1-NN top-1 (%) of the test session's thumbnails against the
     training session's (the run's ``nn_hha`` baseline)."""
     accs = [
-        np.mean(baselines.nearest_neighbour_labels(thumbs[a], labels[a], thumbs[b]) == labels[b])
+        np.mean(stages.nearest_neighbour_labels(thumbs[a], labels[a], thumbs[b]) == labels[b])
         for a, b in itertools.permutations(thumbs, 2)
     ]
     return 100.0 * float(np.mean(accs))
@@ -133,10 +132,10 @@ def cross_season_nn(thumbs: dict[str, np.ndarray], labels: dict[str, np.ndarray]
 
 def per_channel_nn(hha_images: dict[str, np.ndarray], labels: dict[str, np.ndarray]) -> dict[str, float]:
     """:func:`cross_season_nn` on 16 × 16 thumbnails of each HHA channel alone: which channel tells places apart."""
-    size = baselines.THUMB_SIZES["nn_hha"]
+    size = stages.THUMB_SIZES["nn_hha"]
     return {
         name: cross_season_nn(
-            {s: baselines.thumbnails(np.ascontiguousarray(h[..., c : c + 1]), size) for s, h in hha_images.items()},
+            {s: stages.thumbnails(np.ascontiguousarray(h[..., c : c + 1]), size) for s, h in hha_images.items()},
             labels,
         )
         for c, name in enumerate(HHA_CHANNELS)
@@ -182,14 +181,14 @@ def main(argv: list[str] | None = None) -> None:
         return tuple(np.concatenate([np.asarray(getattr(p, f)) for p in parts]) for f in ("hha", "angle_deg"))
 
     def thumbnails(hha_images: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {s: baselines.thumbnails(h, baselines.THUMB_SIZES["nn_hha"]) for s, h in hha_images.items()}
+        return {s: stages.thumbnails(h, stages.THUMB_SIZES["nn_hha"]) for s, h in hha_images.items()}
 
     def nn_accuracy(thumbs: dict[str, np.ndarray]) -> float:
         return cross_season_nn(thumbs, labels)
 
     def nn_within(thumbs: dict[str, np.ndarray]) -> float:
         accs = [
-            np.mean(baselines.nearest_neighbour_labels(t[::2], labels[s][::2], t[1::2]) == labels[s][1::2])
+            np.mean(stages.nearest_neighbour_labels(t[::2], labels[s][::2], t[1::2]) == labels[s][1::2])
             for s, t in thumbs.items()
         ]
         return 100.0 * float(np.mean(accs))

@@ -789,7 +789,7 @@ def test_folder_source_config_checked():
 
     cfg = get_config("smoke")
     apply_overrides(cfg, ["data.source=folder"])
-    with pytest.raises(ValueError, match=r"data.source='folder' needs data.root="):
+    with pytest.raises(ValueError, match=r"data.source='folder' needs root="):
         validate(cfg)
     apply_overrides(cfg, ["data.root=/x", "data.stride=0"])
     with pytest.raises(ValueError, match=r"data.stride=0: expected a positive int"):
@@ -797,7 +797,12 @@ def test_folder_source_config_checked():
     apply_overrides(cfg, ["data.stride=2"])
     validate(cfg)
     apply_overrides(cfg, ["data.source=simcampus"])
-    with pytest.raises(ValueError, match=r"data.stride=2: only data.source='folder' subsamples"):
+    with pytest.raises(ValueError, match=r"data.stride=2: only source='folder' subsamples"):
+        validate(cfg)
+    # Keys that only mean something together are checked together: data.root alone is not silently ignored.
+    with pytest.raises(
+        ValueError, match=r"data.root='/x' is read only with source='folder' \(add data.source=folder\)"
+    ):
         validate(cfg)
     paper = get_config("paper")  # the paper's recipe (MiDaS, ImageNet VGG16) on folders
     apply_overrides(paper, ["data.source=folder", "data.root=/x", "data.sessions=('a','b','c')"])

@@ -34,6 +34,7 @@ __all__ = [
     "thumbnails",
 ]
 THUMB_SIZES = {"nn_rgb": 12, "nn_gradient": 12, "nn_hha": 16, "nn_hha_true": 16}
+"""Baseline name → the side of its square thumbnails, pixels."""
 MAX_HEADING_DEG = 45.0
 
 
@@ -67,7 +68,17 @@ def gradient_thumbnails(images: np.ndarray, size: int, *, chunk: int = 512) -> n
 
 
 def nearest_neighbour_labels(train: np.ndarray, train_labels: np.ndarray, test: np.ndarray, *, chunk: int = 1024):
-    """The label of each test row's nearest training row (largest dot product of standardised rows)."""
+    """The label of each test row's nearest training row (largest dot product of standardised rows).
+
+    Args:
+        train: float ``(N, D)`` standardised training rows (:func:`thumbnails`).
+        train_labels: int ``(N,)`` their labels.
+        test: float ``(M, D)`` standardised test rows.
+        chunk: test rows per matrix product.
+
+    Returns:
+        int32 ``(M,)`` labels.
+    """
     out = np.empty(len(test), np.int32)
     for lo in range(0, len(test), chunk):
         out[lo : lo + chunk] = train_labels[np.argmax(test[lo : lo + chunk] @ train.T, axis=1)]

@@ -58,8 +58,20 @@ def train_mlp(
     mlp: MLPConfig,
     seed: int,
 ) -> tuple[Any, Any, Path]:
-    """The fusion MLP (paper §III-D) on the training session's concatenated fc7 pairs (``labels`` theirs: with
-    ``mlp.jittered``, the originals' then the jittered copies'); orbax-checkpointed.
+    """The fusion MLP (paper §III-D) on the training session's concatenated fc7 pairs; orbax-checkpointed.
+
+    Args:
+        ws: the run's workspace.
+        s: the training session.
+        embeddings: float32 ``(M, D)`` ``[fc7_rgb, fc7_hha]`` rows (with ``mlp.jittered``, the originals' then
+            the jittered copies').
+        labels: int ``(M,)`` their labels.
+        modality_sizes: ``(D_rgb, D_hha)``, summing to ``D``.
+        num_classes: classes of the logits.
+        session_index: the session's index in the run (seeds and keys depend on it).
+        upstream: what identifies the two nets (part of the checkpoint folder's key).
+        mlp: the ``mlp`` section.
+        seed: the run's seed.
 
     Returns:
         ``(train state, batch preparation, checkpoint folder)``.

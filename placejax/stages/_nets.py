@@ -92,7 +92,8 @@ def pretrained_vgg(vgg: VGGConfig, weights: str) -> dict:
 
 
 def training_labels(labels: np.ndarray, *, shuffle: bool, seed: int, session_index: int) -> np.ndarray:
-    """The labels the networks of a training session learn from.
+    """The labels the networks of a training session learn from: int ``(N,)``, the session's ``labels`` ``(N,)`` or
+    a permutation of them.
 
     ``shuffle`` (``train.shuffle_labels``, a control): the session's labels permuted across its frames with a
     seeded permutation, so the label histogram is kept but every image–label link is broken; accuracies measured
