@@ -4,6 +4,7 @@ of one session that the stages fill in."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import resource
 import sys
 import time
@@ -19,6 +20,10 @@ from placejax.data.cache import CacheShard
 from placejax.training import data_mesh, sync_processes
 
 __all__ = ["SessionData", "Workspace", "peak_rss_mib"]
+
+# How long a process that finished its share of a cache waits for the others: after a kill, the rerun of a process
+# may have its whole share left when the others have none (a share of the paper run's conv features is hours).
+CACHE_SYNC_TIMEOUT_S = 24 * 3600
 
 
 @dataclasses.dataclass
@@ -70,7 +75,9 @@ class Workspace:
         call the stage that builds a cache with it (the stages of ``placejax.stages`` are called by all)."""
         if not self.shard_caches or jax.process_count() == 1:
             return None
-        return CacheShard(jax.process_index(), jax.process_count(), sync_processes)
+        return CacheShard(
+            jax.process_index(), jax.process_count(), functools.partial(sync_processes, timeout_s=CACHE_SYNC_TIMEOUT_S)
+        )
 
     def timed(self, stage: str):
         """A context manager adding its block's wall time to ``timings[stage]`` (seconds) and recording the peak
