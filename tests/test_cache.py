@@ -455,14 +455,18 @@ def test_shared_build_resumes_the_share_of_a_killed_process(tmp_path):
 
 def test_shared_build_reuses_a_complete_cache_and_replaces_a_corrupt_one(tmp_path):
     """A complete cache is opened by every process without computing anything, through the same two barriers as a
-    build (so no process waits for another that took another path); a corrupt one is rebuilt by all."""
+    build (so no process waits for another that took another path), and parts left over are removed; a corrupt
+    cache is rebuilt by all."""
     ref = build_array_cache(tmp_path, fn=_producer(), **_SHARED)
     before = _tree_bytes(ref.path)
+    leftover = tmp_path / f"{ref.path.name}.shard1of2.partial"  # a kill after the commit, before the clean-up
+    leftover.mkdir()
+    (leftover / "data.npy").write_bytes(b"old share")
     calls = [[], []]
     caches, errors, names = _shared_build(tmp_path, 2, [_producer(calls=c) for c in calls], **_SHARED)
     assert errors == [None, None] and calls == [[], []] and [c.path for c in caches] == [ref.path] * 2
     assert names[0] == names[1] and len(names[0]) == 2
-    assert _tree_bytes(ref.path) == before
+    assert _tree_bytes(ref.path) == before and not leftover.exists()
     data = ref.path / "data.npy"
     corrupt = bytearray(data.read_bytes())
     corrupt[-1] ^= 0xFF

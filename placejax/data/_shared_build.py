@@ -58,14 +58,18 @@ def build_shared(
     # The cache is only written after this barrier, so every process has decided on the same state whether it
     # exists, and all of them pass the same barriers.
     shard.barrier(f"cache {stem}: shares built")
-    if shard.index == 0 and not done:
-        _assemble(shard.count, root, stem, full_key, chunk, extras)
+    if shard.index == 0:
+        if not done:
+            _assemble(shard.count, root, stem, full_key, chunk, extras)
+        # This count's parts, a killed build's of another count, or those of a kill between commit and clean-up.
+        for part in root.glob(f"{glob.escape(stem)}.shard*of*.partial"):
+            _discard(part)
     shard.barrier(f"cache {stem}: committed")
     return open_array_cache(final, full_key)
 
 
 def _assemble(count: int, root: Path, stem: str, full_key: dict, chunk: int, extras) -> None:
-    """Process 0 of a shared build: the shares copied in row order into one data file, committed, parts removed."""
+    """Process 0 of a shared build: the shares copied in row order into one data file, and the cache committed."""
     final, partial, digest, n = root / stem, root / f"{stem}.partial", cache_digest(full_key), full_key["n"]
     shape, dtype = tuple(full_key["shape"]), np.dtype(full_key["dtype"])
     with _locked(root / f".{stem}.lock"):
@@ -95,8 +99,6 @@ def _assemble(count: int, root: Path, stem: str, full_key: dict, chunk: int, ext
             for f in manifest["sha256"]:  # hashed just now: this process need not read them again to open them
                 st = (final / f).stat()
                 _VERIFIED.add((str(final / f), st.st_size, st.st_mtime_ns))
-    for part in root.glob(f"{glob.escape(stem)}.shard*of*.partial"):  # this count's, and a killed build's of another
-        _discard(part)
 
 
 def _copy_share(part: Path, digest: str, rows: int, shape: tuple, dtype: np.dtype, out, at: int) -> None:

@@ -388,9 +388,9 @@ def build_array_cache(
         progress: show a tqdm bar.
         desc: bar label, default ``name``.
         shard: with ``count > 1``, this process's part in a build by several processes that all make this call
-            (see the module docstring): ``fn`` is called only on this process's rows, and the call returns when
-            every process has returned from it. ``None`` (or ``count == 1``): this process builds the whole cache,
-            and other processes asking for it meanwhile wait for its file lock.
+            (see the module docstring): ``fn`` is called only on this process's rows, and the call returns once
+            every process has built its share and process 0 has committed the cache. ``None`` (or ``count == 1``):
+            this process builds the whole cache, and other processes asking for it meanwhile wait for its lock.
 
     Returns:
         The complete cache with ``data`` memory-mapped read-only.
