@@ -1,7 +1,7 @@
 """The NCLT-scale rehearsal: the ``paper`` preset end to end on fake NCLT trees at the real image size and format.
 
     python -m benchmarks.nclt_rehearsal --frames 60 120 [--sessions 4] [--target 26000] [--root DIR]
-        [--depth midas|dav2] [--quick]
+        [--depth midas|dav2] [--hosts 1 4 16] [--quick]
 
 For each ``--frames`` value (images per session, two of them dropped by the ground-truth timeline of the fake
 tree), this writes a fake NCLT tree (``tests/fake_nclt.py``: 1616 × 1232 sideways TIFFs, the real-size U2D map,
@@ -34,6 +34,12 @@ numbers are NOT a projection of the real run.
 Every size must leave each training run at least one whole batch: a session's kept frames × epochs must reach the
 batch size of the nets and of the MLP (``check_batch_sizes``); sizes too small for the preset's batches stop with
 a message before anything is written.
+
+Then the same run on several hosts like this one (``--hosts 1 4 16``; :func:`project_hosts`): the per-frame stages
+(sessions, depth, HHA, conv features, net outputs) divided between the hosts by whole chunks, as the processes of a
+multi-host job build their shares of every cache; the training stages, baselines and evaluation not divided;
+process 0's assembly of every cache (a copy and a SHA-256 of its bytes, at this machine's measured disk rates) and
+a stated start-up per host added. A row for one GPU says it was not run here (no GPU).
 
 Prints tables and writes ``benchmarks/results/nclt_rehearsal.json`` (``nclt_rehearsal_dav2.json`` with
 ``--depth dav2``, ``nclt_rehearsal_quick.json`` / ``nclt_rehearsal_dav2_quick.json`` with ``--quick``).
@@ -186,6 +192,115 @@ def project(sizes: list[dict], target: int, quadratic: dict[str, float] | None =
                 "projected": large[key] + slope * (target - n1) if slope > 0 else max(small[key], large[key]),
             }
     return {"target_frames": target, "stages": stages, "total_s": total, "total_h": total / 3600, "memory": memory}
+
+
+# Stages whose caches every process of a job builds its share of (placejax.stages.Workspace.cache_shard), with the
+# frames each of their caches computes per chunk (a share is whole chunks): cache_session's default chunk (64, as
+# open_sessions builds it), depth.batch_size, eval.batch_size, and net_outputs' max(4 · eval.batch_size, 256).
+SHARDED_STAGES = {
+    "sessions": lambda cfg: 64,
+    "depth": lambda cfg: cfg["depth"]["batch_size"],
+    "hha": lambda cfg: cfg["depth"]["batch_size"],
+    "features": lambda cfg: cfg["eval"]["batch_size"],
+    "outputs": lambda cfg: max(4 * cfg["eval"]["batch_size"], 256),
+}
+HOSTS = (1, 4, 16)
+# Stated, not measured: what a host of a multi-host job pays beside its shares (starting Python and JAX, connecting
+# to the coordinator, the barriers of every cache; loading the weights is in the stages' fixed costs). The hosts pay
+# it at the same time, so it adds once to the wall time.
+HOST_OVERHEAD_S = 60.0
+GPU_ROW = {"hosts": "1 GPU", "status": "not run here (no GPU)"}
+
+
+def busiest_share(frames: int, chunk: int, hosts: int) -> int:
+    """Frames of one cache that the busiest of ``hosts`` processes computes: its share is whole chunks
+    (``placejax.data.shard_rows``), so ``chunk · ceil(ceil(frames / chunk) / hosts)``, at most ``frames``."""
+    chunks = -(-frames // chunk)
+    return min(frames, chunk * -(-chunks // hosts))
+
+
+def project_hosts(
+    projection: dict,
+    cfg: dict,
+    hosts: tuple[int, ...] = HOSTS,
+    *,
+    cache_mb: float,
+    copy_mb_s: float,
+    hash_mb_s: float,
+    overhead_s: float = HOST_OVERHEAD_S,
+) -> dict:
+    """The projected run's wall time on ``hosts`` hosts like the measured one, each a JAX process.
+
+    The per-frame stages (:data:`SHARDED_STAGES`) divide their frames: each stage takes ``fixed + per_frame ·
+    busiest_share(target, chunk, hosts)`` (every host pays the fixed part, compilation and weight loading, at the
+    same time). The other stages (training the nets and the MLP, the baselines, the evaluation) are not divided:
+    their projected time is kept. With more than one host, add ``overhead_s`` and process 0's assembly: a copy of
+    every cache's bytes (``cache_mb``, the projected cache folder) into its data file and their SHA-256, at the
+    measured ``copy_mb_s`` and ``hash_mb_s`` (an upper bound: a one-process build hashes its caches too, inside
+    the per-frame costs).
+
+    Args:
+        projection: :func:`project`'s result (its ``stages`` and ``target_frames``).
+        cfg: the run's config (chunk sizes).
+        hosts: host counts.
+        cache_mb: MB of caches of the projected run.
+        copy_mb_s, hash_mb_s: measured file copy and SHA-256 throughput, MB/s.
+        overhead_s: per-host start-up, paid once.
+
+    Returns:
+        ``{"rows": [{"hosts", "sharded_s", "other_s", "assembly_s", "overhead_s", "total_s", "total_h",
+        "speedup"}, ...], ...}`` with the inputs; ``speedup`` is over one host.
+    """
+    target = projection["target_frames"]
+    stages = projection["stages"]
+
+    def row(h: int) -> dict:
+        sharded = sum(
+            p["fixed"] + p["per_frame"] * busiest_share(target, SHARDED_STAGES[name](cfg), h)
+            for name, p in stages.items()
+            if name in SHARDED_STAGES
+        )
+        other = sum(p["projected"] for name, p in stages.items() if name not in SHARDED_STAGES)
+        assembly = cache_mb / copy_mb_s + cache_mb / hash_mb_s if h > 1 else 0.0
+        extra = overhead_s if h > 1 else 0.0
+        total = sharded + other + assembly + extra
+        return {"hosts": h, "sharded_s": sharded, "other_s": other, "assembly_s": assembly, "overhead_s": extra,
+                "total_s": total, "total_h": total / 3600}  # fmt: skip
+
+    one = row(1)["total_s"]
+    rows = [{**row(h), "speedup": one / row(h)["total_s"]} for h in hosts]
+    return {
+        "target_frames": target,
+        "sharded_stages": {k: SHARDED_STAGES[k](cfg) for k in SHARDED_STAGES},
+        "cache_mb": cache_mb,
+        "copy_mb_s": copy_mb_s,
+        "hash_mb_s": hash_mb_s,
+        "host_overhead_s": overhead_s,
+        "rows": rows,
+        "gpu": GPU_ROW,
+    }
+
+
+def disk_rates(folder: Path, mb: int) -> tuple[float, float]:
+    """This machine's file copy and SHA-256 throughput (MB/s) on an ``mb``-MB file in ``folder``: the two things
+    process 0 of a multi-host job does to every cache beyond a one-process build."""
+    from placejax import io
+
+    src, dst = folder / "rate_src.bin", folder / "rate_dst.bin"
+    src.write_bytes(np.random.default_rng(0).integers(0, 256, mb * 2**20, dtype=np.uint8).tobytes())
+    t0 = time.perf_counter()
+    with open(src, "rb") as fi, open(dst, "wb") as fo:
+        while block := fi.read(1 << 24):
+            fo.write(block)
+        fo.flush()
+        os.fsync(fo.fileno())
+    copy_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    io.file_sha256(dst)
+    hash_s = time.perf_counter() - t0
+    src.unlink()
+    dst.unlink()
+    return mb / copy_s, mb / hash_s
 
 
 # ---------------------------------------------------------------------------------------------------- the child
@@ -367,6 +482,9 @@ def main() -> None:
         help="a smoke run of this script (tiny trees, images and networks; defaults --frames 6 8 --sessions 2 "
         "--nn-frames 64): its numbers are not a projection of the real run",
     )
+    parser.add_argument(
+        "--hosts", type=int, nargs="+", default=list(HOSTS), help="host counts of the multi-host projection (1 4 16)"
+    )
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child is not None:
@@ -404,6 +522,7 @@ def main() -> None:
         for n in sorted(args.frames):
             sizes.append(_measure(n, args, weights, base))
             write_json(f"{name}_partial", {"sizes": sizes})  # nothing measured is lost to a later error
+        copy_mb_s, hash_mb_s = disk_rates(base, 16 if args.quick else 256)
 
     cfg = sizes[-1]["config"]
     n_sessions = len(cfg["data"]["sessions"])
@@ -495,6 +614,32 @@ def main() -> None:
             f"{k}: {m['small']:.0f} → {m['large']:.0f} MB ({m['mb_per_1000_frames']:+.0f} MB per 1000 frames/session)"
             f", projected {m['projected']:.0f} MB"
         )
+    small, large = sizes[0], sizes[-1]
+    cache_mb = small["cache_mb"] + (large["cache_mb"] - small["cache_mb"]) * (args.target - small["frames"]) / (
+        large["frames"] - small["frames"]
+    )
+    hosts = project_hosts(
+        projection, cfg, tuple(args.hosts), cache_mb=cache_mb, copy_mb_s=copy_mb_s, hash_mb_s=hash_mb_s
+    )
+    print(
+        f"\non several hosts like this one ({', '.join(SHARDED_STAGES)} divided by whole chunks; the rest not; "
+        f"{cache_mb / 1024:.1f} GB of caches copied at {copy_mb_s:.0f} MB/s and hashed at {hash_mb_s:.0f} MB/s by "
+        f"process 0; {HOST_OVERHEAD_S:.0f} s start-up per host, stated)"
+    )
+    print_table(
+        [*hosts["rows"], GPU_ROW],
+        [
+            ("hosts", "hosts"),
+            ("sharded_s", "per-frame stages s"),
+            ("other_s", "other stages s"),
+            ("assembly_s", "assembly s"),
+            ("overhead_s", "start-up s"),
+            ("total_s", "total s"),
+            ("total_h", "total h"),
+            ("speedup", "speed-up"),
+            ("status", "status"),
+        ],
+    )
     path = write_json(
         name,
         {
@@ -507,6 +652,7 @@ def main() -> None:
             "nn_pair_s": nn_s,
             "nn_frames": args.nn_frames,
             "projection": projection,
+            "hosts": hosts,
         },
     )
     if args.quick:

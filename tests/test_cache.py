@@ -1,5 +1,6 @@
 """On-disk caches: contents, reuse, keys, killed-and-resumed builds equal uninterrupted ones, never stale."""
 
+import itertools
 import json
 import os
 import shutil
@@ -7,6 +8,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -18,10 +20,12 @@ from placejax.data import ArraySession, Session, nclt
 from placejax.data.cache import (
     CachedSession,
     CacheError,
+    CacheShard,
     build_array_cache,
     cache_session,
     open_array_cache,
     open_session_cache,
+    shard_rows,
 )
 from placejax.data.camera import resize_image, resize_intrinsics
 
@@ -348,3 +352,135 @@ def test_release_mapped_pages_keeps_the_data_and_drops_the_resident_pages(tmp_pa
     if before is not None and read is not None and released is not None:
         assert read - before > 24 * 1024  # the whole array became resident...
         assert read - released > 24 * 1024  # ...and left the resident set
+
+
+# ------------------------------------------------------------------ a cache built by several processes together
+
+
+def test_shard_rows_deal_out_whole_chunks_in_order():
+    for n, chunk, count in [(17, 3, 2), (17, 3, 3), (4, 3, 3), (1, 64, 4), (64, 64, 2), (1000, 7, 16), (5, 1, 5)]:
+        shares = [shard_rows(n, chunk, i, count) for i in range(count)]
+        assert shares[0][0] == 0 and shares[-1][1] == n
+        assert all(a[1] == b[0] for a, b in itertools.pairwise(shares))  # contiguous, in process order
+        assert all(lo % chunk == 0 and lo <= hi for lo, hi in shares)  # chunk-aligned, possibly empty
+        sizes = [-(-(hi - lo) // chunk) for lo, hi in shares]
+        assert max(sizes) - min(sizes) <= 1, (n, chunk, count, shares)
+    with pytest.raises(ValueError, match="0 <= index < count"):
+        CacheShard(2, 2, lambda name: None)
+
+
+def _shared_build(root, count, producers, *, barrier_timeout=30.0, **args):
+    """``build_array_cache`` by ``count`` threads standing in for processes (each with its own ``CacheShard`` and
+    producer), meeting at a ``threading.Barrier``; a thread that fails breaks the barrier, as the launcher stops a
+    job whose process died. Returns ``(caches, errors, barrier names of each thread)``."""
+    barrier = threading.Barrier(count, timeout=barrier_timeout)
+    names = [[] for _ in range(count)]
+    caches, errors = [None] * count, [None] * count
+
+    def run(i):
+        def meet(name):
+            names[i].append(name)
+            barrier.wait()
+
+        try:
+            caches[i] = build_array_cache(root, fn=producers[i], shard=CacheShard(i, count, meet), **args)
+        except BaseException as e:  # reported to the test
+            errors[i] = e
+            barrier.abort()
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(count)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    return caches, errors, names
+
+
+_SHARED = dict(name="feat", n=17, shape=(4, 5), dtype=np.float32, key={"what": "test"}, chunk=3, progress=False)
+
+
+@pytest.mark.parametrize("count", [2, 3, 7])
+def test_shared_build_equals_one_process_build(tmp_path, count):
+    """Each process computes only the chunks of its share (the same chunks a one-process build computes); the
+    cache folder holds the same bytes (data, extras, manifest); every process opens it; nothing else is left."""
+    one_calls = []
+    ref = build_array_cache(tmp_path / "one", fn=_producer(calls=one_calls), extras={"t": np.arange(17)}, **_SHARED)
+    calls = [[] for _ in range(count)]
+    root = tmp_path / "shared"
+    caches, errors, names = _shared_build(
+        root, count, [_producer(calls=c) for c in calls], extras={"t": np.arange(17)}, **_SHARED
+    )
+    assert errors == [None] * count
+    for i, c in enumerate(calls):
+        lo, hi = shard_rows(17, 3, i, count)
+        assert c == [(a, min(a + 3, hi)) for a in range(lo, hi, 3)]
+    assert sorted(c for share in calls for c in share) == one_calls  # 7 processes, 6 chunks: one share is empty
+    assert {c.path for c in caches} == {root / ref.path.name}
+    assert _tree_bytes(root / ref.path.name) == _tree_bytes(ref.path)
+    for c in caches:
+        np.testing.assert_array_equal(c.data, ref.data)
+    assert all(n == names[0] for n in names) and len(names[0]) == 2
+    assert sorted(p.name for p in root.iterdir() if not p.name.startswith(".")) == [ref.path.name]
+
+
+def test_shared_build_resumes_the_share_of_a_killed_process(tmp_path):
+    """Process 1 dies after one committed chunk of its share while process 0 finishes its own; the rerun computes
+    only what is missing of process 1's share (process 0 nothing) and gives the one-process build's bytes. A rerun
+    with another process count after a kill starts its shares afresh and removes the old parts."""
+    ref = build_array_cache(tmp_path / "one", fn=_producer(), **_SHARED)
+    root = tmp_path / "shared"
+    lo1, hi1 = shard_rows(17, 3, 1, 2)  # (9, 17)
+    killed = _producer(fail_after_chunks=lo1 // 3 + 1)  # raises at frame lo1 + 3
+    _, errors, _ = _shared_build(root, 2, [_producer(), killed], **_SHARED)
+    assert isinstance(errors[1], Boom) and isinstance(errors[0], threading.BrokenBarrierError)
+    parts = {p.name.split(".")[-2]: p for p in root.iterdir() if p.name.endswith(".partial")}
+    assert set(parts) == {"shard0of2", "shard1of2"} and not _complete_dirs(root)
+    assert json.loads((parts["shard0of2"] / "progress.json").read_text())["rows_done"] == lo1
+    assert json.loads((parts["shard1of2"] / "progress.json").read_text())["rows_done"] == 3
+
+    calls = [[], []]
+    caches, errors, _ = _shared_build(root, 2, [_producer(calls=c) for c in calls], **_SHARED)
+    assert errors == [None, None]
+    assert calls == [[], [(lo1 + 3, lo1 + 6), (lo1 + 6, hi1)]]
+    assert _tree_bytes(caches[0].path) == _tree_bytes(ref.path)
+    assert not any(p.name.endswith(".partial") for p in root.iterdir())
+
+    other = tmp_path / "recount"
+    _, errors, _ = _shared_build(other, 2, [_producer(), killed], **_SHARED)
+    assert errors[1] is not None
+    caches, errors, _ = _shared_build(other, 3, [_producer()] * 3, **_SHARED)
+    assert errors == [None] * 3 and _tree_bytes(caches[0].path) == _tree_bytes(ref.path)
+    assert not any(p.name.endswith(".partial") for p in other.iterdir())
+
+
+def test_shared_build_reuses_a_complete_cache_and_replaces_a_corrupt_one(tmp_path):
+    """A complete cache is opened by every process without computing anything, through the same two barriers as a
+    build (so no process waits for another that took another path), and parts left over are removed; a corrupt
+    cache is rebuilt by all."""
+    ref = build_array_cache(tmp_path, fn=_producer(), **_SHARED)
+    before = _tree_bytes(ref.path)
+    leftover = tmp_path / f"{ref.path.name}.shard1of2.partial"  # a kill after the commit, before the clean-up
+    leftover.mkdir()
+    (leftover / "data.npy").write_bytes(b"old share")
+    calls = [[], []]
+    caches, errors, names = _shared_build(tmp_path, 2, [_producer(calls=c) for c in calls], **_SHARED)
+    assert errors == [None, None] and calls == [[], []] and [c.path for c in caches] == [ref.path] * 2
+    assert names[0] == names[1] and len(names[0]) == 2
+    assert _tree_bytes(ref.path) == before and not leftover.exists()
+    data = ref.path / "data.npy"
+    corrupt = bytearray(data.read_bytes())
+    corrupt[-1] ^= 0xFF
+    data.write_bytes(bytes(corrupt))
+    _, errors, _ = _shared_build(tmp_path, 2, [_producer(calls=c) for c in calls], **_SHARED)
+    assert errors == [None, None] and all(calls)
+    assert _tree_bytes(ref.path) == before
+
+
+def test_shared_build_refuses_an_unfinished_share(tmp_path):
+    """Process 0 never commits a cache whose parts are not all finished (a process that skipped its share): a
+    clear CacheError naming the part, and no cache."""
+    root = tmp_path / "shared"
+    with pytest.raises(CacheError, match=r"shard1of2\.partial: missing or unreadable share"):
+        # Process 0 alone, told there are two processes (its barrier lets it through): process 1's part is missing.
+        build_array_cache(root, fn=_producer(), shard=CacheShard(0, 2, lambda name: None), **_SHARED)
+    assert not _complete_dirs(root)

@@ -23,11 +23,13 @@ from placejax.data.cache import (
     ArrayCache,
     CachedSession,
     CacheError,
+    CacheShard,
     build_array_cache,
     cache_session,
     open_array_cache,
     open_session_cache,
     release_mapped_pages,
+    shard_rows,
 )
 from placejax.data.grid import PlaceGrid
 from placejax.data.jitter import ViewJitter, jittered_copies, jittered_view
@@ -58,6 +60,7 @@ __all__ = [
     "ArraySession",
     "Augment",
     "CacheError",
+    "CacheShard",
     "CachedSession",
     "DataConfig",
     "FrameSource",
@@ -82,6 +85,7 @@ __all__ = [
     "poses",
     "release_mapped_pages",
     "session_identity",
+    "shard_rows",
     "simcampus",
     "train_dataset",
     "truncated",

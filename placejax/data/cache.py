@@ -15,6 +15,7 @@ Layout under ``root``::
         data.npy                the (N, ...) array, read back with np.load(mmap_mode="r")
         <extra>.npy             small per-session arrays (utimes, poses, intrinsics)
     <name>-<digest>.partial/    build in progress: data.npy + progress.json (rows done), resumed on rerun
+    <name>-<digest>.shard<i>of<n>.partial/   process i's share of a build by n processes (same two files)
     .<name>-<digest>.lock       serialises concurrent builders of the same cache
 
 ``digest`` hashes the key (the settings and the identity of the source), so a cache built with other settings or
@@ -24,6 +25,13 @@ hand), or whose manifest or extras are missing or corrupt, is discarded and rebu
 A kill at any point leaves either the complete folder or a ``.partial`` one; the rerun continues from the last
 chunk whose progress marker was written (after the chunk's data was flushed) and produces the same bytes as an
 uninterrupted build.
+
+Several processes of a job (one or several hosts, a work directory they share) build a cache together when the
+caller passes a :class:`CacheShard` (``placejax.stages.Workspace.cache_shard``): process ``i`` of ``n`` computes
+a contiguous, chunk-aligned share of the rows (:func:`shard_rows`) into its own resumable part, the processes meet
+at a barrier, process 0 copies the parts in row order into the data file, hashes it and commits the cache as a
+one-process build does, and after a second barrier every process opens it. ``fn`` is called on the same chunks
+as in a one-process build, so the cache holds the same bytes (data, extras and manifest) whatever ``n``.
 """
 
 from __future__ import annotations
@@ -53,6 +61,7 @@ from placejax.data.session import Session, session_identity
 __all__ = [
     "ArrayCache",
     "CacheError",
+    "CacheShard",
     "CachedSession",
     "build_array_cache",
     "cache_digest",
@@ -61,6 +70,7 @@ __all__ = [
     "open_session_cache",
     "release_mapped_pages",
     "session_identity",
+    "shard_rows",
 ]
 
 FORMAT_VERSION = 2  # 2: SHA-256 of every file in the manifest
@@ -260,6 +270,87 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+@dataclasses.dataclass(frozen=True)
+class CacheShard:
+    """This process's part in building caches together with the other processes of a job.
+
+    Every process calls :func:`build_array_cache` (or :func:`cache_session`) for the same caches, in the same
+    order, with the same arguments but its own ``CacheShard``; ``placejax.stages.Workspace.cache_shard`` is the
+    JAX job's. The processes must see the cache root on one file system (a folder shared by the hosts).
+
+    Attributes:
+        index: this process, ``0 <= index < count``.
+        count: the processes building together.
+        barrier: ``barrier(name)`` returns once every process has called it; every process makes the same calls
+            in the same order (``placejax.training.sync_processes``).
+    """
+
+    index: int
+    count: int
+    barrier: Callable[[str], None]
+
+    def __post_init__(self):
+        if not (isinstance(self.count, int) and isinstance(self.index, int) and 0 <= self.index < self.count):
+            raise ValueError(
+                f"CacheShard: need integers 0 <= index < count, got index={self.index}, count={self.count}"
+            )
+
+
+def shard_rows(n: int, chunk: int, index: int, count: int) -> tuple[int, int]:
+    """Rows ``[lo, hi)`` that process ``index`` of ``count`` builds of an ``n``-row cache written ``chunk`` rows at a
+    time: the ``ceil(n / chunk)`` chunks dealt out contiguously, shares differing by at most one chunk, every share
+    starting on a chunk boundary (so ``fn`` sees the chunks of a one-process build). A share may be empty.
+
+    >>> [shard_rows(10, 3, i, 2) for i in range(2)]
+    [(0, 6), (6, 10)]
+    """
+    chunks = -(-n // chunk)
+    return min(chunks * index // count * chunk, n), min(chunks * (index + 1) // count * chunk, n)
+
+
+def _fill(mm, partial: Path, digest: str, lo: int, rows_done: int, fn, *, chunk: int, name: str, bar) -> None:
+    """Computes rows ``rows_done..`` of ``mm`` (frames ``lo + row``) chunk by chunk, committing each chunk."""
+    shape, dtype = mm.shape[1:], mm.dtype
+    for start in range(rows_done, len(mm), chunk):
+        stop = min(start + chunk, len(mm))
+        a, b = lo + start, lo + stop
+        block = np.asarray(fn(a, b))
+        if block.shape != (b - a, *shape):
+            raise CacheError(
+                f"cache {name!r}: producer returned shape {block.shape} for frames {a}..{b - 1}, "
+                f"expected {(b - a, *shape)}"
+            )
+        if block.dtype != dtype:
+            if not np.can_cast(block.dtype, dtype, casting="same_kind"):
+                raise CacheError(f"cache {name!r}: producer returned {block.dtype}, expected {dtype}")
+            block = block.astype(dtype)
+        mm[start:stop] = block
+        # Data reaches the file before the marker that claims it, so a marker never overstates progress.
+        mm.flush()
+        io.write_json(partial / _PROGRESS, {"digest": digest, "rows_done": stop})
+        bar.update(stop - start)
+
+
+def _commit(root: Path, partial: Path, final: Path, full_key: dict, extras: Mapping | None) -> dict:
+    """Writes the extras, the checksums and the manifest into ``partial`` (whose data file is complete) and renames
+    it to ``final``; returns the manifest."""
+    extras = {k: np.asarray(v) for k, v in (extras or {}).items()}
+    for k, v in extras.items():
+        np.save(partial / f"{k}.npy", v)
+    # The manifest is written last inside the folder and the folder appears under its final name by an
+    # atomic rename, so a complete-looking cache is always a complete one.
+    n, shape = full_key["n"], tuple(full_key["shape"])
+    manifest = _manifest(full_key, n, shape, np.dtype(full_key["dtype"]), extras)
+    files = [partial / _DATA, *(partial / f"{k}.npy" for k in extras)]
+    manifest["sha256"] = {f.name: io.file_sha256(f) for f in files}
+    io.write_json(partial / _MANIFEST, manifest)
+    (partial / _PROGRESS).unlink(missing_ok=True)
+    _fsync_dir(partial)
+    os.replace(partial, final)
+    _fsync_dir(root)
+    return manifest
+
+
 def build_array_cache(
     root: str | os.PathLike,
     name: str,
@@ -273,6 +364,7 @@ def build_array_cache(
     chunk: int = 64,
     progress: bool = True,
     desc: str | None = None,
+    shard: CacheShard | None = None,
 ) -> ArrayCache:
     """Builds (or reuses) the cache of ``n`` per-frame arrays ``fn(start, stop)`` under ``root``.
 
@@ -295,6 +387,10 @@ def build_array_cache(
         chunk: frames per write; progress is committed after each chunk.
         progress: show a tqdm bar.
         desc: bar label, default ``name``.
+        shard: with ``count > 1``, this process's part in a build by several processes that all make this call
+            (see the module docstring): ``fn`` is called only on this process's rows, and the call returns once
+            every process has built its share and process 0 has committed the cache. ``None`` (or ``count == 1``):
+            this process builds the whole cache, and other processes asking for it meanwhile wait for its lock.
 
     Returns:
         The complete cache with ``data`` memory-mapped read-only.
@@ -311,6 +407,12 @@ def build_array_cache(
     root = Path(root)
     stem = f"{_safe_name(name)}-{digest}"
     final, partial = root / stem, root / f"{stem}.partial"
+    if shard is not None and shard.count > 1:
+        from placejax.data._shared_build import build_shared  # it builds on this module's helpers
+
+        return build_shared(
+            shard, root, stem, full_key, fn, chunk=chunk, extras=extras, desc=desc or name, progress=progress
+        )
 
     with contextlib.suppress(CacheError):
         return open_array_cache(final, full_key)
@@ -321,41 +423,12 @@ def build_array_cache(
             except CacheError:
                 _discard(final)  # never trust a folder without a matching complete manifest
         mm, rows_done = _open_partial(partial, digest, n, shape, dtype)
-        starts = range(rows_done, n, chunk)
         bar = tqdm(total=n, initial=rows_done, desc=desc or name, unit="frame", disable=not progress)
         with bar:
-            for start in starts:
-                stop = min(start + chunk, n)
-                block = np.asarray(fn(start, stop))
-                if block.shape != (stop - start, *shape):
-                    raise CacheError(
-                        f"cache {name!r}: producer returned shape {block.shape} for frames {start}..{stop - 1}, "
-                        f"expected {(stop - start, *shape)}"
-                    )
-                if block.dtype != dtype:
-                    if not np.can_cast(block.dtype, dtype, casting="same_kind"):
-                        raise CacheError(f"cache {name!r}: producer returned {block.dtype}, expected {dtype}")
-                    block = block.astype(dtype)
-                mm[start:stop] = block
-                # Data reaches the file before the marker that claims it, so a marker never overstates progress.
-                mm.flush()
-                io.write_json(partial / _PROGRESS, {"digest": digest, "rows_done": stop})
-                bar.update(stop - start)
+            _fill(mm, partial, digest, 0, rows_done, fn, chunk=chunk, name=name, bar=bar)
         mm.flush()
         del mm
-        extras = {k: np.asarray(v) for k, v in (extras or {}).items()}
-        for k, v in extras.items():
-            np.save(partial / f"{k}.npy", v)
-        # The manifest is written last inside the folder and the folder appears under its final name by an
-        # atomic rename, so a complete-looking cache is always a complete one.
-        manifest = _manifest(full_key, n, shape, dtype, extras)
-        files = [partial / _DATA, *(partial / f"{k}.npy" for k in extras)]
-        manifest["sha256"] = {f.name: io.file_sha256(f) for f in files}
-        io.write_json(partial / _MANIFEST, manifest)
-        (partial / _PROGRESS).unlink()
-        _fsync_dir(partial)
-        os.replace(partial, final)
-        _fsync_dir(root)
+        _commit(root, partial, final, full_key, extras)
     return open_array_cache(final, full_key)
 
 
@@ -400,6 +473,7 @@ def cache_session(
     chunk: int = 64,
     workers: int | None = None,
     progress: bool = True,
+    shard: CacheShard | None = None,
 ) -> CachedSession:
     """Caches a session's upright RGB images at ``image_size`` (default: as the session returns them).
 
@@ -415,6 +489,8 @@ def cache_session(
         workers: threads decoding frames in parallel (OpenCV releases the GIL); default ``os.cpu_count()``
             up to 8. Frame order and the result do not depend on it.
         progress: show a tqdm bar.
+        shard: this process's part in a build shared by several processes (:func:`build_array_cache`): it
+            decodes only its share of the frames.
 
     Returns:
         The cached session (memory-mapped images).
@@ -462,6 +538,7 @@ def cache_session(
             chunk=chunk,
             progress=progress,
             desc=f"cache {session.name} {hw[0]}×{hw[1]}",
+            shard=shard,
         )
     finally:
         if pool is not None:

@@ -66,6 +66,7 @@ def depth_and_hha(ws: Workspace, sessions: list[SessionData], source: DepthSourc
                     chunk=batch_size,
                     progress=ws.progress,
                     desc=f"depth {s.name}",
+                    shard=ws.cache_shard,
                 )
             )
     with ws.timed("hha"):
@@ -87,6 +88,7 @@ def depth_and_hha(ws: Workspace, sessions: list[SessionData], source: DepthSourc
                     chunk=batch_size,
                     progress=ws.progress,
                     desc=f"HHA {s.name}",
+                    shard=ws.cache_shard,
                 )
             )
     return list(zip(depths, hhas, strict=True))

@@ -201,6 +201,7 @@ def conv_features(
             chunk=eval_cfg.batch_size,
             progress=ws.progress,
             desc=f"conv features {s.name} {modality}" + (" jittered" if jitter is not None else ""),
+            shard=ws.cache_shard,
         )
     return out
 
@@ -405,7 +406,7 @@ def net_outputs(
     frames = net.inputs(s)
 
     def compute(a: int, b: int) -> np.ndarray:
-        # This process alone (whichever holds the cache's lock): every frame, on its own devices.
+        # This process alone, on its own devices: its share of the frames (every frame when it builds alone).
         out = _run_head(ws, net, np.asarray(frames[a:b]), eval_cfg)
         return np.concatenate([out["logits"], out["fc7"]], axis=1)
 
@@ -425,6 +426,7 @@ def net_outputs(
         chunk=max(eval_cfg.batch_size * 4, 256),
         progress=ws.progress,
         desc=f"{net.name} on {s.name}",
+        shard=ws.cache_shard,
     )
     data = np.asarray(cache.data)
     return {"logits": data[:, :num_classes], "fc7": data[:, num_classes:]}

@@ -31,7 +31,9 @@ def open_sessions(ws: Workspace, data: DataConfig) -> list[SessionData]:
     out = []
     for name in data.sessions:
         src = open_session(data, name, progress=ws.progress)
-        cached = cache_session(src, ws.cache_root, image_size=tuple(data.image_size), progress=ws.progress)
+        cached = cache_session(
+            src, ws.cache_root, image_size=tuple(data.image_size), progress=ws.progress, shard=ws.cache_shard
+        )
         out.append(SessionData(name=name, cached=cached, source=src))
     return out
 

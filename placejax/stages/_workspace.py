@@ -4,6 +4,7 @@ of one session that the stages fill in."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import resource
 import sys
 import time
@@ -15,9 +16,14 @@ import jax
 import numpy as np
 
 from placejax.classify.run_layout import CACHE_DIR
-from placejax.training import data_mesh
+from placejax.data.cache import CacheShard
+from placejax.training import data_mesh, sync_processes
 
 __all__ = ["SessionData", "Workspace", "peak_rss_mib"]
+
+# How long a process that finished its share of a cache waits for the others: after a kill, the rerun of a process
+# may have its whole share left when the others have none (a share of the paper run's conv features is hours).
+CACHE_SYNC_TIMEOUT_S = 24 * 3600
 
 
 @dataclasses.dataclass
@@ -25,9 +31,9 @@ class Workspace:
     """What every stage needs besides its own settings.
 
     ``mesh`` spans every device of every process: training runs on it (all processes take part in each step).
-    ``local_mesh`` spans this process's devices: cached inference stages run on it, so that one process can build
-    a cache while the others wait for its file lock (a collective there would deadlock). With one process the
-    two are the same mesh.
+    ``local_mesh`` spans this process's devices: cached inference stages run on it, each process on its own share
+    of a cache's frames (:attr:`cache_shard`), with no collective between them. With one process the two are the
+    same mesh.
 
     Attributes:
         workdir: the run's folder (checkpoints under ``nets/`` and ``mlp/``, caches under ``cache/``).
@@ -38,6 +44,8 @@ class Workspace:
         peak_rss_mib: stage → the process's peak resident memory so far when that stage last ended (MiB).
         on_stage: called with ``(stage, True)`` when a timed block starts and ``(stage, False)`` when it ends
             (e.g. to sample memory per stage).
+        shard_caches: with several processes, build every per-frame cache together (:attr:`cache_shard`);
+            ``False``: the first process to take a cache's lock builds all of it while the others wait.
     """
 
     workdir: Path
@@ -47,6 +55,7 @@ class Workspace:
     timings: dict[str, float] = dataclasses.field(default_factory=dict)
     peak_rss_mib: dict[str, float] = dataclasses.field(default_factory=dict)
     on_stage: Callable[[str, bool], None] | None = None
+    shard_caches: bool = True
 
     def __post_init__(self):
         self.workdir = Path(self.workdir)
@@ -57,6 +66,18 @@ class Workspace:
     def cache_root(self) -> Path:
         """The run's array caches (``placejax.classify.run_layout``)."""
         return self.workdir / CACHE_DIR
+
+    @property
+    def cache_shard(self) -> CacheShard | None:
+        """This process's share in building the per-frame caches (``placejax.data.build_array_cache``'s
+        ``shard``): process ``jax.process_index()`` of ``jax.process_count()``, meeting the others at
+        ``sync_processes``. ``None`` with one process or ``shard_caches=False``. Every process of the job must
+        call the stage that builds a cache with it (the stages of ``placejax.stages`` are called by all)."""
+        if not self.shard_caches or jax.process_count() == 1:
+            return None
+        return CacheShard(
+            jax.process_index(), jax.process_count(), functools.partial(sync_processes, timeout_s=CACHE_SYNC_TIMEOUT_S)
+        )
 
     def timed(self, stage: str):
         """A context manager adding its block's wall time to ``timings[stage]`` (seconds) and recording the peak
