@@ -40,19 +40,7 @@ UNKNOWN_KEYS = (
 
 def filter_config(config: ml_collections.ConfigDict, *, bounded: bool = False) -> route.FilterConfig:
     """The ``route`` section as a `placejax.route.FilterConfig`."""
-    r = config.route
-    return route.FilterConfig(
-        odometry_noise_frac=float(r.odometry_noise_frac),
-        odometry_noise_m=float(r.odometry_noise_m),
-        bounded=bounded,
-        uniform_mix=float(r.uniform_mix),
-        unknown=True,
-        unknown_prior=float(r.unknown_prior),
-        unknown_enter_per_m=float(r.unknown_enter_per_m),
-        unknown_leave_per_m=float(r.unknown_leave_per_m),
-        unknown_level=float(r.unknown_level),
-        emission_floor=float(r.emission_floor),
-    )
+    return route.FilterConfig(**{k: v for k, v in config.route.items() if k != "block_frames"}, bounded=bounded)
 
 
 def session_moved(config: ml_collections.ConfigDict, t: SessionData) -> tuple[np.ndarray, str]:
