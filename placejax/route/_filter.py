@@ -472,12 +472,15 @@ class RouteFilter:
         self._belief = self._prior
         self.rejected = False
 
-    def _moved(self, moved_m) -> jax.Array:
+    def _moved(self, moved_m) -> np.float32:
         if isinstance(moved_m, bool) or not isinstance(moved_m, int | float | np.number | np.ndarray | jax.Array):
             raise ValueError(f"moved_m must be a number (metres), got {type(moved_m).__name__}")
         if np.ndim(moved_m) != 0:
             raise ValueError(f"moved_m must be one number (metres), got shape {np.shape(moved_m)}")
-        return jnp.float32(check_moved(np.reshape(moved_m, 1))[0])
+        m = float(moved_m)
+        if not (math.isfinite(m) and 0.0 <= m <= MAX_MOVED_M):
+            check_moved([m])  # raises, with the batch functions' message
+        return np.float32(m)
 
     def predict(self, moved_m: float) -> np.ndarray:
         """The motion prediction alone, for a frame without a usable classifier output.
@@ -508,15 +511,16 @@ class RouteFilter:
                 negative, not finite or over ``MAX_MOVED_M``.
         """
         k = self.grid.num_classes
-        p = _numeric(probabilities, "probabilities")
+        p = _numeric(probabilities, "probabilities").astype(np.float32)
         if p.shape != (k,):
             raise ValueError(f"probabilities must have shape ({k},) (the grid's cells), got {p.shape}")
         moved = self._moved(moved_m)
-        if not np.isfinite(p.astype(np.float32)).all():
+        if not np.isfinite(p).all():
             self._belief = _predict_fn(self._st)(self._p, self._belief, moved)
             self.rejected = True
             return np.asarray(self._belief)
-        probs = check_probabilities(p[None], k)
-        self._belief = _run_frames(self._st, self._p, self._belief, probs, np.asarray(moved)[None])[0]
+        if p.min() < 0 or p.max() > 1:
+            check_probabilities(p[None], k)  # raises, naming the value
+        self._belief = _run_frames(self._st, self._p, self._belief, p[None], moved[None])[0]
         self.rejected = False
         return np.asarray(self._belief)
