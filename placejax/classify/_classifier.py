@@ -117,7 +117,8 @@ class PlaceClassifier:
         pred.label, pred.confidence, pred.rejected
 
     Attributes:
-        meta: the manifest (JSON-able dict) the classifier was built from and is saved with.
+        meta: the manifest (JSON-able dict) the classifier was built from and is saved with (its ``route`` entry
+            is optional: without one, `route` is the defaults).
         params: the networks' parameters (``depth``, ``rgb``, ``hha``, ``mlp``; ``unknown`` for a feature score).
         grid: the ``PlaceGrid`` whose cells are the classes.
         route: the `placejax.route.FilterConfig` of the run that trained it (its config section ``route``: the
@@ -127,7 +128,7 @@ class PlaceClassifier:
 
     def __init__(self, meta: dict[str, Any], params: dict[str, Any]):
         self.route = _route_settings(meta.get("route"))
-        self.meta = {**meta, "route": self.route.to_dict()}
+        self.meta = meta
         self.params = jax.tree_util.tree_map(jnp.asarray, params)
         self.grid = PlaceGrid.from_dict(meta["grid"], source="classifier grid")
         self._spec = ClassifierSpec.from_meta(meta)
