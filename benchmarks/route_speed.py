@@ -18,7 +18,7 @@ MLP, 100 classes, the ``knn1`` unseen-place score against 1000 reference embeddi
 uint8 image per call, ``--tracker-steps`` steps per timed run. Its ``first call s`` is the median over
 ``--first-repeats`` first steps, each after every compilation cache was cleared (what a robot's first frame
 costs: the classifier's and the filter's compilation). ``PlaceClassifier.logits (1 image)``: the classifier
-alone, for the share of the step it takes.
+alone, for the share of the step it takes, its runs alternated with the Tracker's (both see the same load).
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ def _runs(fn, repeats: int) -> tuple[float, list[float]]:
     return compile_s, times
 
 
-def _row(case: str, cfg_name: str, frames: int, compile_s: float, times: list[float]) -> dict:
+def _row(case: str, cfg_name: str, frames: int, compile_s: float | None, times: list[float]) -> dict:
     per_frame = [t / frames for t in times]
     med = float(np.median(per_frame))
     return {
@@ -146,15 +146,29 @@ def tracker_rows(repeats: int, steps: int, first_repeats: int) -> list[dict]:
         tracker.step(images[0], 0.0)
         first.append(time.perf_counter() - t0)
 
-    def run():
+    def track():
         for image, d in zip(images, moved, strict=True):
             tracker.step(image, float(d))
 
-    _, times = _runs(run, repeats)
-    rows = [_row("Tracker.step (classifier + filter)", "cells + unknown", steps, float(np.median(first)), times)]
+    def classify():
+        for image in images:
+            clf.logits(image[None])
+
+    # Alternated run by run, so that both see the same load (the machine is shared).
+    classify()
+    times = {"track": [], "classify": []}
+    for _ in range(repeats):
+        for name, fn in (("track", track), ("classify", classify)):
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    rows = [
+        _row("Tracker.step (classifier + filter)", "cells + unknown", steps, float(np.median(first)), times["track"])
+    ]
     rows[0]["first_step_s_runs"] = first
-    c, times = _runs(lambda: [clf.logits(im[None]) for im in images], repeats)
-    rows.append(_row("PlaceClassifier.logits (1 image)", "–", steps, c, times))
+    # Paired by run: the Tracker's time over the classifier's in the run next to it.
+    rows[0]["ratio_to_logits"] = float(np.median(np.array(times["track"]) / np.array(times["classify"])))
+    rows.append(_row("PlaceClassifier.logits (1 image)", "–", steps, None, times["classify"]))
     return rows
 
 
@@ -201,6 +215,7 @@ def main() -> None:
             ("frames_per_s", "frames/s"),
             ("spread", "spread"),
             ("compile_s", "first call s"),
+            ("ratio_to_logits", "× logits"),
         ],
     )
     path = write_json(

@@ -193,8 +193,11 @@ def _chunk_fn(st: _Static):
     return jax.jit(run)
 
 
-def _run_frames(st: _Static, p: dict, belief: jax.Array, probs: np.ndarray, moved: np.ndarray):
-    """``(last belief, beliefs (T, S))`` of checked float32 inputs, ``_CHUNK`` frames per call."""
+def _run_frames(st: _Static, p: dict, belief: jax.Array, probs: np.ndarray, moved: np.ndarray, every: bool = True):
+    """``(last belief, beliefs (T, S) or None)`` of checked float32 inputs, ``_CHUNK`` frames per call.
+
+    ``every=False`` skips gathering the per-frame beliefs (a streaming step needs only the last).
+    """
     fn = _chunk_fn(st)
     outs = []
     for lo in range(0, len(probs), _CHUNK):
@@ -202,8 +205,11 @@ def _run_frames(st: _Static, p: dict, belief: jax.Array, probs: np.ndarray, move
         pp = np.zeros((_CHUNK, probs.shape[1]), np.float32)
         mm = np.zeros(_CHUNK, np.float32)
         pp[:n], mm[:n] = probs[lo : lo + n], moved[lo : lo + n]
-        belief, out = fn(p, belief, pp, mm, jnp.int32(n))
-        outs.append(out[:n])
+        belief, out = fn(p, belief, pp, mm, np.int32(n))
+        if every:
+            outs.append(out[:n])
+    if not every:
+        return belief, None
     return belief, outs[0] if len(outs) == 1 else jnp.concatenate(outs)
 
 
@@ -521,6 +527,6 @@ class RouteFilter:
             return np.asarray(self._belief)
         if p.min() < 0 or p.max() > 1:
             check_probabilities(p[None], k)  # raises, naming the value
-        self._belief = _run_frames(self._st, self._p, self._belief, p[None], moved[None])[0]
+        self._belief = _run_frames(self._st, self._p, self._belief, p[None], moved[None], every=False)[0]
         self.rejected = False
         return np.asarray(self._belief)
