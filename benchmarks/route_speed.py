@@ -1,15 +1,24 @@
-"""Per-frame cost of the route filter (placejax.route) on the CPU: batch scan, streaming steps, fixed-lag smoother.
+"""Per-frame cost of the route filter (placejax.route) on the CPU: batch, streaming steps, fixed-lag smoother, and
+a robot's whole step (``Tracker.step``: the classifier, then the filter).
 
-    python -m benchmarks.route_speed [--repeats 5] [--frames 2000] [--n 10]
+    python -m benchmarks.route_speed [--repeats 5] [--frames 2000] [--n 10] [--no-tracker]
 
 Prints a table and writes ``benchmarks/results/route_speed.json`` with every run's time. The grid has ``n × n``
 cells (100 by default: the experiment's grid) plus the unknown state; the inputs are random classifier outputs
 and distances of 0–3 m, which cost the same as real ones (the filter has no data-dependent branches). Per row:
 the median ms per frame over ``--repeats`` timed runs after one untimed compile call (``first call s``), and the
-spread (max − min) / median of the runs. ``batch``: `placejax.route.forward` over the whole session (one jitted
-``lax.scan``), timed to the result on the host; ``streaming``: `RouteFilter.step` frame by frame, each call
-returning the belief to NumPy, as a robot would use it; ``smooth lag L``: `placejax.route.smooth`. Target (issue
-39): < 1 ms per frame for 100 cells.
+spread (max − min) / median of the runs. ``batch``: `placejax.route.forward` over the whole session (a jitted
+loop, 64 frames per call), timed to the result on the host; ``streaming``: `RouteFilter.step` frame by frame,
+each call returning the belief to NumPy, as a robot would use it; ``smooth lag L``: `placejax.route.smooth`.
+Target (issue 39): < 1 ms per frame for 100 cells.
+
+``Tracker.step``: a ``PlaceClassifier`` of the built-in size with random weights (the default preset's: 96×96
+images, the default depth network over its ten views, VGG16 at 1/8 width with float16 trunk features, the fusion
+MLP, 100 classes, the ``knn1`` unseen-place score against 1000 reference embeddings) followed by the filter, one
+uint8 image per call, ``--tracker-steps`` steps per timed run. Its ``first call s`` is the median over
+``--first-repeats`` first steps, each after every compilation cache was cleared (what a robot's first frame
+costs: the classifier's and the filter's compilation). ``PlaceClassifier.logits (1 image)``: the classifier
+alone, for the share of the step it takes, its runs alternated with the Tracker's (both see the same load).
 """
 
 from __future__ import annotations
@@ -23,6 +32,8 @@ import numpy as np
 from benchmarks._report import peak_rss_mb, print_table, write_json
 from placejax import route
 from placejax.data import PlaceGrid
+
+TRACKER_REFERENCE = 1000  # knn1 reference embeddings: about a default training session's frames
 
 
 def _inputs(n: int, frames: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -43,7 +54,7 @@ def _runs(fn, repeats: int) -> tuple[float, list[float]]:
     return compile_s, times
 
 
-def _row(case: str, cfg_name: str, frames: int, compile_s: float, times: list[float]) -> dict:
+def _row(case: str, cfg_name: str, frames: int, compile_s: float | None, times: list[float]) -> dict:
     per_frame = [t / frames for t in times]
     med = float(np.median(per_frame))
     return {
@@ -58,6 +69,109 @@ def _row(case: str, cfg_name: str, frames: int, compile_s: float, times: list[fl
     }
 
 
+def builtin_classifier(seed: int = 0):
+    """A ``PlaceClassifier`` of the default preset's size with random weights (speed does not depend on them).
+
+    Everything the file of a default run holds, read from the experiment's default config and the default depth
+    network's preset, as ``tests/test_classify_hostile.py``'s ``tiny_meta`` / ``tiny_params`` build a tiny one.
+    """
+    import jax.numpy as jnp
+
+    from experiments.cross_season.config import get_config
+    from placejax.classify import ClassifierSpec, PlaceClassifier, unknown
+    from placejax.depth import PRESETS
+
+    c = get_config("default")
+    d = PRESETS[c.depth.trained_preset]
+    h, w = c.data.image_size
+    f = 500.0 * w / 640
+    meta = {
+        "train_session": "random",
+        "num_classes": c.grid.n**2,
+        "image_size": [h, w],
+        "intrinsics": [[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]],
+        "normalise": {"mean": [123.675, 116.28, 103.53], "std": [58.395, 57.12, 57.375]},
+        "depth": {
+            "kind": "trained",
+            "features": d.features,
+            "encoder_width": d.encoder_width,
+            "size": d.image_size,
+            "near_m": c.depth.near_m,
+            "far_m": c.depth.far_m,
+            "metric": d.target == "log_metric",
+            "far_as_sky_m": c.depth.far_as_sky_m,
+            "flip_average": c.depth.flip_average,
+            "shifts": [int(k) for k in c.depth.shift_px],
+        },
+        "vgg": {"width": c.vgg.width, "pretrained": c.vgg.pretrained},
+        "mlp_hidden": c.mlp.hidden,
+        "grid": PlaceGrid(0.0, 20.0 * c.grid.n, 0.0, 20.0 * c.grid.n, n=c.grid.n).to_dict(),
+        "unknown": {"score": "knn1", "threshold": 0.5, "target_frr": 0.05},
+    }
+    spec = ClassifierSpec.from_meta(meta)
+    k1, k2, k3 = jax.random.split(jax.random.key(seed), 3)
+    depth = jax.jit(spec.depth_model.init)(k1, jnp.zeros((1, *spec.depth_net_size, 3)))
+    vgg = jax.jit(spec.vgg.init)(k2, jnp.zeros((1, h, w, 3)))["params"]
+    width = 2 * max(1, round(4096 * spec.vgg.width))  # the fused embedding: both fc7s
+    mlp = jax.jit(spec.mlp.init)(k3, jnp.zeros((1, width)))["params"]
+    rng = np.random.default_rng(seed)
+    ref = unknown.fit_feature_model("knn1", rng.normal(size=(TRACKER_REFERENCE, width)), np.zeros(TRACKER_REFERENCE))
+    params = {"depth": depth, "rgb": vgg, "hha": vgg, "mlp": mlp, "unknown": ref}
+    return PlaceClassifier(meta, params)
+
+
+def _clear_compilations() -> None:
+    from placejax.classify import _forward
+    from placejax.route import _filter
+
+    _forward._jitted_forward.cache_clear()
+    _filter._chunk_fn.cache_clear()
+    _filter._predict_fn.cache_clear()
+    jax.clear_caches()
+
+
+def tracker_rows(repeats: int, steps: int, first_repeats: int) -> list[dict]:
+    """``Tracker.step`` on the built-in classifier (first step and steady state), and the classifier alone."""
+    from placejax.classify import Tracker
+
+    clf = builtin_classifier()
+    rng = np.random.default_rng(1)
+    images = rng.integers(0, 256, (steps, *clf.image_size, 3), dtype=np.uint8)
+    moved = rng.uniform(0.0, 3.0, steps)
+    first = []
+    for _ in range(first_repeats):
+        _clear_compilations()
+        tracker = Tracker(clf)
+        t0 = time.perf_counter()
+        tracker.step(images[0], 0.0)
+        first.append(time.perf_counter() - t0)
+
+    def track():
+        for image, d in zip(images, moved, strict=True):
+            tracker.step(image, float(d))
+
+    def classify():
+        for image in images:
+            clf.logits(image[None])
+
+    # Alternated run by run, so that both see the same load (the machine is shared).
+    classify()
+    times = {"track": [], "classify": []}
+    for _ in range(repeats):
+        for name, fn in (("track", track), ("classify", classify)):
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    rows = [
+        _row("Tracker.step (classifier + filter)", "cells + unknown", steps, float(np.median(first)), times["track"])
+    ]
+    rows[0]["first_step_s_runs"] = first
+    # Paired by run: the Tracker's time over the classifier's in the run next to it.
+    rows[0]["ratio_to_logits"] = float(np.median(np.array(times["track"]) / np.array(times["classify"])))
+    rows.append(_row("PlaceClassifier.logits (1 image)", "–", steps, None, times["classify"]))
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per case (median reported)")
@@ -65,6 +179,9 @@ def main() -> None:
     parser.add_argument("--stream-frames", type=int, default=500, help="frames per timed streaming run")
     parser.add_argument("--n", type=int, default=10, help="cells per grid axis (n² cells)")
     parser.add_argument("--lag", type=int, default=10, help="fixed-lag smoother look-ahead (frames)")
+    parser.add_argument("--tracker-steps", type=int, default=20, help="Tracker.step calls per timed run")
+    parser.add_argument("--first-repeats", type=int, default=3, help="first Tracker steps, each compiled afresh")
+    parser.add_argument("--no-tracker", action="store_true", help="leave out the Tracker.step rows")
     args = parser.parse_args()
 
     grid = PlaceGrid(0.0, 20.0 * args.n, 0.0, 20.0 * args.n, n=args.n)
@@ -72,7 +189,7 @@ def main() -> None:
     rows = []
     for cfg_name, cfg in (("cells + unknown", route.FilterConfig()), ("cells only", route.FilterConfig(unknown=False))):
         c, t = _runs(lambda cfg=cfg: np.asarray(route.forward(probs, moved, grid, cfg)), args.repeats)
-        rows.append(_row("batch (lax.scan)", cfg_name, args.frames, c, t))
+        rows.append(_row("batch (forward)", cfg_name, args.frames, c, t))
 
         def stream(cfg=cfg):
             f = route.RouteFilter(grid, cfg)
@@ -84,6 +201,8 @@ def main() -> None:
     cfg = route.FilterConfig()
     c, t = _runs(lambda: np.asarray(route.smooth(probs, moved, grid, cfg, lag=args.lag)), max(1, args.repeats // 2))
     rows.append(_row(f"smooth lag {args.lag}", "cells + unknown", args.frames, c, t))
+    if not args.no_tracker:
+        rows += tracker_rows(args.repeats, args.tracker_steps, args.first_repeats)
 
     print(f"route filter, {args.n}×{args.n} = {args.n**2} cells, {jax.devices()[0].platform}")
     print_table(
@@ -96,6 +215,7 @@ def main() -> None:
             ("frames_per_s", "frames/s"),
             ("spread", "spread"),
             ("compile_s", "first call s"),
+            ("ratio_to_logits", "× logits"),
         ],
     )
     path = write_json(

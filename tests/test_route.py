@@ -170,17 +170,21 @@ def test_route_beats_single_frames_on_a_noisy_classifier():
     assert filtered > single + 0.25, (single, filtered)  # measured: 0.40 → 0.76
 
 
-def test_streaming_gives_the_batch_beliefs():
-    probs, moved, _ = _case(4, GRID, n=15)
-    cfg = route.FilterConfig()
+@pytest.mark.parametrize("unknown", [False, True])
+def test_streaming_gives_the_batch_beliefs_bit_for_bit(unknown):
+    # 150 frames: across the batch's 64-frame chunks. Bit-identical, not merely close: a route column and a robot
+    # running the same classifier must name the same cells, also where two cells are nearly tied.
+    probs, moved, _ = _case(4, GRID, n=150)
+    cfg = route.FilterConfig(unknown=unknown)
     batch = np.asarray(route.forward(probs, moved, GRID, cfg))
     f = route.RouteFilter(GRID, cfg)
     stream = np.array([f.step(p, float(d)) for p, d in zip(probs, moved, strict=True)])
-    np.testing.assert_allclose(stream, batch, atol=1e-6)
+    np.testing.assert_array_equal(stream, batch)
     np.testing.assert_array_equal(f.belief, stream[-1])
+    np.testing.assert_allclose(batch, _brute_force(probs, moved, GRID, cfg, route.initial_belief(GRID, cfg)), atol=3e-6)
     f.reset()
     np.testing.assert_array_equal(f.belief, route.initial_belief(GRID, cfg))
-    np.testing.assert_allclose(f.step(probs[0], float(moved[0])), batch[0], atol=1e-6)  # reset = a fresh start
+    np.testing.assert_array_equal(f.step(probs[0], float(moved[0])), batch[0])  # reset = a fresh start
 
 
 def test_jit_equals_eager():
@@ -261,7 +265,7 @@ def test_inputs_are_checked():
         route.forward(np.ones((3, 24)), np.ones(3), GRID)
     with pytest.raises(ValueError, match=r"moved_m must have shape \(3,\)"):
         route.forward(np.ones((3, 25)), np.ones(4), GRID)
-    with pytest.raises(ValueError, match="moved_m must be finite and >= 0"):
+    with pytest.raises(ValueError, match=r"moved_m: frame 1 is -1\.0; .* must be finite, >= 0"):
         route.forward(np.ones((3, 25)), np.array([0.0, -1.0, 1.0]), GRID)
     with pytest.raises(ValueError, match=r"prior must have shape \(26,\)"):
         route.RouteFilter(GRID, prior=np.ones(25) / 25)
@@ -335,7 +339,10 @@ def test_nclt_odometry_reader_on_a_generated_csv(tmp_path):
 
 
 class _FakeClassifier:
-    """What Tracker reads of a PlaceClassifier: the grid and ``logits(batch)`` (here a fixed linear map)."""
+    """What Tracker reads of a PlaceClassifier: the grid, the route settings and ``logits(batch)`` (here a fixed
+    linear map)."""
+
+    route = route.FilterConfig()
 
     def __init__(self, grid: PlaceGrid, seed: int = 0):
         self.grid = grid
@@ -377,3 +384,271 @@ def test_tracker_is_classifier_then_calibration_then_filter():
     np.testing.assert_allclose(tracker.step(images[0], 0.0).belief, want[0], atol=1e-6)
     with pytest.raises(ValueError, match=r"one uint8 RGB image \(H, W, 3\)"):
         tracker.step(images, 1.0)
+
+
+# ---------------------------------------------------------------------------------------------------- settings
+
+
+def test_filter_config_is_the_one_owner_of_the_settings():
+    import dataclasses
+
+    want = [
+        ("temperature", 4.0),
+        ("uniform_mix", 1e-3),
+        ("unknown_level", 5.0),
+        ("unknown_prior", 0.01),
+        ("unknown_enter_per_m", 0.005),
+        ("unknown_leave_per_m", 0.1),
+        ("emission_floor", 1e-4),
+        ("odometry_noise_frac", 0.1),
+        ("odometry_noise_m", 0.5),
+        ("max_speed_mps", 2.0),
+        ("bounded", False),
+        ("unknown", True),
+        ("n_angles", 32),
+        ("n_noise", 5),
+    ]
+    assert [(f.name, f.default) for f in dataclasses.fields(route.FilterConfig)] == want
+    cfg = route.FilterConfig()
+    assert route.FilterConfig(**cfg.to_dict()) == cfg and list(cfg.to_dict()) == [k for k, _ in want]
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("temperature", 0.0),
+        ("temperature", -1.0),
+        ("temperature", float("nan")),
+        ("temperature", float("inf")),
+        ("max_speed_mps", 0.0),
+        ("max_speed_mps", float("inf")),
+        ("unknown_level", 0.0),
+        ("unknown_level", 1e7),  # over MAX_SETTING: float32 products would overflow
+        ("uniform_mix", 1.0),
+        ("uniform_mix", float("nan")),
+        ("unknown_prior", -0.1),
+        ("unknown_enter_per_m", -1e-3),
+        ("unknown_leave_per_m", float("nan")),
+        ("emission_floor", -1e-4),
+        ("odometry_noise_frac", float("inf")),
+        ("odometry_noise_m", -0.5),
+        ("bounded", 1),
+        ("unknown", "yes"),
+        ("n_angles", 0),
+        ("n_angles", 32.0),
+        ("n_noise", True),
+        ("n_noise", 10**6),
+        ("temperature", True),  # a JSON true is not a temperature
+        ("temperature", "4"),
+    ],
+)
+def test_filter_config_refuses_each_bad_setting_by_name(field, value):
+    with pytest.raises(ValueError, match=rf"FilterConfig\.{field} must"):
+        route.FilterConfig(**{field: value})
+    with pytest.raises(ValueError, match=rf"FilterConfig\.{field} must"):
+        route.FilterConfig().replace(**{field: value})
+
+
+def test_the_experiments_filter_config_is_filter_configs():
+    from experiments.cross_season.route import filter_config
+
+    from experiments.cross_season import get_config
+
+    cfg = get_config("default")
+    assert filter_config(cfg) == route.FilterConfig()
+    assert filter_config(cfg, bounded=True) == route.FilterConfig(bounded=True)
+    cfg.route.temperature = 2.0
+    assert filter_config(cfg).temperature == 2.0
+
+
+# ---------------------------------------------------------------------------------------------------- fail closed
+
+
+def _probs(n: int = 6, seed: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return rng.dirichlet(np.ones(25), n).astype(np.float32), rng.uniform(0.0, 3.0, n)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("fn", ["forward", "smooth"])
+def test_batch_filter_refuses_non_finite_probabilities_naming_the_frame(bad, fn):
+    probs, moved = _probs()
+    probs[3, 7] = bad
+    run = route.forward if fn == "forward" else lambda *a: route.smooth(*a, lag=2)
+    with pytest.raises(ValueError, match=r"probabilities: frame 3 is not finite"):
+        run(probs, moved, GRID)
+
+
+@pytest.mark.parametrize("bad", [-1e-3, 1.5])
+def test_batch_filter_refuses_probabilities_outside_0_1(bad):
+    probs, moved = _probs()
+    probs[4, 0] = bad
+    with pytest.raises(ValueError, match=r"probabilities: frame 4 has a value outside \[0, 1\]"):
+        route.forward(probs, moved, GRID)
+
+
+@pytest.mark.parametrize("bad, message", [(np.nan, "nan"), (np.inf, "inf"), (-0.5, r"-0\.5"), (1e8, r"100000000\.0")])
+def test_distances_are_refused_naming_the_frame(bad, message):
+    probs, moved = _probs()
+    moved[2] = bad
+    with pytest.raises(ValueError, match=rf"moved_m: frame 2 is {message}"):
+        route.forward(probs, moved, GRID)
+    f = route.RouteFilter(GRID)
+    for step in (lambda: f.step(probs[0], bad), lambda: f.predict(bad)):
+        with pytest.raises(ValueError, match=rf"moved_m: frame 0 is {message}"):
+            step()
+    np.testing.assert_array_equal(f.belief, route.initial_belief(GRID))  # nothing moved
+    with pytest.raises(ValueError, match="one number"):
+        f.step(probs[0], np.ones(2))
+    with pytest.raises(ValueError, match="moved_m must be a number"):
+        f.step(probs[0], None)
+    with pytest.raises(ValueError, match=r"moved_m: frame 0"):
+        route.transition_matrix(GRID, float(bad))
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda p: p.__setitem__(4, np.nan), r"prior: state 4 is nan"),
+        (lambda p: p.__setitem__(5, np.inf), r"prior: state 5 is inf"),
+        (lambda p: p.__setitem__(6, -0.1), r"prior: state 6 is -0\.1"),
+        (lambda p: p.__setitem__(slice(None), 0.0), r"prior sums to 0\.0"),
+    ],
+)
+def test_bad_priors_are_refused(edit, message):
+    probs, moved = _probs()
+    prior = route.initial_belief(GRID).astype(np.float64)
+    edit(prior)
+    for call in (
+        lambda: route.forward(probs, moved, GRID, prior=prior),
+        lambda: route.smooth(probs, moved, GRID, lag=1, prior=prior),
+        lambda: route.RouteFilter(GRID, prior=prior),
+        lambda: route.RouteFilter(GRID).reset(prior),
+    ):
+        with pytest.raises(ValueError, match=message):
+            call()
+
+
+def test_a_prior_is_any_positive_weights_scaled_to_one():
+    probs, moved = _probs()
+    prior = np.random.default_rng(3).random(26)
+    np.testing.assert_array_equal(
+        np.asarray(route.forward(probs, moved, GRID, prior=1000.0 * prior)),
+        np.asarray(route.forward(probs, moved, GRID, prior=prior / prior.sum())),
+    )
+
+
+def test_initial_belief_and_num_states_check_their_arguments():
+    with pytest.raises(TypeError, match=r"grid must be a placejax\.data\.PlaceGrid"):
+        route.initial_belief((0, 10, 0, 10))
+    with pytest.raises(TypeError, match=r"config must be a placejax\.route\.FilterConfig"):
+        route.initial_belief(GRID, {"unknown": False})
+    with pytest.raises(TypeError, match=r"config must be a placejax\.route\.FilterConfig"):
+        route.num_states(GRID, None)
+
+
+def test_calibration_refuses_non_finite_logits_naming_the_frame():
+    z = np.random.default_rng(0).normal(size=(5, 9))
+    z[3, 2] = np.nan
+    with pytest.raises(ValueError, match=r"logits: frame 3 is not finite"):
+        route.calibrated_probabilities(z, 4.0)
+    with pytest.raises(ValueError, match=r"logits: frame 3 is not finite"):
+        route.fit_temperature(z, np.zeros(5, int))
+    with pytest.raises(ValueError, match=r"logits \(one frame\) is not finite"):
+        route.calibrated_probabilities(z[3], 4.0)
+    z3 = np.zeros((2, 3, 9))
+    z3[1, 2, 0] = -np.inf
+    with pytest.raises(ValueError, match=r"logits: frame \(1, 2\) is not finite"):
+        route.calibrated_probabilities(z3, 1.0)
+    with pytest.raises(ValueError, match=r"overflows at temperature"):
+        route.calibrated_probabilities(np.array([[1e300, 0.0]]), 1e-10)
+    for t in (0.0, -1.0, np.nan, np.inf, True, "4", None):
+        with pytest.raises(ValueError, match="temperature must be"):
+            route.calibrated_probabilities(z[:2], t)
+    with pytest.raises(ValueError, match="logits must be an array of numbers"):
+        route.calibrated_probabilities([["a", "b"]], 1.0)
+
+
+def test_place_belief_refuses_non_finite_beliefs():
+    b = np.full((4, 26), 1 / 26)
+    b[2, 5] = np.nan
+    with pytest.raises(ValueError, match=r"beliefs: frame 2 is not finite"):
+        route.place_belief(b, 25)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+@pytest.mark.parametrize("unknown", [False, True])
+def test_streaming_filter_skips_a_broken_frame_without_corrupting_the_belief(bad, unknown):
+    # What the issue measured: a NaN frame was skipped silently, an infinite one made every later belief NaN.
+    probs, moved = _probs(n=8)
+    cfg = route.FilterConfig(unknown=unknown)
+    broken = probs.copy()
+    broken[3, 11] = bad
+    f, ref = route.RouteFilter(GRID, cfg), route.RouteFilter(GRID, cfg)
+    out = []
+    for i, (p, d) in enumerate(zip(broken, moved, strict=True)):
+        out.append(f.step(p, float(d)))
+        assert f.rejected == (i == 3)
+        want = ref.predict(float(d)) if i == 3 else ref.step(p, float(d))  # the motion prediction still runs
+        np.testing.assert_array_equal(out[-1], want)
+    assert np.isfinite(np.array(out)).all()
+    np.testing.assert_allclose(np.array(out).sum(axis=1), 1.0, atol=1e-5)
+    # The frames after the broken one are the batch filter's on the frames around it, the gap bridged by motion
+    # (to float rounding: a prior is rescaled to sum to 1).
+    after = np.asarray(route.forward(probs[4:], moved[4:], GRID, cfg, prior=out[3]))
+    np.testing.assert_allclose(np.array(out[4:]), after, rtol=1e-5, atol=1e-7)
+    before = f.belief
+    with pytest.raises(ValueError, match=r"outside \[0, 1\]"):
+        f.step(np.full(25, 2.0), 1.0)  # finite nonsense is a caller's bug: refused, not skipped
+    np.testing.assert_array_equal(f.belief, before)
+
+
+def test_tracker_reports_a_broken_frame_as_unknown_never_as_a_place():
+    from placejax.classify._track import Tracker
+
+    class Broken(_FakeClassifier):
+        def logits(self, batch):
+            out = super().logits(batch)
+            bad = batch.reshape(len(batch), -1)[:, 0] == 0  # an image whose first byte is 0 "breaks" the net
+            return {k: np.where(bad[:, None], np.nan, v) for k, v in out.items()}
+
+        def prediction_from_outputs(self, outputs, branch):
+            from types import SimpleNamespace
+
+            score = outputs[branch].max(axis=1)
+            return SimpleNamespace(unknown_score=score, rejected=~np.isfinite(score) | (score > 0.0))
+
+    fake = Broken(GRID)
+    images = np.random.default_rng(11).integers(1, 256, (5, 4, 4, 3), dtype=np.uint8)
+    images[2, 0, 0, 0] = 0
+    moved = [0.0, 1.0, 2.0, 1.5, 1.0]
+    tracker = Tracker(fake)
+    steps = [tracker.step(im, d) for im, d in zip(images, moved, strict=True)]
+    s = steps[2]
+    assert s.rejected and s.label == -1 and s.probability == 0.0 and s.unknown == 1.0 and s.frame_label == -1
+    assert s.frame_rejected and np.isnan(s.frame_unknown_score)
+    assert np.isfinite(s.belief).all()
+    assert not any(t.rejected for i, t in enumerate(steps) if i != 2)
+    assert all(np.isfinite(t.probability) and t.label >= 0 for i, t in enumerate(steps) if i != 2)
+    # The belief went on from the motion prediction: the same as a filter told only the distance at frame 2.
+    ref = route.RouteFilter(GRID, fake.route)
+    probs = route.calibrated_probabilities(np.nan_to_num(fake.logits(images)["fusion"]), fake.route.temperature)
+    for i, d in enumerate(moved):
+        want = ref.predict(d) if i == 2 else ref.step(probs[i], d)
+        np.testing.assert_array_equal(steps[i].belief, want)
+    # step_probabilities says the same of non-finite probabilities; a bad distance is refused.
+    assert tracker.step_probabilities(np.full(25, np.inf), 1.0).rejected
+    with pytest.raises(ValueError, match=r"moved_m: frame 0 is nan"):
+        tracker.step(images[0], float("nan"))
+    with pytest.raises(ValueError, match=r"moved_m: frame 0 is -1\.0"):
+        tracker.step_probabilities(probs[0], -1.0)
+
+
+def test_doctest_examples():
+    import doctest
+
+    from placejax.route import _calibration, _filter, _odometry
+
+    for module in (route, _filter, _calibration, _odometry):
+        globs = {"np": np, "PlaceGrid": PlaceGrid, "FilterConfig": route.FilterConfig}
+        assert doctest.testmod(module, extraglobs=globs).failed == 0, module.__name__

@@ -1,9 +1,10 @@
 """Using a trained model: classify new RGB images into places, and say when an image is from no known place.
 
 Public surface:
-    PlaceClassifier: depth network, HHA settings, both VGG16s, the fusion MLP, the place grid and the
-        preprocessing of one training session, built from a finished ``experiments.cross_season`` run
-        (``from_run``), saved to and loaded from one self-describing file (``save`` / ``load``).
+    PlaceClassifier: depth network, HHA settings, both VGG16s, the fusion MLP, the place grid, the
+        preprocessing and the route filter's settings (``clf.route``) of one training session, built from a
+        finished ``experiments.cross_season`` run (``from_run``), saved to and loaded from one self-describing
+        file (``save`` / ``load``).
     Prediction: what ``PlaceClassifier.predict`` returns.
     forward, ClassifierSpec: the classifier end to end as a pure, jittable function of arrays
         (``forward(spec, params, rgb_uint8)``: uint8 ``(N, H, W, 3)`` → logits ``(N, C)`` as ``jax.Array``s);
@@ -13,8 +14,9 @@ Public surface:
         (uint8 RGB → metric depth → uint8 HHA → both VGG16s' logits and fc7 → fused logits).
     ArtefactError: a classifier file that is corrupt, truncated or of another format.
     unknown: unseen-place scores, thresholds and their evaluation.
-    Tracker, TrackStep: a ``PlaceClassifier`` followed by the route filter (`placejax.route`), one image and the
-        distance travelled at a time (``Tracker(clf, temperature=T).step(rgb_uint8, moved_m)``).
+    Tracker, TrackStep: a ``PlaceClassifier`` followed by the route filter (`placejax.route`) with the
+        classifier's settings, one image and the distance travelled at a time
+        (``Tracker.from_classifier(clf).step(rgb_uint8, moved_m)``; a broken image is reported as unknown).
     run_layout: where a finished ``experiments.cross_season`` run keeps its checkpoints, caches and index.
 
 Command: ``python -m placejax.classify MODEL IMAGE... [--json] [--figure out.png]``.
@@ -22,10 +24,9 @@ Command: ``python -m placejax.classify MODEL IMAGE... [--json] [--figure out.png
 
 from placejax.classify import run_layout, unknown
 from placejax.classify._artefact import ArtefactError
-from placejax.classify._classifier import (
+from placejax.classify._classifier import PlaceClassifier, Prediction
+from placejax.classify._forward import (
     ClassifierSpec,
-    PlaceClassifier,
-    Prediction,
     forward,
     stage_depth,
     stage_hha,

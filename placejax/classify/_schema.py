@@ -2,8 +2,9 @@
 
 Every field ``PlaceClassifier`` reads is checked for type, range and finiteness here, so that a file either builds
 a classifier that computes meaningful numbers or is refused at load with an :class:`ArtefactError` naming the
-file and the field (``depth.near_m``, ``normalise.std[1]``, ...). Free-form records (``config``, ``source``,
-``versions``, ``unknown.all_scores``) must be JSON objects and are otherwise only kept.
+file and the field (``depth.near_m``, ``normalise.std[1]``, ``route.temperature``, ...; ``route`` by
+``placejax.route.FilterConfig``'s own rules). Free-form records (``config``, ``source``, ``versions``,
+``unknown.all_scores``) must be JSON objects and are otherwise only kept.
 """
 
 from __future__ import annotations
@@ -47,10 +48,11 @@ _TOP = {
     "grid",
     "visited_classes",
     "unknown",
+    "route",
     "config",
     "source",
 }
-_OPTIONAL_TOP = {"versions", "visited_classes", "config", "source"}
+_OPTIONAL_TOP = {"versions", "visited_classes", "route", "config", "source"}
 _DEPTH_REQUIRED = {"kind", "features", "encoder_width", "size", "near_m", "far_m"}
 _DEPTH_OPTIONAL = {"metric", "far_as_sky_m", "flip_average", "shifts", "source"}
 _DAV2_REQUIRED = {
@@ -200,9 +202,22 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
     if "all_scores" in u and type(u["all_scores"]) is not dict:
         c.fail("unknown.all_scores", f"is a JSON {_json_type(u['all_scores'])}, expected an object")
 
+    if "route" in m:  # files written before the route settings were stored have none: the defaults
+        _check_route(c, m["route"])
+
     for name in m["arrays"]:
         if name.split("/", 1)[0] not in _ARRAY_GROUPS:
             c.fail(f"arrays[{name[:80]!r}]", f"is not under one of the networks {_ARRAY_GROUPS}")
+
+
+def _check_route(c: _Checker, r: Any) -> None:
+    """``route``: every field of ``placejax.route.FilterConfig``, each checked by FilterConfig's own rules."""
+    from placejax.route._config import FIELDS, first_problem
+
+    c.obj(r, "route", set(FIELDS))
+    bad = first_problem(r)
+    if bad is not None:
+        c.fail(f"route.{bad[0]}", bad[1])
 
 
 def _check_near_far(c: _Checker, d: dict) -> None:

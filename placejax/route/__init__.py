@@ -7,15 +7,20 @@ heading, no position), updates it with the classifier's temperature-calibrated s
 state, "none of the known places", whose probability is an unseen-place score along the route.
 
 Public surface:
-    FilterConfig: the motion model, the unknown state and the emission settings.
-    forward: filtered beliefs of a whole session (one jitted ``lax.scan``).
+    FilterConfig: every setting of the filter (temperature, motion model, unknown state, emission, speed bound):
+        its defaults are the experiment's chosen values, its checks the one definition of their ranges.
+    forward: filtered beliefs of a whole session (one compiled loop, 64 frames per call).
     smooth: fixed-lag smoothed beliefs.
-    RouteFilter: the streaming filter (``step(probabilities, moved_m) → belief``, ``reset()``).
+    RouteFilter: the streaming filter (``step(probabilities, moved_m) → belief``, ``predict(moved_m)``,
+        ``reset()``); a frame with non-finite probabilities is skipped (motion only) and flagged ``rejected``.
     place_belief: beliefs → (belief over cells, unknown-state probability).
     initial_belief, num_states: the default prior and the state count.
     fit_temperature, calibrated_probabilities: temperature scaling on held-out frames.
     moved_from_travelled, moved_from_timestamps: per-frame distances from an odometer or from time × speed.
     transition_matrix: the motion model's cell-to-cell matrix for one distance (for inspection and tests).
+
+Bad input fails closed: the batch functions refuse non-finite or out-of-range probabilities, logits, distances and
+priors with a ``ValueError`` naming the argument and the first bad frame.
 
 Example:
     >>> import numpy as np
@@ -30,8 +35,8 @@ Example:
 """
 
 from placejax.route._calibration import calibrated_probabilities, fit_temperature
+from placejax.route._config import FilterConfig
 from placejax.route._filter import (
-    FilterConfig,
     RouteFilter,
     forward,
     initial_belief,

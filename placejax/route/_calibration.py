@@ -38,12 +38,11 @@ def fit_temperature(logits, labels, *, iterations: int = 100) -> float:
         >>> round(fit_temperature(z, y), 2)   # one of four confident answers wrong: soften
         3.64
     """
-    z = np.asarray(logits, np.float64)
+    z = _logits(logits)
     y = np.asarray(labels)
     if z.ndim != 2 or z.shape[0] == 0 or z.shape[1] < 2:
         raise ValueError(f"logits must have shape (N, C) with N >= 1 and C >= 2, got {z.shape}")
-    if not np.isfinite(z).all():
-        raise ValueError("logits contain NaN or inf")
+    _check_finite(z)
     if y.shape != (z.shape[0],) or not np.issubdtype(y.dtype, np.integer):
         raise ValueError(f"labels must be integers of shape ({z.shape[0]},), got {y.dtype} {y.shape}")
     if (y < 0).any() or (y >= z.shape[1]).any():
@@ -64,16 +63,45 @@ def fit_temperature(logits, labels, *, iterations: int = 100) -> float:
     return float(np.exp(-(lo + hi) / 2))
 
 
+def _logits(logits) -> np.ndarray:
+    try:
+        return np.asarray(logits, np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"logits must be an array of numbers ({e})") from None
+
+
+def _check_finite(z: np.ndarray, what: str = "is not finite (NaN or inf)") -> None:
+    """Refuses non-finite logits, naming the first bad frame (the index over the leading axes)."""
+    bad = ~np.isfinite(z)
+    if not bad.any():
+        return
+    if z.ndim == 1:
+        raise ValueError(f"logits (one frame) {what}")
+    rows = bad.reshape(-1, z.shape[-1]).any(axis=1)
+    where = np.unravel_index(int(np.argmax(rows)), z.shape[:-1])
+    raise ValueError(f"logits: frame {where[0] if len(where) == 1 else tuple(map(int, where))} {what}")
+
+
 def calibrated_probabilities(logits, temperature: float) -> np.ndarray:
     """``softmax(logits / temperature)``, float32 ``(..., C)`` from logits ``(..., C)``.
 
     Args:
-        logits: float ``(..., C)``.
-        temperature: from `fit_temperature`, > 0.
+        logits: float ``(..., C)``, finite (a NaN or inf frame raises ``ValueError`` naming it: the route filter
+            must not be fed it; ``Tracker`` reports such a frame as unknown instead).
+        temperature: from `fit_temperature` or ``FilterConfig.temperature``, finite and > 0.
     """
-    t = float(temperature)
-    if not (np.isfinite(t) and t > 0):
+    try:
+        t = float(temperature)
+    except (TypeError, ValueError):
+        t = float("nan")
+    if isinstance(temperature, bool | str) or not (np.isfinite(t) and t > 0):
         raise ValueError(f"temperature must be finite and > 0, got {temperature!r}")
-    z = np.asarray(logits, np.float64) / t
+    z = _logits(logits)
+    if z.ndim == 0 or z.shape[-1] == 0:
+        raise ValueError(f"logits must have shape (..., C) with C >= 1, got {z.shape}")
+    _check_finite(z)
+    with np.errstate(over="ignore"):
+        z = z / t
+    _check_finite(z, f"overflows at temperature {t!r}")
     z = np.exp(z - z.max(axis=-1, keepdims=True))
     return (z / z.sum(axis=-1, keepdims=True)).astype(np.float32)

@@ -25,7 +25,6 @@ Nothing else enters: no pose, position, heading or class of a test frame.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from typing import NamedTuple
@@ -36,71 +35,9 @@ import numpy as np
 
 from placejax.data.grid import PlaceGrid
 from placejax.route import _motion
+from placejax.route._config import MAX_MOVED_M, FilterConfig
 
-
-@dataclasses.dataclass(frozen=True)
-class FilterConfig:
-    """Settings of the route filter (choose them on world 1 or the training session, never on test results).
-
-    Attributes:
-        odometry_noise_frac: sd of the distance travelled, as a fraction of it (wheel odometry drift).
-        odometry_noise_m: sd of the distance travelled added to it (m); also spreads belief when standing still.
-        bounded: the distances given are upper bounds (elapsed time × a maximum speed, see
-            `moved_from_timestamps`), not odometry: the motion model spreads belief uniformly over ``[0, moved_m]``.
-        uniform_mix: probability per frame of a jump to any cell (kidnapping / reset), in ``[0, 1)``.
-        unknown: add the "none of the known places" state.
-        unknown_prior: its initial probability, in ``[0, 1)``.
-        unknown_enter_per_m: rate per metre travelled of going from a known cell to the unknown state.
-        unknown_leave_per_m: rate per metre travelled of going from the unknown state back to a known cell.
-        unknown_level: the unknown state's emission, in units of a uniform classifier's ``1 / K``.
-        emission_floor: lower bound of a cell's emission (a single overconfident frame cannot zero a cell), ≥ 0.
-        n_angles: headings the motion model averages over (its kernel is exact up to moves of about
-            ``n_angles × cell side / 2π``).
-        n_noise: distance samples the motion model averages over.
-    """
-
-    temperature: float = 4.0
-    uniform_mix: float = 1e-3
-    unknown_level: float = 5.0
-    unknown_prior: float = 0.01
-    unknown_enter_per_m: float = 0.005
-    unknown_leave_per_m: float = 0.1
-    emission_floor: float = 1e-4
-    odometry_noise_frac: float = 0.1
-    odometry_noise_m: float = 0.5
-    max_speed_mps: float = 2.0
-    bounded: bool = False
-    unknown: bool = True
-    n_angles: int = 32
-    n_noise: int = 5
-
-    def __post_init__(self):
-        for name in (
-            "odometry_noise_frac",
-            "odometry_noise_m",
-            "unknown_enter_per_m",
-            "unknown_leave_per_m",
-            "emission_floor",
-        ):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"FilterConfig.{name} must be a finite number >= 0, got {v!r}")
-        for name in ("uniform_mix", "unknown_prior"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and 0 <= v < 1):
-                raise ValueError(f"FilterConfig.{name} must be in [0, 1), got {v!r}")
-        if not (
-            isinstance(self.unknown_level, int | float) and math.isfinite(self.unknown_level) and self.unknown_level > 0
-        ):
-            raise ValueError(f"FilterConfig.unknown_level must be a finite number > 0, got {self.unknown_level!r}")
-        for name in ("n_angles", "n_noise"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"FilterConfig.{name} must be an int >= 1, got {v!r}")
-
-    def replace(self, **changes) -> FilterConfig:
-        """A copy with ``changes`` (field names as keywords)."""
-        return dataclasses.replace(self, **changes)
+_DEFAULT = FilterConfig()
 
 
 class _Static(NamedTuple):
@@ -131,20 +68,27 @@ def _params(grid: PlaceGrid, cfg: FilterConfig) -> dict[str, jax.Array]:
     }
 
 
-def num_states(grid: PlaceGrid, config: FilterConfig = FilterConfig()) -> int:
+def num_states(grid: PlaceGrid, config: FilterConfig = _DEFAULT) -> int:
     """``K`` (the grid's cells) or ``K + 1`` with the unknown state (its index is ``K``)."""
+    _check_types(grid, config)
     return grid.num_classes + int(config.unknown)
 
 
-def initial_belief(grid: PlaceGrid, config: FilterConfig = FilterConfig()) -> np.ndarray:
-    """The default prior, float32 ``(S,)``: ``unknown_prior`` on the unknown state, the rest uniform over cells."""
+def initial_belief(grid: PlaceGrid, config: FilterConfig = _DEFAULT) -> np.ndarray:
+    """The default prior, float32 ``(S,)``: ``unknown_prior`` on the unknown state, the rest uniform over cells.
+
+    Raises:
+        TypeError: ``grid`` is not a ``PlaceGrid`` or ``config`` not a `FilterConfig` (whose own checks hold
+            every setting in range).
+    """
+    _check_types(grid, config)
     k = grid.num_classes
     if not config.unknown:
         return np.full(k, 1.0 / k, np.float32)
     return np.concatenate([np.full(k, (1.0 - config.unknown_prior) / k), [config.unknown_prior]]).astype(np.float32)
 
 
-def transition_matrix(grid: PlaceGrid, moved_m: float, config: FilterConfig = FilterConfig()) -> np.ndarray:
+def transition_matrix(grid: PlaceGrid, moved_m: float, config: FilterConfig = _DEFAULT) -> np.ndarray:
     """The prediction step as a matrix: float64 ``(S, S)``, ``[from, to]``, rows summing to 1.
 
     The filter never builds it for the unknown state (it applies the same numbers in ``O(K²)``); this is for
@@ -158,6 +102,8 @@ def transition_matrix(grid: PlaceGrid, moved_m: float, config: FilterConfig = Fi
     Returns:
         ``M`` with ``belief_predicted = belief @ M``.
     """
+    _check_types(grid, config)
+    moved_m = float(check_moved([moved_m])[0])
     st, p = _static(grid, config), _params(grid, config)
     k = grid.num_classes
     moved = jnp.float32(moved_m)
@@ -224,21 +170,47 @@ def _step(st: _Static, p: dict, belief, probs, moved) -> jax.Array:
     return _update(st, p, _predict(st, p, belief, moved), probs)
 
 
-@functools.lru_cache(maxsize=32)
-def _step_fn(st: _Static):
-    return jax.jit(functools.partial(_step, st))
+# Frames per call of the one compiled filter program. `forward` runs a session through it chunk by chunk and
+# `RouteFilter.step` runs one frame through it (a chunk holding one frame): the same executable, so the streaming
+# beliefs are bit-identical to the batch ones (a separately compiled step differs in the last bits, which can
+# flip a near-tied arg-max).
+_CHUNK = 64
 
 
 @functools.lru_cache(maxsize=32)
-def _forward_fn(st: _Static):
-    def run(p, prior, probs, moved):
-        def body(b, xs):
-            b = _step(st, p, b, *xs)
-            return b, b
+def _chunk_fn(st: _Static):
+    def run(p, belief, probs, moved, n):
+        out = jnp.zeros((probs.shape[0], belief.shape[0]), jnp.float32)
 
-        return jax.lax.scan(body, prior, (probs, moved))[1]
+        def body(i, carry):
+            b, out = carry
+            b = _step(st, p, b, probs[i], moved[i])
+            return b, out.at[i].set(b)
+
+        # A traced trip count keeps one program for every n in [1, _CHUNK] (a while loop, never unrolled).
+        return jax.lax.fori_loop(0, n, body, (belief, out))
 
     return jax.jit(run)
+
+
+def _run_frames(st: _Static, p: dict, belief: jax.Array, probs: np.ndarray, moved: np.ndarray, every: bool = True):
+    """``(last belief, beliefs (T, S) or None)`` of checked float32 inputs, ``_CHUNK`` frames per call.
+
+    ``every=False`` skips gathering the per-frame beliefs (a streaming step needs only the last).
+    """
+    fn = _chunk_fn(st)
+    outs = []
+    for lo in range(0, len(probs), _CHUNK):
+        n = min(_CHUNK, len(probs) - lo)
+        pp = np.zeros((_CHUNK, probs.shape[1]), np.float32)
+        mm = np.zeros(_CHUNK, np.float32)
+        pp[:n], mm[:n] = probs[lo : lo + n], moved[lo : lo + n]
+        belief, out = fn(p, belief, pp, mm, np.int32(n))
+        if every:
+            outs.append(out[:n])
+    if not every:
+        return belief, None
+    return belief, outs[0] if len(outs) == 1 else jnp.concatenate(outs)
 
 
 def _back(st: _Static, p: dict, w, moved) -> jax.Array:
@@ -256,8 +228,7 @@ def _back(st: _Static, p: dict, w, moved) -> jax.Array:
 
 @functools.lru_cache(maxsize=32)
 def _smooth_fn(st: _Static, lag: int):
-    def run(p, prior, probs, moved):
-        alphas = _forward_fn(st)(p, prior, probs, moved)
+    def run(p, alphas, probs, moved):
         n_frames = probs.shape[0]
 
         def one(t):
@@ -279,34 +250,97 @@ def _smooth_fn(st: _Static, lag: int):
     return jax.jit(run)
 
 
-def _check_inputs(grid: PlaceGrid, config: FilterConfig, probabilities, moved_m, prior):
+def _check_types(grid: PlaceGrid, config: FilterConfig) -> None:
     if not isinstance(grid, PlaceGrid):
         raise TypeError(f"grid must be a placejax.data.PlaceGrid, got {type(grid).__name__}")
     if not isinstance(config, FilterConfig):
         raise TypeError(f"config must be a placejax.route.FilterConfig, got {type(config).__name__}")
-    k = grid.num_classes
-    probs = jnp.asarray(probabilities, jnp.float32)
-    moved = jnp.asarray(moved_m, jnp.float32)
-    if probs.ndim != 2 or probs.shape[1] != k:
-        raise ValueError(f"probabilities must have shape (T, {k}) (frames × the grid's cells), got {probs.shape}")
-    if moved.shape != (probs.shape[0],):
-        raise ValueError(f"moved_m must have shape ({probs.shape[0]},) (one distance per frame), got {moved.shape}")
-    if probs.shape[0] == 0:
-        raise ValueError("probabilities: no frames")
-    moved_np = np.asarray(moved_m, np.float64)
-    if not (np.isfinite(moved_np).all() and (moved_np >= 0).all()):
-        raise ValueError("moved_m must be finite and >= 0 (metres travelled since the previous frame)")
-    prior = initial_belief(grid, config) if prior is None else prior
-    prior = jnp.asarray(prior, jnp.float32)
+
+
+def _numeric(x, name: str) -> np.ndarray:
+    """``x`` as float64, or a ``ValueError`` naming the argument (never numpy's own message about objects)."""
+    try:
+        a = np.asarray(x, np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{name} must be an array of numbers ({e})") from None
+    return a
+
+
+def _first_row(bad: np.ndarray) -> int:
+    """Index of the first row (frame) of a 2-D boolean array with a True entry."""
+    return int(np.argmax(bad.reshape(len(bad), -1).any(axis=1)))
+
+
+def check_probabilities(probabilities, k: int, name: str = "probabilities") -> np.ndarray:
+    """float32 ``(T, k)`` classifier probabilities, or a ``ValueError`` naming ``name`` and the first bad frame.
+
+    Every value must be finite and in ``[0, 1]`` (a softmax): a NaN or inf frame would be skipped or turn every
+    later belief into NaN, so it is refused here (the streaming `RouteFilter.step` skips such a frame instead).
+    """
+    p = _numeric(probabilities, name)
+    if p.ndim != 2 or p.shape[1] != k:
+        raise ValueError(f"{name} must have shape (T, {k}) (frames × the grid's cells), got {p.shape}")
+    if p.shape[0] == 0:
+        raise ValueError(f"{name}: no frames (shape {p.shape})")
+    p32 = p.astype(np.float32)
+    bad = ~np.isfinite(p32)
+    if bad.any():
+        raise ValueError(f"{name}: frame {_first_row(bad)} is not finite (NaN or inf): a broken classifier output")
+    bad = (p32 < 0) | (p32 > 1)
+    if bad.any():
+        i = _first_row(bad)
+        v = float(p[i][bad[i]][0])
+        raise ValueError(f"{name}: frame {i} has a value outside [0, 1] ({v!r}); expected a softmax")
+    return p32
+
+
+def check_moved(moved_m, n: int | None = None, name: str = "moved_m") -> np.ndarray:
+    """float32 ``(T,)`` metres, each finite and in ``[0, MAX_MOVED_M]``, or a ``ValueError`` naming the frame."""
+    d = _numeric(moved_m, name)
+    if d.ndim != 1 or (n is not None and d.shape != (n,)):
+        want = f"({n},) (one distance per frame)" if n is not None else "(T,)"
+        raise ValueError(f"{name} must have shape {want}, got {d.shape}")
+    bad = ~(np.isfinite(d) & (d >= 0) & (d <= MAX_MOVED_M))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"{name}: frame {i} is {float(d[i])!r}; metres travelled since the previous frame must be finite, "
+            f">= 0 and at most {MAX_MOVED_M:g}"
+        )
+    return d.astype(np.float32)
+
+
+def check_prior(prior, grid: PlaceGrid, config: FilterConfig, name: str = "prior") -> np.ndarray:
+    """The prior belief as float32 ``(S,)`` scaled to sum to 1, or a ``ValueError`` naming the first bad state.
+
+    Any finite, non-negative weights with a positive sum are accepted (the filter is linear in the prior).
+    """
     s = num_states(grid, config)
-    if prior.shape != (s,):
+    p = _numeric(prior, name)
+    if p.shape != (s,):
         what = "cells + unknown" if config.unknown else "cells"
-        raise ValueError(f"prior must have shape ({s},) ({what}), got {prior.shape}")
-    return probs, moved, prior
+        raise ValueError(f"{name} must have shape ({s},) ({what}), got {p.shape}")
+    bad = ~(np.isfinite(p) & (p >= 0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"{name}: state {i} is {float(p[i])!r}; a prior is finite, non-negative weights")
+    total = p.sum()
+    if not (np.isfinite(total) and total > 0):
+        raise ValueError(f"{name} sums to {float(total)!r}; a prior needs a positive, finite total")
+    return (p / total).astype(np.float32)
 
 
-def forward(probabilities, moved_m, grid: PlaceGrid, config: FilterConfig = FilterConfig(), prior=None) -> jax.Array:
-    """Filtered beliefs of a whole session, one ``lax.scan`` (jitted; compiled once per grid size and structure).
+def _check_inputs(grid: PlaceGrid, config: FilterConfig, probabilities, moved_m, prior):
+    _check_types(grid, config)
+    probs = check_probabilities(probabilities, grid.num_classes)
+    moved = check_moved(moved_m, probs.shape[0])
+    prior = initial_belief(grid, config) if prior is None else check_prior(prior, grid, config)
+    return probs, moved, jnp.asarray(prior)
+
+
+def forward(probabilities, moved_m, grid: PlaceGrid, config: FilterConfig = _DEFAULT, prior=None) -> jax.Array:
+    """Filtered beliefs of a whole session: a jitted loop over 64 frames per call, compiled once per grid size and
+    structure; `RouteFilter.step` runs the same compiled program, so its beliefs are bit-identical.
 
     Args:
         probabilities: float ``(T, K)`` calibrated classifier softmax of every frame, ``K = grid.n ** 2``
@@ -316,11 +350,17 @@ def forward(probabilities, moved_m, grid: PlaceGrid, config: FilterConfig = Filt
             with ``config.bounded``).
         grid: the place grid the classifier's classes are the cells of.
         config: filter settings.
-        prior: float ``(S,)`` belief before frame 0 (default `initial_belief`).
+        prior: float ``(S,)`` belief before frame 0 (default `initial_belief`): finite, non-negative weights with a
+            positive sum (scaled to sum to 1).
 
     Returns:
         float32 ``(T, S)``: belief after every frame, ``S = K`` or ``K + 1`` (last: the unknown state); rows sum
         to 1.
+
+    Raises:
+        ValueError: a wrong shape; a probability that is not finite or outside ``[0, 1]``; a distance that is
+            negative, not finite or over ``MAX_MOVED_M``; a prior with a negative or non-finite weight or a zero
+            sum. The message names the argument and the first bad frame (or state).
 
     Example:
         >>> grid = PlaceGrid(0.0, 30.0, 0.0, 30.0, n=3)
@@ -330,11 +370,11 @@ def forward(probabilities, moved_m, grid: PlaceGrid, config: FilterConfig = Filt
         ((4, 9), 4)
     """
     probs, moved, prior = _check_inputs(grid, config, probabilities, moved_m, prior)
-    return _forward_fn(_static(grid, config))(_params(grid, config), prior, probs, moved)
+    return _run_frames(_static(grid, config), _params(grid, config), prior, probs, moved)[1]
 
 
 def smooth(
-    probabilities, moved_m, grid: PlaceGrid, config: FilterConfig = FilterConfig(), *, lag: int, prior=None
+    probabilities, moved_m, grid: PlaceGrid, config: FilterConfig = _DEFAULT, *, lag: int, prior=None
 ) -> jax.Array:
     """Fixed-lag smoothed beliefs: frame ``t``'s belief given frames ``0 … min(t + lag, T − 1)``.
 
@@ -352,16 +392,19 @@ def smooth(
     if isinstance(lag, bool) or not isinstance(lag, int | np.integer) or lag < 0:
         raise ValueError(f"lag must be an int >= 0 (frames), got {lag!r}")
     probs, moved, prior = _check_inputs(grid, config, probabilities, moved_m, prior)
+    st, p = _static(grid, config), _params(grid, config)
+    alphas = _run_frames(st, p, prior, probs, moved)[1]
     if lag == 0:
-        return _forward_fn(_static(grid, config))(_params(grid, config), prior, probs, moved)
-    return _smooth_fn(_static(grid, config), int(lag))(_params(grid, config), prior, probs, moved)
+        return alphas
+    return _smooth_fn(st, int(lag))(p, alphas, jnp.asarray(probs), jnp.asarray(moved))
 
 
 def place_belief(beliefs, num_classes: int) -> tuple[np.ndarray, np.ndarray]:
     """Splits beliefs into the cells' share and the unknown state's.
 
     Args:
-        beliefs: float ``(..., S)`` from `forward`, `smooth` or `RouteFilter`.
+        beliefs: float ``(..., S)`` from `forward`, `smooth` or `RouteFilter`; finite (NaN is refused: its
+            arg-max would name a cell).
         num_classes: ``K``, the grid's cells; ``S`` is ``K`` or ``K + 1``.
 
     Returns:
@@ -369,17 +412,30 @@ def place_belief(beliefs, num_classes: int) -> tuple[np.ndarray, np.ndarray]:
         prediction is its argmax), and float32 ``(...)`` probability of "none of the known places" (0 without
         the unknown state): a per-frame unseen-place score.
     """
-    b = np.asarray(beliefs, np.float32)
-    if b.shape[-1] not in (num_classes, num_classes + 1):
+    b = _numeric(beliefs, "beliefs").astype(np.float32)
+    if b.ndim == 0 or b.shape[-1] not in (num_classes, num_classes + 1):
         raise ValueError(f"beliefs must have {num_classes} or {num_classes + 1} states in the last axis, got {b.shape}")
+    bad = ~np.isfinite(b).all(axis=-1)
+    if bad.any():
+        where = np.unravel_index(int(np.argmax(bad)), bad.shape) if bad.ndim else ()
+        raise ValueError(f"beliefs: frame {where[0] if len(where) == 1 else where} is not finite (NaN or inf)")
     cells = b[..., :num_classes]
     unknown = b[..., num_classes] if b.shape[-1] > num_classes else np.zeros(b.shape[:-1], np.float32)
     total = cells.sum(axis=-1, keepdims=True)
     return cells / np.where(total > 0, total, 1.0), unknown
 
 
+@functools.lru_cache(maxsize=32)
+def _predict_fn(st: _Static):
+    return jax.jit(functools.partial(_predict, st))
+
+
 class RouteFilter:
     """The route filter for a robot: one frame at a time, the same beliefs as `forward` on the whole session.
+
+    A frame whose classifier output is not finite (a broken image) does not corrupt the belief: `step` then runs
+    the motion prediction only, skips the update and sets `rejected` (``Tracker`` reports such a step as
+    unknown). Wrong shapes, values outside ``[0, 1]`` and bad distances raise ``ValueError``.
 
     Example:
         >>> grid = PlaceGrid(0.0, 30.0, 0.0, 30.0, n=3)
@@ -387,6 +443,8 @@ class RouteFilter:
         >>> p = np.full(9, 0.02); p[4] = 0.84
         >>> int(f.step(p, 0.0).argmax()), int(f.step(p, 1.5).argmax())
         (4, 4)
+        >>> b = f.step(np.full(9, np.nan), 1.0); f.rejected, bool(np.isfinite(b).all())
+        (True, True)
         >>> f.reset(); bool(np.allclose(f.belief, 1 / 9))
         True
 
@@ -394,44 +452,81 @@ class RouteFilter:
         grid: the place grid.
         config: the filter settings.
         belief: float32 ``(S,)`` the current belief (the prior after `reset`).
+        rejected: whether the last `step`'s probabilities were refused (not finite) and only the motion
+            prediction ran; False after `reset` and `predict`.
     """
 
-    def __init__(self, grid: PlaceGrid, config: FilterConfig = FilterConfig(), prior=None):
-        _check_inputs(grid, config, np.zeros((1, grid.num_classes), np.float32), np.zeros(1), prior)
+    def __init__(self, grid: PlaceGrid, config: FilterConfig = _DEFAULT, prior=None):
+        _check_types(grid, config)
         self.grid = grid
         self.config = config
         self._st = _static(grid, config)
         self._p = _params(grid, config)
-        self._prior = jnp.asarray(initial_belief(grid, config) if prior is None else prior, jnp.float32)
+        self._prior = jnp.asarray(initial_belief(grid, config) if prior is None else check_prior(prior, grid, config))
         self._belief = self._prior
+        self.rejected = False
 
     @property
     def belief(self) -> np.ndarray:
         return np.asarray(self._belief)
 
     def reset(self, prior=None) -> None:
-        """Forgets the route: the belief goes back to the prior (or to ``prior``, float ``(S,)``)."""
+        """Forgets the route: the belief goes back to the prior (or to ``prior``, float ``(S,)``, checked as in
+        `forward` and scaled to sum to 1)."""
         if prior is not None:
-            _check_inputs(self.grid, self.config, np.zeros((1, self.grid.num_classes), np.float32), np.zeros(1), prior)
-            self._prior = jnp.asarray(prior, jnp.float32)
+            self._prior = jnp.asarray(check_prior(prior, self.grid, self.config))
         self._belief = self._prior
+        self.rejected = False
+
+    def _moved(self, moved_m) -> np.float32:
+        if isinstance(moved_m, bool) or not isinstance(moved_m, int | float | np.number | np.ndarray | jax.Array):
+            raise ValueError(f"moved_m must be a number (metres), got {type(moved_m).__name__}")
+        if np.ndim(moved_m) != 0:
+            raise ValueError(f"moved_m must be one number (metres), got shape {np.shape(moved_m)}")
+        m = float(moved_m)
+        if not (math.isfinite(m) and 0.0 <= m <= MAX_MOVED_M):
+            check_moved([m])  # raises, with the batch functions' message
+        return np.float32(m)
+
+    def predict(self, moved_m: float) -> np.ndarray:
+        """The motion prediction alone, for a frame without a usable classifier output.
+
+        Args:
+            moved_m: metres travelled since the previous frame, finite, in ``[0, MAX_MOVED_M]``.
+
+        Returns:
+            float32 ``(S,)`` the predicted belief (also kept in `belief`).
+        """
+        self._belief = _predict_fn(self._st)(self._p, self._belief, self._moved(moved_m))
+        self.rejected = False
+        return np.asarray(self._belief)
 
     def step(self, probabilities, moved_m: float) -> np.ndarray:
         """Predicts with the distance travelled since the last frame, updates with the frame's classifier output.
 
         Args:
-            probabilities: float ``(K,)`` calibrated softmax of the new frame.
-            moved_m: metres travelled since the previous frame (or since `reset`), ≥ 0.
+            probabilities: float ``(K,)`` calibrated softmax of the new frame, in ``[0, 1]``. Not finite (NaN or
+                inf anywhere): the update is skipped and `rejected` set (the belief is the prediction).
+            moved_m: metres travelled since the previous frame (or since `reset`), finite, ≥ 0.
 
         Returns:
             float32 ``(S,)`` the new belief (also kept in `belief`).
+
+        Raises:
+            ValueError: ``probabilities`` not of shape ``(K,)`` or finite but outside ``[0, 1]``; ``moved_m``
+                negative, not finite or over ``MAX_MOVED_M``.
         """
-        probs = jnp.asarray(probabilities, jnp.float32)
         k = self.grid.num_classes
-        if probs.shape != (k,):
-            raise ValueError(f"probabilities must have shape ({k},) (the grid's cells), got {probs.shape}")
-        moved = float(moved_m)
-        if not (math.isfinite(moved) and moved >= 0):
-            raise ValueError(f"moved_m must be finite and >= 0 (metres), got {moved_m!r}")
-        self._belief = _step_fn(self._st)(self._p, self._belief, probs, jnp.float32(moved))
+        p = _numeric(probabilities, "probabilities").astype(np.float32)
+        if p.shape != (k,):
+            raise ValueError(f"probabilities must have shape ({k},) (the grid's cells), got {p.shape}")
+        moved = self._moved(moved_m)
+        if not np.isfinite(p).all():
+            self._belief = _predict_fn(self._st)(self._p, self._belief, moved)
+            self.rejected = True
+            return np.asarray(self._belief)
+        if p.min() < 0 or p.max() > 1:
+            check_probabilities(p[None], k)  # raises, naming the value
+        self._belief = _run_frames(self._st, self._p, self._belief, p[None], moved[None], every=False)[0]
+        self.rejected = False
         return np.asarray(self._belief)
