@@ -342,17 +342,24 @@ def test_from_run_errors_name_the_problem(smoke_run, tmp_path, monkeypatch):
 
 
 def test_from_run_reads_the_shipped_depth_network(smoke_run, monkeypatch):
-    """A run whose depth stage got the network shipped with placejax (``"shipped": preset`` in its index) builds a
-    classifier on that network, predicting depth as the shipped file does; an index whose depth config is not the
-    shipped file's is refused, naming both fingerprints."""
+    """A run whose depth stage got the network shipped with placejax (``depth.trained_preset=default``) builds a
+    classifier on that network through the depth-source registry, predicting depth as the shipped file does; an
+    index recording another depth source than the one rebuilt now is refused, naming both."""
     from placejax import depth
+    from placejax.weights import resolve
 
     _, workdir, _ = smoke_run
-    shipped_record = depth.load_shipped("default")
+    shipped_record = resolve(f"shipped:{depth.SHIPPED['default']}")
     shipped, meta = depth.TrainedDepth.from_record(shipped_record), shipped_record.meta
-    spec = {"source": "trained", "shipped": "default", "config": dataclasses.asdict(depth.PRESETS["default"])}
     real = run_layout.locate_run
-    monkeypatch.setattr(run_layout, "locate_run", lambda w, s: dataclasses.replace(real(w, s), depth=spec))
+
+    def as_default(w, s, key=None):
+        files = real(w, s)
+        config = {**files.config, "depth": {**files.config["depth"], "trained_preset": "default", "trained_cache": ""}}
+        entry = {"source": "trained"} if key is None else {"source": "trained", "key": key}
+        return dataclasses.replace(files, config=config, depth=entry)
+
+    monkeypatch.setattr(run_layout, "locate_run", as_default)
     clf = PlaceClassifier.from_run(workdir, TRAIN)
     assert clf.meta["depth"]["size"] == depth.PRESETS["default"].image_size == shipped.config.image_size
     assert clf.meta["depth"]["source"] == {"shipped": "default", "fingerprint": meta["fingerprint"]}
@@ -361,8 +368,9 @@ def test_from_run_reads_the_shipped_depth_network(smoke_run, monkeypatch):
     images = np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
     assert clf.predict(images).label.shape == (2,)
 
-    spec["config"] = dataclasses.asdict(depth.PRESETS["smoke"])
-    with pytest.raises(ValueError, match=rf"{depth.PRESETS['smoke'].fingerprint()}.*ships {meta['fingerprint']}"):
+    other = {"source": "trained", "fingerprint": depth.PRESETS["smoke"].fingerprint()}
+    monkeypatch.setattr(run_layout, "locate_run", lambda w, s: as_default(w, s, key=other))
+    with pytest.raises(ValueError, match=rf"{other['fingerprint']}.*rebuilding it now gives.*{meta['fingerprint']}"):
         PlaceClassifier.from_run(workdir, TRAIN)
 
 

@@ -8,11 +8,11 @@ route filter's settings from the run's config.
 from __future__ import annotations
 
 import dataclasses
-import functools
+import json
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
@@ -21,7 +21,10 @@ from placejax import route
 from placejax.classify import run_layout, unknown
 from placejax.classify._forward import _plain
 from placejax.data import PlaceGrid
-from placejax.models import DepthAnythingV2, MidasSmall
+from placejax.depth import SOURCE_NAMES, DepthSource, DepthSourceConfig, depth_source
+
+if TYPE_CHECKING:
+    from placejax.stages import VGGConfig
 
 
 def restore_params(ckdir: Path) -> dict:
@@ -56,86 +59,18 @@ def run_meta_and_params(
     """
     files = run_layout.locate_run(workdir, train_session)
     cfg = files.config
-    d = files.depth
-    if d["source"] == "trained":
-        from placejax.depth import DepthTrainConfig, load_shipped, load_trained
-
-        dcfg = DepthTrainConfig(**d["config"])
-        if "shipped" in d:  # the network that ships with placejax (placejax.depth.SHIPPED)
-            depth_vars, meta = load_shipped(d["shipped"])  # a placejax.weights.WeightsRecord
-            if meta["fingerprint"] != dcfg.fingerprint():
-                raise ValueError(
-                    f"{files.workdir}: the run used depth network {dcfg.fingerprint()}, but this placejax "
-                    f"ships {meta['fingerprint']} for preset {d['shipped']!r}"
-                )
-        else:
-            depth_vars = load_trained(d["dir"], dcfg).variables
-        depth_meta = {
-            "kind": "trained",
-            "features": dcfg.features,
-            "encoder_width": dcfg.encoder_width,
-            "size": dcfg.image_size,
-            "metric": dcfg.metric,
-            "far_as_sky_m": float(cfg["depth"].get("far_as_sky_m", 0.0)) if dcfg.metric else 0.0,
-            "flip_average": bool(cfg["depth"].get("flip_average", False)) and dcfg.metric,
-            "shifts": [int(k) for k in cfg["depth"].get("shift_px", ())] if dcfg.metric else [],
-            "source": {
-                **({"shipped": d["shipped"]} if "shipped" in d else {"dir": d["dir"]}),
-                "fingerprint": dcfg.fingerprint(),
-            },
-        }
-    elif d["source"] == "midas":
-        from placejax.weights import convert_midas_small, resolve
-
-        model = MidasSmall(features=d["features"], encoder_width=d["encoder_width"])
-        # "registry:NAME" or a path (placejax.weights.resolve), as the experiment's depth stage named it.
-        depth_vars = resolve(d["weights"], convert=functools.partial(convert_midas_small, model=model)).variables
-        depth_meta = {
-            "kind": "midas",
-            "features": d["features"],
-            "encoder_width": d["encoder_width"],
-            "size": 256,
-            "source": {"weights": d["weights"]},
-        }
-    elif d["source"] in ("depth_anything_v2", "depth_anything_v2_metric"):
-        from placejax.weights import REGISTRY, convert_depth_anything_v2, resolve
-
-        # The registry entry the experiment's depth stage took the architecture (and default weights) from.
-        metric = d["source"] == "depth_anything_v2_metric"
-        name = "depth_anything_v2_metric_vkitti_vits" if metric else "depth_anything_v2_vits"
-        model = DepthAnythingV2.from_encoder(**REGISTRY[name].model_kwargs)
-        convert = functools.partial(convert_depth_anything_v2, model=model)
-        depth_vars = resolve(d["weights"], convert=convert).variables
-        depth_meta = {
-            "kind": "depth_anything_v2",
-            "embed_dim": model.embed_dim,
-            "depth": model.depth,
-            "num_heads": model.num_heads,
-            "layers": [int(v) for v in model.layers],
-            "features": model.features,
-            "out_channels": [int(v) for v in model.out_channels],
-            "pos_grid": model.pos_grid,
-            "head": model.head,
-            "max_depth": float(model.max_depth),
-            "short_side": int(d["short_side"]),
-            "source": {"weights": d["weights"], "registry": name, "depth_source": d["source"]},
-        }
-    else:
-        raise ValueError(
-            f"the run in {files.workdir} used depth.source={d['source']!r}: there is no depth network to turn "
-            "a photograph into depth (PlaceClassifier rebuilds 'trained', 'midas', 'depth_anything_v2' and "
-            "'depth_anything_v2_metric'); train with one of those"
-        )
-    depth_meta.update(near_m=cfg["depth"]["near_m"], far_m=cfg["depth"]["far_m"])
+    source = run_depth_source(files)
+    depth_vars, depth_meta = source.variables, source.classifier
     params = {
         "depth": jax.tree_util.tree_map(np.asarray, dict(depth_vars)),
         "rgb": restore(files.rgb_checkpoint),
         "hha": restore(files.hha_checkpoint),
         "mlp": restore(files.mlp_checkpoint),
     }
-    if cfg["vgg"]["pretrained"]:
+    vgg = _vgg_config(cfg["vgg"])
+    if vgg.pretrained:
         for m in ("rgb", "hha"):  # the HHA net may read its own trunk (vgg.hha_weights)
-            params[m] = {"trunk": _pretrained_trunk(cfg["vgg"], m), "classifier": params[m]["classifier"]}
+            params[m] = {"trunk": _pretrained_trunk(vgg, m), "classifier": params[m]["classifier"]}
     score = unknown.DEFAULT_SCORE
     if score in unknown.FEATURE_SCORES and files.embeddings is None:
         score = "msp"  # a run from before the feature scores saved no embeddings: its classifiers used msp
@@ -155,7 +90,7 @@ def run_meta_and_params(
         "intrinsics": files.intrinsics,
         "normalise": files.normalise,
         "depth": depth_meta,
-        "vgg": {"width": cfg["vgg"]["width"], "pretrained": cfg["vgg"]["pretrained"]},
+        "vgg": {"width": vgg.width, "pretrained": vgg.pretrained},
         "mlp_hidden": cfg["mlp"]["hidden"],
         "grid": files.grid,
         "visited_classes": files.visited_classes,
@@ -172,10 +107,65 @@ def run_meta_and_params(
     return meta, params
 
 
-def _pretrained_trunk(vgg_cfg: dict, modality: str) -> dict:
+# Settings older runs' configs lack, at the values those runs used (the depth stage had no such step then).
+_DEPTH_BEFORE_SETTING = {"far_as_sky_m": 0.0, "flip_average": False, "shift_px": ()}
+
+
+def run_depth_source(files: run_layout.RunFiles) -> DepthSource:
+    """The depth source a finished run's depth stage used, rebuilt from its config section ``depth`` through
+    ``placejax.depth.depth_source`` (never training anything), and checked against what the run recorded.
+
+    Raises:
+        ValueError: the run used rendered depth (``depth.source=true``: no network to turn a photograph into
+            depth), or the rebuilt source is not the one the run used (other weights, another network).
+        FileNotFoundError: a trained network that is neither shipped nor in its cache folder any more.
+    """
+    d = files.depth
+    names = {f.name for f in dataclasses.fields(DepthSourceConfig)}
+    section = {**_DEPTH_BEFORE_SETTING, **{k: v for k, v in files.config["depth"].items() if k in names}}
+    origin = d.get("classifier", {}).get("source", d)  # the index's record of where the weights came from
+    if "dir" in origin:  # a network trained into a cache: the root it was trained under
+        section["trained_cache"] = str(Path(origin["dir"]).parent.parent)
+    weights = origin.get("weights", "")
+    if weights and not str(weights).startswith("registry:"):
+        key = "midas_weights" if section["source"] == "midas" else "dav2_weights"
+        section[key] = weights  # the absolute path the run resolved
+    if section["source"] == "true" or d["source"] == "true":
+        raise ValueError(
+            f"the run in {files.workdir} used depth.source='true': there is no depth network to turn a photograph "
+            f"into depth (PlaceClassifier rebuilds {', '.join(repr(n) for n in SOURCE_NAMES if n != 'true')}); "
+            "rerun with one of those, e.g. depth.source=trained"
+        )
+    source = depth_source(DepthSourceConfig(**section), progress=False, train=False)
+    recorded = d.get("key")
+    if recorded is None and "config" in d:  # an index from before the registry: the trained network's recipe
+        from placejax.depth import DepthTrainConfig
+
+        recorded_fp = DepthTrainConfig(**d["config"]).fingerprint()
+        if source.key.get("fingerprint") != recorded_fp:
+            raise ValueError(
+                f"{files.workdir}: the run used depth network {recorded_fp}, but this placejax gives "
+                f"{source.key.get('fingerprint')} for preset {section.get('trained_preset')!r}"
+            )
+    elif recorded is not None and json.loads(json.dumps(source.key)) != recorded:
+        raise ValueError(
+            f"{files.workdir}: the run's depth stage used {recorded}, but rebuilding it now gives {source.key} "
+            "(other weights or another network than the run's)"
+        )
+    return source
+
+
+def _vgg_config(section: dict) -> VGGConfig:
+    # Older runs' configs have no hha_weights: their HHA net read vgg.weights.
+    from placejax.stages import VGGConfig  # (placejax.stages imports the run layout from this package)
+
+    names = {f.name for f in dataclasses.fields(VGGConfig)}
+    return VGGConfig(**{"hha_weights": "", **{k: v for k, v in section.items() if k in names}})
+
+
+def _pretrained_trunk(vgg: VGGConfig, modality: str) -> dict:
     from placejax.pretrain import modality_weights, pretrained_vgg16
 
-    # older runs' configs have no hha_weights: their HHA net read vgg.weights
-    weights = modality_weights(modality, weights=vgg_cfg["weights"], hha_weights=vgg_cfg.get("hha_weights", ""))
-    params = pretrained_vgg16(weights, vgg_cfg["width"])
+    weights = modality_weights(modality, weights=vgg.weights, hha_weights=vgg.hha_weights)
+    params = pretrained_vgg16(weights, vgg.width)
     return jax.tree_util.tree_map(np.asarray, _plain(params["trunk"]))
