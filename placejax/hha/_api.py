@@ -190,7 +190,7 @@ def encode_full(
     depth, k, raw, depth_range, squeeze = _prepare(
         depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, max_depth_m
     )
-    out = _encode_batch(depth, k, raw, depth_range)
+    out = _encode_batch(depth, k, raw, depth_range, full=True)
     if squeeze:
         out = jax.tree_util.tree_map(lambda x: x[0], out)
     return out
@@ -208,9 +208,10 @@ def encode(
 ) -> jax.Array:
     """HHA encoding (Gupta et al., ECCV 2014) of metric depth images, as the original implementation computes it.
 
-    Compiled once per input shape and dtype; a batch runs as one ``vmap`` of the single-image encoder. The same
-    result comes out eagerly, under a caller's ``jax.jit`` and under ``jax.vmap``: whether every pixel is valid
-    (the fast path) is decided on the data inside the compiled code, never from a Python-level look at it.
+    Compiled once per input shape and dtype; a batch runs as a loop over small chunks of images (each chunk a
+    ``vmap`` of the single-image encoder), so that each chunk's working set stays in cache. The same result comes
+    out eagerly, under a caller's ``jax.jit`` and under ``jax.vmap``: whether every pixel is valid (the fast path)
+    is decided on the data inside the compiled code, never from a Python-level look at it.
 
     Args:
         depth_m: ``(H, W)`` or ``(B, H, W)`` z-depth along the optical axis. **Floating** arrays are metres.
@@ -258,15 +259,11 @@ def encode(
         >>> hha.encode(np.full((48, 64), 2000, np.uint16), k, depth_scale=0.001)[0, 0].tolist()  # millimetres
         [155, 177, 128]
     """
-    return encode_full(
-        depth_m,
-        intrinsics,
-        raw_depth_m,
-        depth_scale=depth_scale,
-        min_depth_m=min_depth_m,
-        max_depth_m=max_depth_m,
-        dtype=dtype,
-    ).hha
+    depth, k, raw, depth_range, squeeze = _prepare(
+        depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, max_depth_m
+    )
+    out = _encode_batch(depth, k, raw, depth_range, full=False)  # the intermediates are never computed
+    return out[0] if squeeze else out
 
 
 def encode_stream(
