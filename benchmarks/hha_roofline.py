@@ -255,7 +255,7 @@ def stage_costs(batch: int, h: int, w: int) -> tuple[dict, dict]:
         _, (x, inv) = enc._planes_dense(fit, cam, tok)
         return enc._gravity_iterate(enc._gravity_rows(x, inv, tok))[1]
 
-    runs = jax.jit(lambda dd, kk: enc._map_images(iterations_run, (dd, kk), 1))(depth, ks)
+    runs = jax.jit(lambda dd, kk: jax.lax.map(lambda a: iterations_run(*a), (dd, kk)))(depth, ks)
     iterations = float(np.mean(np.sum(np.asarray(runs), axis=1)))
 
     calls = {

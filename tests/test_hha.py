@@ -121,7 +121,7 @@ def test_batch_equals_loop_and_per_image_intrinsics():
 
 def test_mixed_batch_equals_the_loop_exactly():
     # Each image is its own computation (dense or with holes, decided per image), whatever its neighbours: a batch
-    # mixing both kinds, with a remainder after the encoder's chunks, is the loop bit for bit.
+    # mixing both kinds is the loop bit for bit.
     rng = np.random.default_rng(5)
     images, ks = [], []
     for i in range(5):

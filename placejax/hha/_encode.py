@@ -5,11 +5,12 @@ computed so that float32 is enough and XLA can compile it once for a whole batch
 fits live in :mod:`placejax.hha._windows` (centred moments; closed-form fits for dense images); this module holds
 the gravity estimate, the channels and the batch loop.
 
-* The batch runs in chunks of ``_CHUNK`` images (a ``lax.map`` over chunks, ``vmap`` inside one): every stage
-  of one chunk, gravity's ten passes included, works on data that stays in cache, where a whole-batch ``vmap``
-  streamed each stage's maps for all images through memory.
-* Whether an image is dense (every pixel usable by the fits) is decided per chunk by a ``lax.cond`` on the
-  data; dense chunks skip the moments of the mask and the per-pixel adjugate.
+* The batch runs one image at a time (``lax.map``): every stage of one image, gravity's iterations included,
+  works on data that stays in cache, where a whole-batch ``vmap`` streamed each stage's maps for all images
+  through memory (which is why the previous encoder was slower per image at batch 32 than at batch 8). XLA
+  still splits each large kernel between the cores.
+* Whether an image is dense (every pixel usable by the fits) is decided per image by a ``lax.cond`` on the
+  data; dense images skip the moments of the mask and the per-pixel adjugate.
 * The gravity estimate runs its 5 + 5 iterations as two ``lax.while_loop`` s that stop once an iteration
   returns its input bit for bit: from there on every further iteration of that pass would return it again (the
   floor/wall sets, hence A, are functions of the estimate alone), so the result is the fixed-trip-count one.
@@ -55,10 +56,6 @@ from placejax.hha._windows import (
     mask_terms,
     unit_normals,
 )
-
-# Images per step of the batch loop: small enough that one chunk's maps stay in cache (a 256² map is 256 KiB),
-# large enough that XLA splits each of its loops between two cores (benchmarks/hha_roofline.py).
-_CHUNK = 2
 
 
 class HHAResult(NamedTuple):
@@ -124,7 +121,7 @@ def _gravity_step(outer: jax.Array, y: jax.Array, theta_deg: float) -> jax.Array
     weight = jnp.where(c2 < sin2_t, 1.0, 0.0).astype(dtype) - jnp.where(c2 > cos2_t, 1.0, 0.0).astype(dtype)
     axx, axy, axz, ayy, ayz, azz = jnp.dot(outer, weight, precision=jax.lax.Precision.HIGHEST)
     a = jnp.stack([jnp.stack([axx, axy, axz]), jnp.stack([axy, ayy, ayz]), jnp.stack([axz, ayz, azz])])
-    _, vecs = jnp.linalg.eigh(a)
+    _, vecs = jnp.linalg.eigh(a, symmetrize_input=False)  # a is symmetric by construction
     new = vecs[:, 0]  # eigenvalues ascend: the smallest one's eigenvector
     new = new * jnp.where(new @ y < 0, -1.0, 1.0)
     # Nothing selected: A = 0 has no preferred direction, so keep the current estimate. A = 0 means exactly
@@ -275,38 +272,6 @@ def _encode_one(depth_m, raw_depth_m, intrinsics, depth_range, token, full: bool
         return _finish_one(valid, camera, x7, inv7, g, full)
 
 
-def _map_images(fn, xs: tuple, chunk: int):
-    """``fn(*args)`` (one image → a pytree) over the leading axis of every array in ``xs`` (a tuple of pytrees;
-    ``None`` stays ``None``), results stacked along a new leading axis.
-
-    A ``lax.map`` over chunks of ``chunk`` images whose body calls ``fn`` once per image of the chunk (the
-    remainder as one shorter chunk): every image is its own unbatched computation, so that one image's working
-    set stays in cache, and the images of a chunk are independent computations that XLA's runtime may run at
-    the same time on different cores.
-    """
-    b = jax.tree.leaves(xs)[0].shape[0]
-    if b == 0:
-        one = jax.eval_shape(fn, *jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), xs))
-        return jax.tree.map(lambda s: jnp.zeros((0, *s.shape), s.dtype), one)
-
-    def run(arrays):  # leaves (c, ...) → tuple of c per-image results
-        c = jax.tree.leaves(arrays)[0].shape[0]
-        return tuple(fn(*jax.tree.map(lambda x, i=i: x[i], arrays)) for i in range(c))
-
-    n, rem = divmod(b, chunk)
-    parts = []
-    if n:
-        split = jax.tree.map(lambda x: x[: n * chunk].reshape(n, chunk, *x.shape[1:]), xs)
-        outs = jax.lax.map(run, split)  # chunk-tuple of pytrees with leaves (n, ...)
-        parts.append(jax.tree.map(lambda *ys: jnp.stack(ys, 1).reshape(n * chunk, *ys[0].shape[1:]), *outs))
-    if rem:
-        outs = run(jax.tree.map(lambda x: x[n * chunk :], xs))
-        parts.append(jax.tree.map(lambda *ys: jnp.stack(ys), *outs))
-    if len(parts) == 1:
-        return parts[0]
-    return jax.tree.map(lambda *ys: jnp.concatenate(ys), *parts)
-
-
 @functools.partial(jax.jit, static_argnames="full")
 def _encode_batch(depth_m, intrinsics, raw_depth_m, depth_range, full: bool = True):
     """``depth_m (B, H, W)`` metres, ``intrinsics (B, 3, 3)``, ``raw_depth_m (B, H, W)`` metres or ``None``,
@@ -317,7 +282,7 @@ def _encode_batch(depth_m, intrinsics, raw_depth_m, depth_range, full: bool = Tr
     """
     token = jnp.sum(depth_m.reshape(-1)[:1])  # any unbatched runtime scalar (see _materialise); 0 if empty
     fn = functools.partial(_encode_one, depth_range=depth_range, token=token, full=full)
-    out = _map_images(lambda d, r, k: fn(d, r, k), (depth_m, raw_depth_m, intrinsics), _CHUNK)
+    out = jax.lax.map(lambda a: fn(*a), (depth_m, raw_depth_m, intrinsics))
     with jax.named_scope("channels_last"):
         if not full:
             return _channels_last(out)
