@@ -369,7 +369,9 @@ def main(argv: list[str] | None = None) -> None:
         f"(median of {args.repeats}; CPU {1e3 * whole['cpu_s'] / b:.3f} ms/image over all threads); under the "
         f"profiler {wall_ms:.3f} ms/image, of which kernels {kernel_ms:.3f}. Gravity ran "
         f"{inputs['gravity_iterations']:.1f} of 10 iterations per image. The stages' floors sum to {floor:.3f} "
-        f"ms/image ({1e3 / floor:.0f} images/s)."
+        f"ms/image ({1e3 / floor:.0f} images/s). The work, spread evenly over {cores} idle core"
+        f"{'s' * (cores > 1)}, would take {1e3 * whole['cpu_s'] / b / cores:.3f} ms/image "
+        f"({cores * b / whole['cpu_s']:.0f} images/s): a projection from the CPU time, not a measurement."
     )
     name = "hha_roofline" if args.cores is None else f"hha_roofline_{cores}core"
     path = write_json(

@@ -11,7 +11,9 @@ that (it replaces the direct 2-D convolutions with separable sums), so the speed
 ``--baseline-encoder`` loads ``placejax/hha/_encode.py`` of another checkout (e.g. the main branch's) and times
 its compiled batch encoder on the same prepared inputs, call for call alternating with this checkout's
 (``_encode_batch``, the same arrays ``hha.encode`` hands it), so that both see the same load on a shared
-machine; the table then gives both and their ratio. The load average before and after is printed and recorded.
+machine; the table then gives both, their ratio, and their CPU time (all threads; steadier than wall time on a
+loaded machine). The load average before and after is printed and recorded. For single-core numbers, start it
+under ``taskset -c 0`` (XLA sizes its thread pool to the cores it may use).
 """
 
 from __future__ import annotations
@@ -63,15 +65,17 @@ def load_encoder(checkout: Path):
     return lambda d, k, r: batch(d, k, None, r).hha
 
 
-def alternating(fns: dict, repeats: int) -> dict[str, list[float]]:
-    """Seconds of ``repeats`` blocking calls of each function, the functions called in turn."""
-    times = {name: [] for name in fns}
+def alternating(fns: dict, repeats: int) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+    """Wall and CPU seconds (all threads of the process) of ``repeats`` blocking calls of each function, the
+    functions called in turn."""
+    walls, cpus = {name: [] for name in fns}, {name: [] for name in fns}
     for _ in range(repeats):
         for name, fn in fns.items():
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             jax.block_until_ready(fn())
-            times[name].append(time.perf_counter() - t0)
-    return times
+            walls[name].append(time.perf_counter() - t0)
+            cpus[name].append(time.process_time() - c0)
+    return walls, cpus
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -117,7 +121,7 @@ def main(argv: list[str] | None = None) -> None:
                 for fn in fns.values():
                     jax.block_until_ready(fn())
                 same = np.abs(np.asarray(fns["this"](), int) - np.asarray(fns["baseline"](), int))
-            times = alternating(fns, repeats)
+            times, cpu = alternating(fns, repeats)
             med = statistics.median(times["encode"])
             row = {
                 "size": f"{h}x{w}",
@@ -133,10 +137,14 @@ def main(argv: list[str] | None = None) -> None:
             }
             if baseline is not None:
                 this_s, base_enc_s = statistics.median(times["this"]), statistics.median(times["baseline"])
+                this_cpu, base_cpu = statistics.median(cpu["this"]), statistics.median(cpu["baseline"])
                 row |= {
                     "this_images_per_s": b / this_s,
                     "baseline_images_per_s": b / base_enc_s,
                     "baseline_over_this": base_enc_s / this_s,
+                    "this_cpu_ms_per_image": 1e3 * this_cpu / b,
+                    "baseline_cpu_ms_per_image": 1e3 * base_cpu / b,
+                    "baseline_over_this_cpu": base_cpu / this_cpu,
                     "max_level_diff_vs_baseline": int(same.max()),
                     "share_differing_vs_baseline": float((same > 0).mean()),
                     "this_times_s": times["this"],
@@ -170,6 +178,9 @@ def main(argv: list[str] | None = None) -> None:
             ("this_images_per_s", "encoder images/s"),
             ("baseline_images_per_s", "baseline encoder images/s"),
             ("baseline_over_this", "baseline time / this"),
+            ("this_cpu_ms_per_image", "encoder CPU ms/image"),
+            ("baseline_cpu_ms_per_image", "baseline CPU ms/image"),
+            ("baseline_over_this_cpu", "baseline CPU / this"),
             ("max_level_diff_vs_baseline", "max level diff"),
         ]
     print_table(rows, columns)

@@ -6,9 +6,9 @@ fits live in :mod:`placejax.hha._windows` (centred moments; closed-form fits for
 the gravity estimate, the channels and the batch loop.
 
 * The batch runs one image at a time (``lax.map``): every stage of one image, gravity's iterations included,
-  works on data that stays in cache, where a whole-batch ``vmap`` streamed each stage's maps for all images
-  through memory (which is why the previous encoder was slower per image at batch 32 than at batch 8). XLA
-  still splits each large kernel between the cores.
+  works on a few MiB that stay in cache (a 256² map is 256 KiB), where one ``vmap`` over the batch makes every
+  kernel stream that stage's maps for all images (~54 MB per kernel at 256² × 32) through memory. XLA still
+  splits each large kernel between the cores.
 * Whether an image is dense (every pixel usable by the fits) is decided per image by a ``lax.cond`` on the
   data; dense images skip the moments of the mask and the per-pixel adjugate.
 * The gravity estimate runs its 5 + 5 iterations as two ``lax.while_loop`` s that stop once an iteration
