@@ -6,17 +6,21 @@ The encoder (``placejax.hha.encode``, dense path, ray-cast scenes) runs under JA
 launches is attributed to the stage whose ``jax.named_scope`` it carries: prepare (masks, depth in cm), window
 sums (7×7 and 21×21 moments of 1/Z), plane fits (the closed-form dense fits and their norms), gravity rows (the
 n nᵀ entries, once per image), gravity iterations (the floor/wall loop), finish (height, angle, quantisation)
-and channels last (the final (B, H, W, 3) interleave). Time between kernels is the runtime's ("overhead"). The
-encoder has no percentile or sort step: the floor height is one min per image.
+and channels last (the final (B, H, W, 3) interleave); matrix products, which XLA leaves unnamed, count with the
+stage of the loop they sit in. Time between kernels is the runtime's. The encoder has no percentile or sort
+step: the floor height is one min per image.
 
-For the floors, each stage also runs as its own jitted function, whose compiled cost analysis gives its
-floating-point operations and the bytes its kernels read and write (the gravity loop: one iteration's cost
-times the iterations actually run). The machine's side is measured in the same run with XLA-generated code:
-streaming bandwidth from memory (128 MiB, copied in place) and from cache (1 MiB, re-read), the arithmetic
-rate of fused multiply-adds on data in L1, and the cost of one kernel launch (loops of cheap kernels,
-extrapolated to an empty array); each is the fastest of the repeats, i.e. what the machine can do. A stage's
-floor is the largest of bytes / cache bandwidth, flops / arithmetic rate and kernels × launch cost; its time
-over the floor says how far from the machine's limits XLA's code for it runs, and which limit binds.
+For the floors: each stage also runs as its own jitted function, whose compiled cost analysis gives its
+floating-point operations (the gravity loop: one iteration's, times the iterations actually run); the bytes are
+the encoder's own kernels' compulsory traffic, each operand and output once per execution (from the compiled
+program and the profiled execution counts; a stencil's re-reads of the same rows come from L1 and are not
+counted). The machine's side is measured in the same run with XLA-generated code: streaming bandwidth from
+memory (128 MiB, copied in place) and from cache (1 MiB, re-read) and the arithmetic rate of fused multiply-adds
+on data in L1, each the fastest of the repeats (what the machine can do); a kernel launch costs the median time
+of the encoder's kernels with at most 64 outputs. A stage's floor is the largest of bytes / cache bandwidth,
+flops / arithmetic rate and kernels × launch cost; its time over the floor says how far from the machine's
+limits XLA's code for it runs, and which limit binds. The summary adds a projection (not a measurement): the
+CPU time of all threads spread evenly over the cores.
 
 ``--cores N`` pins the process to N cores before JAX starts (XLA sizes its thread pool to them; ``--cores 1``
 gives single-core costs). With several cores the kernels of one image may overlap, so the stages' kernel
