@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from placejax import hha
-from placejax.hha import _encode
+from placejax.hha import _encode, _windows
 from placejax.hha._reference import box_sum
 from placejax.hha.scenes import ground_and_wall
 
@@ -117,6 +117,88 @@ def test_batch_equals_loop_and_per_image_intrinsics():
         np.testing.assert_allclose(np.asarray(batch.gravity[i]), np.asarray(one.gravity), atol=1e-6)
     shared = hha.encode(depth, ks[0])
     np.testing.assert_array_equal(np.asarray(shared), np.asarray(hha.encode(depth, np.broadcast_to(ks[0], (3, 3, 3)))))
+
+
+def test_mixed_batch_equals_the_loop_exactly():
+    # Each image is its own computation (dense or with holes, decided per image), whatever its neighbours: a batch
+    # mixing both kinds is the loop bit for bit.
+    rng = np.random.default_rng(5)
+    images, ks = [], []
+    for i in range(5):
+        depth, k, _, _ = ground_and_wall(24, 32, f=30.0, pitch_deg=rng.uniform(-12, -4), roll_deg=rng.uniform(-6, 6))
+        if i % 2:
+            depth[rng.random(depth.shape) < 0.05] = np.nan
+        images.append(depth)
+        ks.append(k)
+    batch = hha.encode_full(np.stack(images), np.stack(ks))
+    for i in range(5):
+        one = hha.encode_full(images[i], ks[i])
+        np.testing.assert_array_equal(np.asarray(batch.hha[i]), np.asarray(one.hha))
+        np.testing.assert_array_equal(np.asarray(batch.gravity[i]), np.asarray(one.gravity))
+    np.testing.assert_array_equal(np.asarray(hha.encode(np.stack(images), np.stack(ks))), np.asarray(batch.hha))
+
+
+@pytest.mark.parametrize(("h", "w"), [(1, 6), (2, 3), (5, 2), (9, 13), (30, 41)])
+def test_dense_closed_form_fit_equals_the_general_fit(h, w):
+    # With every pixel valid the window moments factor into a column and a row part; the closed-form fit must
+    # give the general (mask moments + adjugate) fit's normals and regularity, tiny and degenerate images included.
+    rng = np.random.default_rng(h * 100 + w)
+    z = jnp.asarray(100.0 * rng.uniform(1.0, 5.0, (h, w)), jnp.float32)
+    k = jnp.asarray([[0.8 * w + 3, 0, (w - 1) / 2], [0, 0.8 * w + 3, (h - 1) / 2], [0, 0, 1]], jnp.float32)
+    _, _, camera = _encode._prepare_one(z / 100.0, None, k, jnp.asarray([0.1, 1000.0], jnp.float32))
+    token = jnp.float32(1.0)
+    mw7, mw21 = _windows._moments(1.0 / camera[2], _windows.WEIGHT_SPEC, token)
+    terms7, terms21 = _windows.mask_terms(jnp.ones((h, w), jnp.float32), token)
+    for r, mw, (cof, regular) in ((3, mw7, terms7), (10, mw21, terms21)):
+        x_general, ok_general = _windows.fit_planes(cof, regular, mw, camera, token)
+        x_dense, ok_dense = _windows.fit_planes_dense(mw, r, camera, token)
+        inv_general = _windows.inverse_norm(x_general, ok_general)
+        inv_dense = _windows.inverse_norm(x_dense, ok_dense)
+        np.testing.assert_array_equal(np.asarray(inv_dense > 0), np.asarray(inv_general > 0))
+        n_general = np.stack(_windows.unit_normals(x_general, inv_general, camera))
+        n_dense = np.stack(_windows.unit_normals(x_dense, inv_dense, camera))
+        np.testing.assert_allclose(n_dense, n_general, atol=2e-5)
+    if min(h, w) == 1:  # a single row or column: every window is collinear, no normal anywhere
+        assert not np.asarray(inv_dense > 0).any()
+
+
+def test_gravity_stopping_at_its_fixed_point_is_the_full_loop():
+    # The 5 + 5 iterations stop early once an iteration returns its input bit for bit; running every
+    # iteration must give the very same vector, for scenes that converge and for noise that does not.
+    def full_loop(outer):
+        y = jnp.array([0.0, 1.0, 0.0], jnp.float32)
+        for theta, n in zip((45.0, 15.0), (5, 5), strict=True):
+            for _ in range(n):
+                y = _encode._gravity_step(outer, y, theta)
+        return y
+
+    rng = np.random.default_rng(6)
+    token = jnp.float32(1.0)
+    cases = []
+    for pitch, roll in ((-10.0, 4.0), (-3.0, -12.0)):
+        depth, k, _, _ = ground_and_wall(40, 56, f=45.0, pitch_deg=pitch, roll_deg=roll)
+        depth = depth * np.exp(rng.normal(0, 0.02, depth.shape))
+        _, fit, camera = _encode._prepare_one(
+            jnp.asarray(depth, jnp.float32), None, jnp.asarray(k, jnp.float32), jnp.asarray([0.1, 1000.0])
+        )
+        _, (x21, inv21) = _encode._planes_dense(fit, camera, token)
+        cases.append((x21, inv21))
+    noise = jnp.asarray(rng.normal(size=(3, 20, 30)), jnp.float32)
+    cases.append((noise, jax.lax.rsqrt(jnp.sum(noise * noise, axis=0))))
+    stopped = []
+    for x, inv in cases:
+        outer = _encode._gravity_rows(x, inv, token)
+        g, runs = jax.jit(_encode._gravity_iterate)(outer)
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(jax.jit(full_loop)(outer)))
+        stopped.append(int(np.sum(np.asarray(runs))))
+    assert min(stopped) < 10  # the scenes converge: the early stop is exercised
+
+
+def test_encode_is_encode_full_hha():
+    # encode compiles without the intermediates; its images are encode_full's, missing pixels included.
+    depth, holed, k = _scene_with_holes()
+    for d in (depth, holed, np.stack([depth, holed, depth])):
+        np.testing.assert_array_equal(np.asarray(hha.encode(d, k)), np.asarray(hha.encode_full(d, k).hha))
 
 
 def test_jit_equals_eager():

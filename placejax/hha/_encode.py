@@ -1,35 +1,31 @@
-"""Jitted, batched HHA encoder (float32, centred least squares, fixed-trip-count gravity loop).
+"""Jitted, batched HHA encoder (float32, centred least squares, gravity loop that stops at its fixed point).
 
 The algorithm is the reference one (``docs/hha.md``, Gupta et al. ECCV 2014); what differs is how it is
-computed so that float32 is enough and XLA can compile it once for a whole batch:
+computed so that float32 is enough and XLA can compile it once for a whole batch. The window sums and plane
+fits live in :mod:`placejax.hha._windows` (centred moments; closed-form fits for dense images); this module holds
+the gravity estimate, the channels and the batch loop.
 
-* Normals are fitted with moments taken relative to each window's centre pixel, in pixel offsets (s = column
-  offset, t = row offset). The raw moments of a = X/Z and b = Y/Z are nearly singular (a and b change by ~0.01
-  across a window) and their adjugate cancels catastrophically in float32; the centred 3×3 systems are well
-  conditioned. The fit w = 1/Z ≈ y1·s + y2·t + y3 is mapped back to the reference plane x1·a + x2·b + x3 = 1/Z
-  exactly (x1 = fx·y1, x2 = fy·y2, x3 = y3 − x1·a_c − x2·b_c).
-* Window sums are separable correlations with the kernels 1, s, s² along columns and 1, t, t² along rows,
-  written as shifted slices so that XLA fuses them into a few loops. The 21×21 windows are assembled from three
-  7-wide blocks of the 7×7 sums (Σ over a shifted block of (k + c)^p expands into the block's own moments), which
-  costs a fraction of a direct 21-tap pass.
-* The gravity estimate is a ``lax.fori_loop`` over 5 + 5 iterations with fixed-shape floor/wall masks, so one
-  compiled function serves every image of a batch.
-
-Performance (XLA CPU; measured on a loaded 2-core x86 machine, see ``benchmarks/hha_speed.py``):
-
-* Every stage is materialised with :func:`_materialise` (an identity ``lax.cond``): otherwise XLA fuses each
-  stage into all its consumers and recomputes it there (4× the work of the stages; ``optimization_barrier``
-  does not prevent this on CPU).
-* Maps are zero-padded once and every pass after that is a "valid" correlation: an explicit pad per stage is
-  materialised as a separate copy. The 7×7 and 21×21 moments share their column pass; the depth-independent
-  cofactors of the mask moments are computed once per call for dense input.
-* Gravity runs image by image (``lax.map``), so each image's normals stay in cache through the ten passes, and
-  each pass is one matrix-vector product against the precomputed entries of n nᵀ.
+* The batch runs one image at a time (``lax.map``): every stage of one image, gravity's iterations included,
+  works on a few MiB that stay in cache (a 256² map is 256 KiB), where one ``vmap`` over the batch makes every
+  kernel stream that stage's maps for all images (~54 MB per kernel at 256² × 32) through memory. XLA still
+  splits each large kernel between the cores.
+* Whether an image is dense (every pixel usable by the fits) is decided per image by a ``lax.cond`` on the
+  data; dense images skip the moments of the mask and the per-pixel adjugate.
+* The gravity estimate runs its 5 + 5 iterations as two ``lax.while_loop`` s that stop once an iteration
+  returns its input bit for bit: from there on every further iteration of that pass would return it again (the
+  floor/wall sets, hence A, are functions of the estimate alone), so the result is the fixed-trip-count one.
+* ``encode`` (the HHA image only) compiles without the intermediates ``encode_full`` returns: the stacked
+  normals, heights and angles are never written.
 * ``jnp.arccos`` (an ``atan2`` that does not vectorise) is replaced by a float32 polynomial of the same accuracy.
+
+Where the time goes, stage by stage, against the machine's memory bandwidth and arithmetic rate:
+``python -m benchmarks.hha_roofline`` (``docs/hha.md``, "Speed").
 """
 
 from __future__ import annotations
 
+import functools
+import sys
 from typing import NamedTuple
 
 import jax
@@ -49,9 +45,17 @@ from placejax.hha._constants import (
     RADIUS_GRAVITY,
     ROTATION_SKIP_DEG,
 )
-
-# The 21×21 gravity windows are built from three 7×7 blocks: this relies on the two radii being 10 and 3.
-assert RADIUS_GRAVITY == 3 * RADIUS_ANGLE + 1 and 2 * RADIUS_ANGLE + 1 == 7
+from placejax.hha._windows import (
+    WEIGHT_SPEC,
+    _correlate,  # noqa: F401  (placejax.depth's window-plane loss shares the encoder's window sums)
+    _materialise,
+    _moments,
+    fit_planes,
+    fit_planes_dense,
+    inverse_norm,
+    mask_terms,
+    unit_normals,
+)
 
 
 class HHAResult(NamedTuple):
@@ -80,195 +84,78 @@ class HHAResult(NamedTuple):
 
 
 # ----------------------------------------------------------------------------------------------------------------------
-# Materialisation points.
-
-
-def _materialise(tree, token: jax.Array):
-    """``tree`` unchanged, computed once into memory: a fusion barrier XLA CPU respects.
-
-    Left to itself XLA fuses each window-sum stage into every consumer and recomputes it there: the 7-tap
-    row-pass slices of the moments went into each of nx, ny, nz and the validity mask separately (4× the work,
-    plus the fit itself 4×), which made the whole encoder ~4× slower than its stages. ``optimization_barrier``
-    does not stop this on CPU (it is expanded before fusion); a conditional does, since fusion never crosses its
-    boundary. Both branches are the identity, so the predicate only has to be an *unbatched* runtime scalar
-    (``token``, taken outside ``vmap``): a batched predicate would turn the cond into a select of both branches.
-    """
-    return jax.lax.cond(token != 0.5, lambda t: t, lambda t: jax.tree.map(jnp.copy, t), tree)
-
-
-# ----------------------------------------------------------------------------------------------------------------------
-# Window moments.
-
-
-def _correlate(x: jax.Array, powers: tuple[int, ...], axis: int) -> dict[int, jax.Array]:
-    """Σ_{k=-3..3} k^p · x[i + k] along ``axis`` for every p in ``powers``, "valid" part only (6 shorter).
-
-    Plain shifted slices of an array that already carries its zero border: no padding op in between, which XLA
-    CPU would otherwise materialise as a separate copy at every stage.
-    """
-    r = RADIUS_ANGLE
-    n = x.shape[axis] - 2 * r
-    taps = [jax.lax.slice_in_dim(x, r + k, r + k + n, axis=axis) for k in range(-r, r + 1)]
-    outs = {}
-    for p in powers:
-        acc = taps[r] if p == 0 else None  # k = 0 contributes only to p = 0
-        for k in range(1, r + 1):
-            if p == 0:
-                term = taps[r + k] + taps[r - k]
-            elif p % 2:
-                term = float(k**p) * (taps[r + k] - taps[r - k])
-            else:
-                term = float(k**p) * (taps[r + k] + taps[r - k])
-            acc = term if acc is None else acc + term
-        outs[p] = acc
-    return outs
-
-
-def _widen(m: dict[int, jax.Array], powers: tuple[int, ...], axis: int) -> dict[int, jax.Array]:
-    """Moments over 21 taps from moments over 7 taps: blocks centred at offsets −7, 0, +7 ("valid", 14 shorter).
-
-    Σ_{k in block c} k^p x = Σ_{k'=-3..3} (k' + c)^p x[i + c + k'], expanded binomially in the block's own
-    moments M_q (q ≤ p) evaluated at i + c.
-    """
-    w = 2 * RADIUS_ANGLE + 1
-    n = next(iter(m.values())).shape[axis] - 2 * w
-
-    def at(x, c):  # x[i + c] on the output domain
-        return jax.lax.slice_in_dim(x, w + c, w + c + n, axis=axis)
-
-    binom = {0: (1,), 1: (1, 1), 2: (1, 2, 1)}
-    out = {}
-    for p in powers:
-        total = at(m[p], 0)
-        for c in (-w, w):
-            block = sum(binom[p][q] * float(c ** (p - q)) * m[q] for q in range(p + 1))
-            total = total + at(block, c)
-        out[p] = total
-    return out
-
-
-# Border the maps carry into the moment computation: 3 for the 7-tap pass, then 7 more for the 21-wide blocks.
-_BORDER = RADIUS_ANGLE + 2 * RADIUS_ANGLE + 1  # = RADIUS_GRAVITY
-
-
-def _moments(
-    x: jax.Array, spec: dict[int, tuple[int, ...]], token: jax.Array
-) -> tuple[dict[tuple[int, int], jax.Array], dict[tuple[int, int], jax.Array]]:
-    """Window sums Σ s^p t^q x over 7×7 and over 21×21 windows of an ``(H, W)`` map, zero outside the image.
-
-    ``spec`` maps a column power p to the row powers q needed with it (s = column offset, t = row offset).
-    The map is zero-padded once by ``_BORDER``; every pass after that is a "valid" correlation that shrinks the
-    domain, so the 7-tap column pass is shared by both sizes and no stage pads again. The 7-wide blocks of a
-    border window are centred up to 7 pixels outside the image, where their own sums still see image pixels:
-    that is what the border is for. Each stage is materialised (see :func:`_materialise`).
-    """
-    r, e = RADIUS_ANGLE, 2 * RADIUS_ANGLE + 1
-    h, w = x.shape
-    xp = jnp.pad(x, _BORDER)
-    col_powers = tuple(sorted(spec))
-    cols = _materialise(_correlate(xp, col_powers, axis=1), token)  # columns −7 … W+7
-    cols_wide = _materialise(_widen(cols, col_powers, axis=1), token)  # columns 0 … W
-    narrow, wide = {}, {}
-    for p, row_powers in spec.items():
-        # 7×7: rows −3 … H+3 of the columns 0 … W of the 7-tap column sums.
-        c7 = cols[p][_BORDER - r : _BORDER + h + r, e : e + w]
-        narrow.update({(p, q): v for q, v in _correlate(c7, row_powers, axis=0).items()})
-        rows = _materialise(_correlate(cols_wide[p], row_powers, axis=0), token)  # rows −7 … H+7
-        wide.update({(p, q): v for q, v in _widen(rows, row_powers, axis=0).items()})
-    return _materialise((narrow, wide), token)
-
-
-_SINGULAR_RTOL = 1e-5
-_MASK_SPEC = {0: (0, 1, 2), 1: (0, 1), 2: (0,)}  # moments of the valid mask: 1, t, t², s, st, s²
-_WEIGHT_SPEC = {0: (0, 1), 1: (0,)}  # moments of 1/Z: 1, t, s
-
-
-def _cofactors(mm: dict[tuple[int, int], jax.Array]):
-    """Adjugate of each window's symmetric system [[ss, st, s], [st, tt, t], [s, t, 1]] (mask moments only) and
-    whether the system is regular.
-
-    A window defines a plane only if its valid pixels are not collinear (≥ 3 of them, spanning 2-D): otherwise
-    the moment matrix is singular and the reference's normal there is rounding noise. The pixel-offset moments
-    are small integers, so the singular case is an exact (relative) zero; well-posed windows sit far above.
-    Depends on the fit mask alone: for dense input it is computed once per batch.
-    """
-    s_ss, s_st, s_s = mm[(2, 0)], mm[(1, 1)], mm[(1, 0)]
-    s_tt, s_t, s_1 = mm[(0, 2)], mm[(0, 1)], mm[(0, 0)]
-    c00 = s_tt * s_1 - s_t * s_t
-    c01 = s_s * s_t - s_st * s_1
-    c02 = s_st * s_t - s_s * s_tt
-    c11 = s_ss * s_1 - s_s * s_s
-    c12 = s_st * s_s - s_ss * s_t
-    c22 = s_ss * s_tt - s_st * s_st
-    det = s_ss * c00 + s_st * c01 + s_s * c02
-    regular = det > _SINGULAR_RTOL * s_ss * s_tt * s_1
-    return (c00, c01, c02, c11, c12, c22), regular
-
-
-def _fit_normals(cof, regular, mw, a_c, b_c, z, fx, fy, token):
-    """Unit normals (nx, ny, nz maps) of the least-squares plane in each window, oriented away from the camera.
-
-    ``cof``/``regular`` from :func:`_cofactors`, ``mw`` the window moments of 1/Z. Returns the three component
-    maps and the mask of windows that define a plane. Components are kept as separate ``(H, W)`` maps rather
-    than a stacked ``(H, W, 3)`` array: every step is then a plain elementwise loop that XLA fuses, with no
-    strided channel access.
-    """
-    c00, c01, c02, c11, c12, c22 = cof
-    r_s, r_t, r_1 = mw[(1, 0)], mw[(0, 1)], mw[(0, 0)]
-    y1 = c00 * r_s + c01 * r_t + c02 * r_1
-    y2 = c01 * r_s + c11 * r_t + c12 * r_1
-    y3 = c02 * r_s + c12 * r_t + c22 * r_1
-    x1 = y1 * fx
-    x2 = y2 * fy
-    x3 = y3 - x1 * a_c - x2 * b_c
-    norm2 = x1 * x1 + x2 * x2 + x3 * x3
-    ok = regular & (norm2 > 0)
-    inv_norm = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, norm2, 1.0)), 0.0)
-    # Orientation as the reference: first n_z >= 0, then n·p >= 0 with the unmasked point p = z·(a_c, b_c, 1).
-    # Both signs combine into one factor; z > 0 drops out of the second test (z = 0 counts as +).
-    s1 = jnp.where(x3 < 0, -1.0, 1.0)
-    s2 = jnp.where(s1 * (x1 * a_c + x2 * b_c + x3) * z < 0, -1.0, 1.0)
-    f = inv_norm * s1 * s2
-    return _materialise(((x1 * f, x2 * f, x3 * f), ok), token)
-
-
-# ----------------------------------------------------------------------------------------------------------------------
 # Gravity.
 
 
-def _gravity(normals: tuple[jax.Array, jax.Array, jax.Array], ok: jax.Array) -> jax.Array:
-    """Iterative floor/wall estimate of the down direction (reference ``getYDir``) as a fixed-trip-count loop.
+def _gravity(x: jax.Array, inv_norm: jax.Array, token: jax.Array) -> jax.Array:
+    """Iterative floor/wall estimate of the down direction (reference ``getYDir``) of one image, from its 21×21
+    planes ``x (3, H, W)`` and their inverse norms (0 where a window defines no plane): unit ``(3,)``."""
+    with jax.named_scope("gravity_rows"):
+        outer = _gravity_rows(x, inv_norm, token)
+    with jax.named_scope("gravity_iterations"):
+        return _gravity_iterate(outer)[0]
 
-    One image at a time (the caller maps it over the batch, so that an image's normals stay in cache through the
-    ten passes). The six distinct entries of n nᵀ are formed once; each iteration then only builds the ±1/0
-    floor/wall weights and takes one matrix-vector product: A = Σ_W n nᵀ − Σ_F n nᵀ = (n nᵀ entries) · weights.
-    The normals are materialised before the loop, so the product's operands are plain arrays.
+
+def _gravity_rows(x: jax.Array, inv_norm: jax.Array, token: jax.Array) -> jax.Array:
+    """``(6, P)``: the distinct entries (xx, xy, xz, yy, yz, zz) of n nᵀ for every pixel's unit normal n (0 where
+    no plane); the orientation of n drops out of them."""
+    n = (x * inv_norm[None]).reshape(3, -1)
+    # One gather of rows (a stack of six products is a concatenate, which XLA CPU writes element by element, ~3×
+    # slower). Materialised, so that the weights read the very array the product reads (left alone, XLA feeds
+    # them six separate copies of the rows: twice the memory each iteration reads).
+    return _materialise(n[np.array([0, 0, 0, 1, 1, 2])] * n[np.array([0, 1, 2, 1, 2, 2])], token)
+
+
+def _gravity_step(outer: jax.Array, y: jax.Array, theta_deg: float) -> jax.Array:
+    """One iteration: the smallest eigenvector of A = Σ_W n nᵀ − Σ_F n nᵀ, sign-aligned with the estimate ``y``.
+
+    The ±1/0 floor/wall weights come from c² = (n·y)² = Σ (n nᵀ)·(y yᵀ), so that the iteration reads the six
+    rows of ``outer`` and nothing else; A is then one matrix-vector product, (n nᵀ entries) · weights. Windows
+    without a plane have n nᵀ = 0: whatever weight they get, they add nothing.
     """
-    nx, ny, nz = (c.reshape(-1) for c in normals)
-    ok = ok.reshape(-1)
-    dtype = nx.dtype
-    thresholds = np.repeat(np.deg2rad(GRAVITY_THRESHOLDS_DEG), GRAVITY_ITERATIONS)
-    cos_t = jnp.asarray(np.cos(thresholds), dtype)
-    sin_t = jnp.asarray(np.sin(thresholds), dtype)
-    outer = jnp.stack([nx * nx, nx * ny, nx * nz, ny * ny, ny * nz, nz * nz])  # (6, P)
-    hi = jax.lax.Precision.HIGHEST
+    dtype = outer.dtype
+    cos2_t = np.asarray(np.cos(np.deg2rad(theta_deg)) ** 2, dtype)
+    sin2_t = np.asarray(np.sin(np.deg2rad(theta_deg)) ** 2, dtype)
+    q = (y[0] * y[0], 2 * y[0] * y[1], 2 * y[0] * y[2], y[1] * y[1], 2 * y[1] * y[2], y[2] * y[2])
+    c2 = sum(outer[k] * q[k] for k in range(6))
+    weight = jnp.where(c2 < sin2_t, 1.0, 0.0).astype(dtype) - jnp.where(c2 > cos2_t, 1.0, 0.0).astype(dtype)
+    axx, axy, axz, ayy, ayz, azz = jnp.dot(outer, weight, precision=jax.lax.Precision.HIGHEST)
+    a = jnp.stack([jnp.stack([axx, axy, axz]), jnp.stack([axy, ayy, ayz]), jnp.stack([axz, ayz, azz])])
+    _, vecs = jnp.linalg.eigh(a, symmetrize_input=False)  # a is symmetric by construction
+    new = vecs[:, 0]  # eigenvalues ascend: the smallest one's eigenvector
+    new = new * jnp.where(new @ y < 0, -1.0, 1.0)
+    # Nothing selected: A = 0 has no preferred direction, so keep the current estimate. A = 0 means exactly
+    # that, without a separate count: tr A = |W| − |F| (unit normals) would force |W| = |F| = k, and then
+    # yᵀAy = Σ_W c² − Σ_F c² < k sin²θ − k cos²θ ≤ 0 (θ ≤ 45°) unless k = 0.
+    return jnp.where(jnp.any(a != 0), new, y)
 
-    def step(i, y):
-        c = jnp.abs(nx * y[0] + ny * y[1] + nz * y[2])
-        floor = ok & (c > cos_t[i])
-        wall = ok & (c < sin_t[i])
-        weight = wall.astype(dtype) - floor.astype(dtype)
-        axx, axy, axz, ayy, ayz, azz = jnp.dot(outer, weight, precision=hi)
-        a = jnp.stack([jnp.stack([axx, axy, axz]), jnp.stack([axy, ayy, ayz]), jnp.stack([axz, ayz, azz])])
-        _, vecs = jnp.linalg.eigh(a)
-        new = vecs[:, 0]  # eigenvalues ascend: the smallest one's eigenvector
-        new = new * jnp.where(new @ y < 0, -1.0, 1.0)
-        # Nothing selected: A = 0 has no preferred direction, so keep the current estimate. A = 0 means exactly
-        # that, without a separate count: tr A = |W| − |F| (unit normals) would force |W| = |F| = k, and then
-        # yᵀAy = Σ_W c² − Σ_F c² < k sin²θ − k cos²θ ≤ 0 (θ ≤ 45°) unless k = 0.
-        return jnp.where(jnp.any(a != 0), new, y)
 
-    return jax.lax.fori_loop(0, len(thresholds), step, jnp.array([0.0, 1.0, 0.0], dtype))
+def _gravity_iterate(outer: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The 5 + 5 iterations from y = (0, 1, 0): ``(gravity (3,), iterations run (2,) int32)``.
+
+    Each pass stops early at a fixed point (an iteration that returns its input bit for bit), which changes
+    nothing: every further iteration of the pass would compute the same A from the same estimate.
+    """
+
+    def bits(v):
+        return jax.lax.bitcast_convert_type(v, jnp.int32)
+
+    y = jnp.array([0.0, 1.0, 0.0], outer.dtype)
+    runs = []
+    for theta_deg, iterations in zip(GRAVITY_THRESHOLDS_DEG, GRAVITY_ITERATIONS, strict=True):
+
+        def body(state, theta_deg=theta_deg):
+            i, y, _ = state
+            new = _gravity_step(outer, y, theta_deg)
+            return i + 1, new, jnp.all(bits(new) == bits(y))
+
+        def more(state, iterations=iterations):
+            i, _, fixed = state
+            return (i < iterations) & ~fixed
+
+        i, y, _ = jax.lax.while_loop(more, body, (jnp.int32(0), y, jnp.bool_(False)))
+        runs.append(i)
+    return y, jnp.stack(runs)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -294,44 +181,62 @@ def _arccos(x: jax.Array) -> jax.Array:
     return jnp.where(x < 0, np.float32(np.pi) - acos_a, acos_a)
 
 
-def _camera(depth_m: jax.Array, intrinsics: jax.Array):
-    """Valid mask, depth in cm, and X/Z of each column ``(1, W)`` and Y/Z of each row ``(H, 1)``."""
+def _prepare_one(depth_m, raw_depth_m, intrinsics, depth_range):
+    """One image's masks and camera: ``(valid, fit_mask, camera)`` with camera = (a_c (1, W), b_c (H, 1),
+    z (H, W) cm, fx, fy).
+
+    Every decision about the data is taken here, on traced values, so the result is the same eagerly and under
+    a caller's ``jit``/``vmap``: depth outside the range (NaN and ±inf included) is missing; an image whose
+    intrinsics are non-finite or have fx ≤ 0 or fy ≤ 0 is entirely missing (its matrix is replaced by the
+    identity so that no NaN leaks into the outputs).
+    """
     h, w = depth_m.shape
     dtype = depth_m.dtype
-    valid = jnp.isfinite(depth_m) & (depth_m > 0)
+    lo, hi = depth_range[0], depth_range[1]
+    fx, fy = intrinsics[0, 0], intrinsics[1, 1]
+    k_ok = jnp.all(jnp.isfinite(intrinsics)) & (fx > 0) & (fy > 0)
+    intrinsics = jnp.where(k_ok, intrinsics, jnp.eye(3, dtype=dtype))
+    valid = (depth_m >= lo) & (depth_m <= hi) & k_ok  # NaN compares False
+    fit_mask = valid if raw_depth_m is None else valid & (raw_depth_m >= lo) & (raw_depth_m <= hi)
     z = jnp.where(valid, depth_m, 0.0) * 100.0  # cm, as the reference
     fx, fy = intrinsics[0, 0], intrinsics[1, 1]
     cx, cy = intrinsics[0, 2], intrinsics[1, 2]
     a_c = (jnp.arange(w, dtype=dtype)[None, :] - cx) / fx  # (1, W): X/Z of each column
     b_c = (jnp.arange(h, dtype=dtype)[:, None] - cy) / fy  # (H, 1): Y/Z of each row
-    return valid, z, a_c, b_c
+    return valid, fit_mask, (a_c, b_c, z, fx, fy)
 
 
-def _normals_one(depth_m: jax.Array, intrinsics: jax.Array, mask_terms, token: jax.Array):
-    """One ``(H, W)`` image's 7×7 and 21×21 normals. ``mask_terms``: :func:`_mask_terms` of its fit mask (the
-    pixels the normal fits may use); ``token`` is the unbatched scalar of :func:`_materialise`."""
-    fit_mask, (cof7, regular7), (cof21, regular21) = mask_terms
-    _, z, a_c, b_c = _camera(depth_m, intrinsics)
-    inv_z = fit_mask / jnp.where(fit_mask > 0, z, 1.0)
-    fx, fy = intrinsics[0, 0], intrinsics[1, 1]
-    mw7, mw21 = _moments(inv_z, _WEIGHT_SPEC, token)
-    return (
-        _fit_normals(cof7, regular7, mw7, a_c, b_c, z, fx, fy, token),
-        _fit_normals(cof21, regular21, mw21, a_c, b_c, z, fx, fy, token),
-    )
+def _planes_dense(fit_mask, camera, token):
+    """7×7 and 21×21 planes ``(x, inverse norm)`` of an image whose every pixel is usable (``fit_mask`` all True)."""
+    with jax.named_scope("window_sums"):
+        mw7, mw21 = _moments(1.0 / camera[2], WEIGHT_SPEC, token)
+    with jax.named_scope("plane_fits"):
+        x7, regular7 = fit_planes_dense(mw7, RADIUS_ANGLE, camera, token)
+        x21, regular21 = fit_planes_dense(mw21, RADIUS_GRAVITY, camera, token)
+        return _materialise(((x7, inverse_norm(x7, regular7)), (x21, inverse_norm(x21, regular21))), token)
 
 
-def _mask_terms(fit_mask: jax.Array, token: jax.Array):
-    """The fit mask and the cofactors of its 7×7 and 21×21 systems (the depth-independent half of the fits)."""
-    mm7, mm21 = _moments(fit_mask, _MASK_SPEC, token)
-    return fit_mask, _materialise(_cofactors(mm7), token), _materialise(_cofactors(mm21), token)
+def _planes_masked(fit_mask, camera, token):
+    """7×7 and 21×21 planes of an image with missing pixels: fits from the moments of its own mask."""
+    z = camera[2]
+    m = fit_mask.astype(z.dtype)
+    with jax.named_scope("mask_window_sums"):
+        (cof7, regular7), (cof21, regular21) = mask_terms(m, token)
+    with jax.named_scope("window_sums"):
+        mw7, mw21 = _moments(m / jnp.where(fit_mask, z, 1.0), WEIGHT_SPEC, token)
+    with jax.named_scope("plane_fits"):
+        x7, regular7 = fit_planes(cof7, regular7, mw7, camera, token)
+        x21, regular21 = fit_planes(cof21, regular21, mw21, camera, token)
+        return _materialise(((x7, inverse_norm(x7, regular7)), (x21, inverse_norm(x21, regular21))), token)
 
 
-def _finish_one(depth_m: jax.Array, intrinsics: jax.Array, normals, ok_angle: jax.Array, g: jax.Array) -> HHAResult:
-    """One image's height, angle and quantised channels from its 7×7 normals and its gravity vector."""
-    dtype = depth_m.dtype
-    valid, z, a_c, b_c = _camera(depth_m, intrinsics)
-    nx, ny, nz = normals
+def _finish_one(valid, camera, x7, inv7, g, full: bool):
+    """One image's height, angle and quantised channels from its 7×7 planes and its gravity vector: the HHA
+    channels packed as ``uint32 (H, W)`` (and, if ``full``, the normals and the float channels)."""
+    a_c, b_c, z, _, _ = camera
+    dtype = z.dtype
+    nx, ny, nz = unit_normals(x7, inv7, camera)
+    ok_angle = inv7 > 0
 
     rotate = jnp.arccos(jnp.clip(g[1], -1.0, 1.0)) > np.deg2rad(ROTATION_SKIP_DEG)
     up = jnp.where(rotate, g, jnp.array([0.0, 1.0, 0.0], dtype))  # (Rᵀp)_y = (R y0)·p = g·p, R y0 = g (Rodrigues)
@@ -345,70 +250,49 @@ def _finish_one(depth_m: jax.Array, intrinsics: jax.Array, normals, ok_angle: ja
     disparity = DISPARITY_NUMERATOR / jnp.maximum(z, DISPARITY_MIN_CM)
 
     def quantise(x):  # round half to even (as np.rint), cap at 255; invalid depth → 0
-        return jnp.where(valid, jnp.clip(jnp.round(x), 0, 255), 0).astype(jnp.uint8)
+        return jnp.where(valid, jnp.clip(jnp.round(x), 0, 255), 0).astype(jnp.uint32)
 
-    hha = jnp.stack([quantise(disparity), quantise(height), quantise(angle + ANGLE_OFFSET)], axis=-1)
-    normals = jnp.stack([nx, ny, nz], axis=-1)
-    return HHAResult(hha, normals, ok_angle, g, jnp.where(valid, height, 0.0), angle, valid)
-
-
-def _encode_dense(depth_m: jax.Array, intrinsics: jax.Array, token: jax.Array) -> HHAResult:
-    """Every pixel valid and present: the fit mask is shared by the whole batch, and vmap leaves an unbatched
-    input unbatched, so its window moments (half of the normal-fitting work) are computed once per call instead
-    of once per image."""
-    fit_mask = jnp.ones(depth_m.shape[1:], depth_m.dtype)
-    mask_terms = _mask_terms(fit_mask, token)
-    return _encode_masked(depth_m, intrinsics, mask_terms, None, token)
+    # The three channels packed into one uint32 per pixel (bytes 0, 1, 2): one kernel writes them, and the
+    # batch's (B, H, W, 3) array is then a byte view of it (_channels_last).
+    packed = quantise(disparity) | (quantise(height) << 8) | (quantise(angle + ANGLE_OFFSET) << 16)
+    if not full:
+        return packed
+    return packed, (nx, ny, nz), ok_angle, g, jnp.where(valid, height, 0.0), angle, valid
 
 
-def _encode_missing(depth_m: jax.Array, intrinsics: jax.Array, fit_mask: jax.Array, token: jax.Array) -> HHAResult:
-    """Some pixel missing: one fit mask per image."""
-    mask_terms = jax.vmap(_mask_terms, in_axes=(0, None))(fit_mask.astype(depth_m.dtype), token)
-    return _encode_masked(depth_m, intrinsics, mask_terms, 0, token)
+def _encode_one(depth_m, raw_depth_m, intrinsics, depth_range, token, full: bool):
+    """One ``(H, W)`` image, unbatched: a ``lax.cond`` picks the dense fits when every pixel is usable (``cond``
+    runs one branch; under a caller's ``vmap`` it becomes a select of both, each image still getting its own
+    branch's result)."""
+    with jax.named_scope("prepare"):
+        valid, fit_mask, camera = _prepare_one(depth_m, raw_depth_m, intrinsics, depth_range)
+    (x7, inv7), (x21, inv21) = jax.lax.cond(jnp.all(fit_mask), _planes_dense, _planes_masked, fit_mask, camera, token)
+    g = _gravity(x21, inv21, token)
+    with jax.named_scope("finish"):
+        return _finish_one(valid, camera, x7, inv7, g, full)
 
 
-def _encode_masked(depth_m, intrinsics, mask_terms, mask_axis, token) -> HHAResult:
-    (n_angle, ok_angle), n_gravity = jax.vmap(_normals_one, in_axes=(0, 0, mask_axis, None))(
-        depth_m, intrinsics, mask_terms, token
-    )
-    # Gravity image by image (a loop over the batch, not vmap): each image's normals then stay in cache through
-    # the ten passes, instead of every pass streaming the whole batch's normals through memory.
-    g = jax.lax.map(lambda a: _gravity(*a), n_gravity)
-    return jax.vmap(_finish_one)(depth_m, intrinsics, n_angle, ok_angle, g)
-
-
-@jax.jit
-def _encode_batch(
-    depth_m: jax.Array, intrinsics: jax.Array, raw_depth_m: jax.Array | None, depth_range: jax.Array
-) -> HHAResult:
+@functools.partial(jax.jit, static_argnames="full")
+def _encode_batch(depth_m, intrinsics, raw_depth_m, depth_range, full: bool = True):
     """``depth_m (B, H, W)`` metres, ``intrinsics (B, 3, 3)``, ``raw_depth_m (B, H, W)`` metres or ``None``,
     ``depth_range (2,)``: the inclusive valid depth range [min, max] in metres.
 
-    Every decision about the data is taken here, on traced values, so the result is the same eagerly and under a
-    caller's ``jit``/``vmap``:
-
-    * depth outside the range (NaN and ±inf included) becomes NaN, i.e. missing for everything downstream;
-    * an image whose intrinsics are non-finite or have fx ≤ 0 or fy ≤ 0 is entirely missing (its matrix is
-      replaced by the identity so that no NaN leaks into the outputs);
-    * the shared-mask fast path runs only when every pixel of the batch is valid and present (``lax.cond``,
-      which executes one branch; under a caller's ``vmap`` it becomes a select of both, each image still getting
-      its own branch's result).
+    Returns the :class:`HHAResult`, or with ``full=False`` only its ``uint8 (B, H, W, 3)`` HHA images (then
+    nothing else is computed into memory).
     """
-    dtype = depth_m.dtype
-    lo, hi = depth_range[0], depth_range[1]
-    fx, fy = intrinsics[:, 0, 0], intrinsics[:, 1, 1]
-    k_ok = jnp.all(jnp.isfinite(intrinsics), axis=(1, 2)) & (fx > 0) & (fy > 0)
-    intrinsics = jnp.where(k_ok[:, None, None], intrinsics, jnp.eye(3, dtype=dtype))
-    valid = (depth_m >= lo) & (depth_m <= hi) & k_ok[:, None, None]  # NaN compares False
-    depth_m = jnp.where(valid, depth_m, jnp.nan)
-    fit_mask = valid if raw_depth_m is None else valid & (raw_depth_m >= lo) & (raw_depth_m <= hi)
     token = jnp.sum(depth_m.reshape(-1)[:1])  # any unbatched runtime scalar (see _materialise); 0 if empty
-    return jax.lax.cond(
-        jnp.all(fit_mask),
-        lambda d, k, m, t: _encode_dense(d, k, t),
-        _encode_missing,
-        depth_m,
-        intrinsics,
-        fit_mask,
-        token,
-    )
+    fn = functools.partial(_encode_one, depth_range=depth_range, token=token, full=full)
+    out = jax.lax.map(lambda a: fn(*a), (depth_m, raw_depth_m, intrinsics))
+    with jax.named_scope("channels_last"):
+        if not full:
+            return _channels_last(out)
+        packed, normals, ok_angle, g, height, angle, valid = out
+        normals = jnp.moveaxis(jnp.stack(normals, axis=1), 1, -1)  # a stack along the last axis is ~3× slower
+        return HHAResult(_channels_last(packed), normals, ok_angle, g, height, angle, valid)
+
+
+def _channels_last(packed: jax.Array) -> jax.Array:
+    """``uint8 (..., 3)`` channels from pixels packed by :func:`_finish_one` (byte k = channel k): a byte view
+    and one strided copy, where stacking three maps along the last axis is written element by element."""
+    as_bytes = jax.lax.bitcast_convert_type(packed, jnp.uint8)  # (..., 4) in the platform's byte order
+    return as_bytes[..., :3] if sys.byteorder == "little" else as_bytes[..., :0:-1]
