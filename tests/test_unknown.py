@@ -221,3 +221,21 @@ def test_can_fit_feature_detector_says_when_a_session_is_too_small():
     for score, y in (("knn50", labels[:60]), ("mahalanobis", np.arange(40))):
         with pytest.raises(ValueError):
             unknown.fit_feature_detector(score, np.random.default_rng(0).normal(size=(len(y), 3)), y)
+
+
+def test_prepared_knn_reference_gives_the_same_distances():
+    """``knn_reference`` prepares the reference once (what a streaming Tracker asks for frame after frame); the
+    distances are the unprepared call's, bit for bit, whatever the chunking."""
+    from placejax.classify import unknown
+
+    rng = np.random.default_rng(3)
+    ref = unknown.l2_normalise(rng.normal(size=(300, 48)))
+    queries = unknown.l2_normalise(rng.normal(size=(70, 48)))
+    prepared = unknown.knn_reference(ref)
+    assert len(prepared) == 300
+    for k in (1, 5):
+        want = unknown.knn_distance(ref, queries, k)
+        np.testing.assert_array_equal(unknown.knn_distance(prepared, queries, k), want)
+        np.testing.assert_array_equal(unknown.knn_distance(prepared, queries, k, chunk=16), want)
+    with pytest.raises(ValueError, match="share D"):
+        unknown.knn_distance(prepared, queries[:, :10], 1)

@@ -319,9 +319,17 @@ class PlaceClassifier:
         branch's logits for a logit score, of the fused ``embedding`` for a feature score."""
         kind = self.unknown_kind
         if kind in unknown.FEATURE_SCORES:
-            model = {k: np.asarray(v) for k, v in self.params["unknown"].items()}
-            return unknown.feature_score(kind, model, np.asarray(outputs["embedding"], np.float32))
+            return unknown.feature_score(kind, self._unknown_model(), np.asarray(outputs["embedding"], np.float32))
         return np.asarray(unknown.unknown_score(outputs[branch], kind))
+
+    def _unknown_model(self) -> dict:
+        # The feature score's arrays as NumPy, a k-NN reference prepared once (a Tracker asks one frame at a time).
+        if getattr(self, "_unknown_cache", None) is None:
+            model = {k: np.asarray(v) for k, v in self.params["unknown"].items()}
+            if "reference" in model:
+                model["reference"] = unknown.knn_reference(model["reference"])
+            self._unknown_cache = model
+        return self._unknown_cache
 
     def prediction_from_outputs(self, outputs: dict[str, np.ndarray], branch: str = "fusion") -> Prediction:
         """:meth:`predict` of outputs :meth:`logits` already computed (e.g. the streaming ``Tracker``'s)."""

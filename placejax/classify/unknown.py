@@ -27,6 +27,7 @@ Their thresholds come from training frames *held out* from the reference (:func:
 from __future__ import annotations
 
 import re
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -39,6 +40,7 @@ __all__ = [
     "FEATURE_SCORES",
     "KNN_KS",
     "SCORES",
+    "KnnReference",
     "auroc",
     "can_fit_feature_detector",
     "detection_metrics",
@@ -50,6 +52,7 @@ __all__ = [
     "held_out_feature_scores",
     "held_out_folds",
     "knn_distance",
+    "knn_reference",
     "l2_normalise",
     "ledoit_wolf_shrinkage",
     "mahalanobis_distance",
@@ -175,13 +178,32 @@ def _knn_k(score: str) -> int:
     return int(m.group(1))
 
 
+class KnnReference(NamedTuple):
+    """A k-NN reference prepared once for many queries (:func:`knn_reference`): what :func:`knn_distance` would
+    otherwise convert on every call (a streaming caller queries one frame at a time)."""
+
+    rows_t: np.ndarray  # float64 (D, M): the reference rows, transposed
+    norms2: np.ndarray  # float64 (M,): their squared lengths
+
+    def __len__(self) -> int:
+        return self.norms2.shape[0]
+
+
+def knn_reference(reference) -> KnnReference:
+    """``reference`` float ``(M, D)`` prepared for :func:`knn_distance` (same distances, computed once)."""
+    r = np.asarray(reference, np.float32)
+    if r.ndim != 2:
+        raise ValueError(f"reference must have shape (M, D), got {r.shape}")
+    return KnnReference(np.ascontiguousarray(r.T.astype(np.float64)), np.sum(r.astype(np.float64) ** 2, axis=1))
+
+
 def knn_distance(reference, queries, k: int, *, exclude=None, chunk: int = 1024) -> np.ndarray:
     """Euclidean distance of each query to its ``k``-th nearest reference row (k = 1: the nearest), float32 ``(N,)``.
 
     Rows are used as given: L2-normalise both first (:func:`l2_normalise`) for Sun et al.'s score.
 
     Args:
-        reference: float ``(M, D)``.
+        reference: float ``(M, D)``, or the same prepared once by :func:`knn_reference`.
         queries: float ``(N, D)``.
         k: 1 ≤ k ≤ M.
         exclude: optional bool ``(N, M)``: True where reference row ``j`` may not be query ``i``'s neighbour
@@ -192,24 +214,24 @@ def knn_distance(reference, queries, k: int, *, exclude=None, chunk: int = 1024)
     >>> knn_distance(ref, np.array([[0.0, 0.0]]), 2).tolist()
     [1.0]
     """
-    r = np.asarray(reference, np.float32)
+    ref = reference if isinstance(reference, KnnReference) else knn_reference(reference)
     q = np.asarray(queries, np.float32)
-    if r.ndim != 2 or q.ndim != 2 or r.shape[1] != q.shape[1]:
-        raise ValueError(f"reference (M, D) and queries (N, D) must share D, got {r.shape} and {q.shape}")
-    if not 1 <= k <= len(r):
-        raise ValueError(f"k must be in [1, {len(r)}] (the reference's rows), got {k}")
+    m, d = ref.norms2.shape[0], ref.rows_t.shape[0]
+    if q.ndim != 2 or q.shape[1] != d:
+        raise ValueError(f"reference (M, D) and queries (N, D) must share D, got {(m, d)} and {q.shape}")
+    if not 1 <= k <= m:
+        raise ValueError(f"k must be in [1, {m}] (the reference's rows), got {k}")
     if exclude is not None:
         exclude = np.asarray(exclude, bool)
-        if exclude.shape != (len(q), len(r)):
-            raise ValueError(f"exclude must have shape {(len(q), len(r))}, got {exclude.shape}")
+        if exclude.shape != (len(q), m):
+            raise ValueError(f"exclude must have shape {(len(q), m)}, got {exclude.shape}")
         if ((~exclude).sum(axis=1) < k).any():
             raise ValueError(f"exclude leaves fewer than k = {k} reference rows for some query")
-    r2 = np.sum(r.astype(np.float64) ** 2, axis=1)
     out = np.empty(len(q), np.float32)
     for lo in range(0, len(q), chunk):
         qq = q[lo : lo + chunk].astype(np.float64)
         # |q − r|² = |q|² − 2 q·r + |r|², clipped at 0 against rounding.
-        d2 = np.maximum(np.sum(qq**2, axis=1)[:, None] - 2.0 * qq @ r.T.astype(np.float64) + r2[None, :], 0.0)
+        d2 = np.maximum(np.sum(qq**2, axis=1)[:, None] - 2.0 * qq @ ref.rows_t + ref.norms2[None, :], 0.0)
         if exclude is not None:
             d2[exclude[lo : lo + chunk]] = np.inf
         out[lo : lo + chunk] = np.sqrt(np.partition(d2, k - 1, axis=1)[:, k - 1])
