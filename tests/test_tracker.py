@@ -201,25 +201,25 @@ def test_tracker_reproduces_the_runs_route_column(smoke_run, tmp_path):
     seed's networks), to the last frame: a saved and reloaded classifier, each other season's cached frames in
     order, one at a time through ``Tracker.step`` with the distances the experiment used (SimCampus's simulated
     odometry)."""
-    from experiments.cross_season.context import Context
-    from experiments.cross_season.route import session_moved
-    from experiments.cross_season.sessions import fit_grid, load_sessions
-
+    from experiments.cross_season.config import sections
+    from placejax import stages
+    from placejax.data import moved_m
     from placejax.training import data_mesh
 
     cfg, workdir, results = smoke_run
     clf = PlaceClassifier.load(PlaceClassifier.from_run(workdir, TRAIN).save(tmp_path / "wi.placejax"))
     assert clf.route == route.FilterConfig(**{k: v for k, v in cfg.route.items() if k != "block_frames"})
     assert Tracker.from_run(workdir, TRAIN).config == clf.route
-    ctx = Context(config=cfg, workdir=Path(workdir).absolute(), mesh=data_mesh(None))
-    sessions = load_sessions(ctx)
-    fit_grid(ctx, sessions)  # the frames' labels, as the run drew them
+    c = sections(cfg)
+    ws = stages.Workspace(Path(workdir).absolute(), data_mesh(None), progress=False)
+    sessions = stages.open_sessions(ws, c["data"])
+    stages.fit_grid(ws, sessions, c["grid"])  # the frames' labels, as the run drew them
     pairs = {(p["train"], p["test"]): p for p in results["pairs"]}
     tested = []
     for t in sessions:
         if t.name == TRAIN:
             continue
-        moved, source = session_moved(cfg, t)
+        moved, source = moved_m(c["data"], t.source, np.asarray(t.cached.utimes), clf.route.max_speed_mps)
         assert source == "odometry"
         tracker = Tracker(clf)  # the classifier's settings: the run's temperature and filter
         steps = [tracker.step(im, float(d)) for im, d in zip(np.asarray(t.cached.images), moved, strict=True)]
