@@ -19,6 +19,7 @@ import numpy as np
 from placejax import io
 from placejax.data import folder as _folder
 from placejax.data import poses
+from placejax.data.sources import SIMCAMPUS_RENDERS, simcampus_render
 
 __all__ = [
     "SIMCAMPUS_RENDER_PRESETS",
@@ -29,15 +30,9 @@ __all__ = [
     "simcampus_world_from_camera",
 ]
 
-# How experiments.cross_season renders SimCampus in each preset that uses it (data.world_seed, data.image_size,
-# data.frame_spacing, data.max_frames of experiments/cross_season/config.py; the renderer's default field of
-# view). placejax does not import the experiments, so the settings live here too, and tests/test_folder.py checks
-# that the two agree.
-SIMCAMPUS_RENDER_PRESETS: dict[str, dict] = {
-    "smoke": {"world_seed": 0, "image_size": (64, 64), "frame_spacing": 40.0, "max_frames": 0},
-    "default": {"world_seed": 0, "image_size": (96, 96), "frame_spacing": 1.0, "max_frames": 0},
-}
-"""Preset → how ``python -m placejax.data.simcampus export`` renders the campus (the experiment's data presets)."""
+SIMCAMPUS_RENDER_PRESETS: dict[str, dict] = {name: simcampus_render(name) for name in SIMCAMPUS_RENDERS}
+"""Preset → how ``python -m placejax.data.simcampus export`` renders the campus: the experiment's data presets,
+from their one definition (``placejax.data.sources.SIMCAMPUS_RENDERS``)."""
 
 
 def simcampus_world_from_camera(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:

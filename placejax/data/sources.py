@@ -18,7 +18,7 @@ import numpy as np
 from placejax import config as _config
 from placejax.data.session import Session, truncated
 
-__all__ = ["SOURCES", "DataConfig", "GridConfig", "moved_m", "open_session"]
+__all__ = ["SIMCAMPUS_RENDERS", "SOURCES", "DataConfig", "GridConfig", "moved_m", "open_session", "simcampus_render"]
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +101,28 @@ class GridConfig:
 
     def __post_init__(self):
         _config.check(self, positive_int=("n",))
+
+
+SIMCAMPUS_RENDERS: dict[str, dict] = {
+    "default": {},
+    # A frame every 40 m covers each season's whole route in ~50 frames, so sessions share places.
+    "smoke": {"frame_spacing": 40.0, "image_size": (64, 64)},
+}
+"""Named renders of SimCampus, as overrides of :class:`DataConfig`'s defaults: the experiment's ``smoke`` and
+``default`` presets take theirs from here, and ``python -m placejax.data.simcampus export --preset NAME`` renders
+the same frames as session folders."""
+
+
+def simcampus_render(name: str) -> dict:
+    """``{world_seed, image_size, frame_spacing, max_frames}`` of the named SimCampus render (``SIMCAMPUS_RENDERS``).
+
+    >>> simcampus_render("smoke")
+    {'world_seed': 0, 'image_size': (64, 64), 'frame_spacing': 40.0, 'max_frames': 0}
+    """
+    if name not in SIMCAMPUS_RENDERS:
+        raise KeyError(f"unknown SimCampus render {name!r}; known: {sorted(SIMCAMPUS_RENDERS)}")
+    cfg = DataConfig(**SIMCAMPUS_RENDERS[name])
+    return {k: getattr(cfg, k) for k in ("world_seed", "image_size", "frame_spacing", "max_frames")}
 
 
 def open_session(cfg: DataConfig, name: str, *, progress: bool = True) -> Session:

@@ -4,12 +4,13 @@ frames, each season's whole route, so sessions share places) at 64×64, a 3×3 g
 CPU cores."""
 
 from experiments.cross_season.config import base_config
+from placejax.data import SIMCAMPUS_RENDERS
 
 
 def get_config():
     c = base_config()
     c.preset = "smoke"
-    c.data.update(frame_spacing=40.0, image_size=(64, 64))
+    c.data.update(**SIMCAMPUS_RENDERS["smoke"])
     c.grid.n = 3
     c.depth.source = "true"
     c.n_seeds = 2
