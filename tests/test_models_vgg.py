@@ -270,34 +270,6 @@ def test_fold_adaptive_pool_same_outputs(tiny_vgg, hw):
     np.testing.assert_allclose(logits, ref_logits, atol=1e-5 * float(jnp.abs(ref_logits).max()))
 
 
-@pytest.mark.parametrize("hw", [(64, 64), (96, 96), (96, 160), (224, 224), (256, 256)])
-def test_head_reads_the_unpooled_map(tiny_vgg, hw):
-    """``head(conv_features(x, pool=False))`` == the whole model, and so is its gradient with respect to fc6's
-    (7×7) kernel: below 7×7 the head folds the pool into fc6 on the fly, at and above 7×7 it pools first."""
-    model, variables = tiny_vgg
-    x = jax.random.normal(jax.random.key(2), (2, *hw, 3))
-    unpooled = model.apply(variables, x, method=VGG16.conv_features, pool=False)
-    assert unpooled.shape[1:3] == trunk_map_size(hw, 1 / 16)
-    pooled = model.apply(variables, x, method=VGG16.conv_features)
-
-    def head(params, feats):
-        return model.apply({"params": params}, feats, method=VGG16.head)
-
-    (logits, feats), (ref, ref_feats) = head(variables["params"], unpooled), head(variables["params"], pooled)
-    np.testing.assert_allclose(logits, ref, rtol=0, atol=1e-5 * float(jnp.abs(ref).max()))
-    np.testing.assert_allclose(
-        feats["fc7"], ref_feats["fc7"], rtol=0, atol=1e-5 * float(jnp.abs(ref_feats["fc7"]).max())
-    )
-
-    def grad(feats):
-        loss = lambda p: jnp.sum(head(p, feats)[0] ** 2)
-        return jax.grad(loss)(variables["params"])["classifier"]["fc6"]["kernel"]
-
-    g, g_ref = grad(unpooled), grad(pooled)
-    assert g.shape == g_ref.shape == variables["params"]["classifier"]["fc6"]["kernel"].shape
-    np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-5 * float(jnp.abs(g_ref).max()))
-
-
 def test_fold_adaptive_pool_refuses_folded_or_small(tiny_vgg):
     _, variables = tiny_vgg
     folded = fold_adaptive_pool(variables, (64, 64))  # 2·2·32 = 128 rows: not a multiple of 49

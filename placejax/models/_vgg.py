@@ -16,7 +16,6 @@ import functools
 from typing import Any
 
 import flax.linen as nn
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -81,8 +80,7 @@ class VGG16Trunk(nn.Module):
     param_dtype: Dtype = jnp.float32
 
     @nn.compact
-    def __call__(self, x: Array, pool: bool | None = None) -> Array:
-        """``pool``: overrides the ``pool`` attribute for this call (``False``: the last max-pool's map)."""
+    def __call__(self, x: Array) -> Array:
         if x.ndim != 4 or x.shape[-1] != 3:
             raise ValueError(f"VGG16 expects NHWC images (N, H, W, 3), got shape {x.shape}")
         if x.shape[1] < 32 or x.shape[2] < 32:
@@ -97,35 +95,7 @@ class VGG16Trunk(nn.Module):
                     x = nn.Conv(features, (3, 3), padding=((1, 1), (1, 1)), name=name, **kw)(x)
                 x = nn.relu(x)
             x = nn.max_pool(x, (2, 2), strides=(2, 2))
-        return adaptive_avg_pool(x, (POOL_SIZE, POOL_SIZE)) if (self.pool if pool is None else pool) else x
-
-
-class _PooledFC6(nn.Dense):
-    """fc6 of VGG16: ``nn.Dense`` on the flattened 7×7 pooled map, with the same parameters, that also reads an
-    unpooled map smaller than 7×7 by folding the adaptive pool into its kernel on the fly.
-
-    The pool is linear, so ``fc6(pool(x)) = fc6'(x)`` with ``fc6'`` the kernel contracted with the two pooling
-    matrices (``fold_adaptive_pool``). On a 3×3 map (96×96 input) that contraction plus the smaller product cost
-    a third of the 7×7 product, in training too: the gradient reaches the 7×7 kernel through the contraction.
-    Maps larger than 7×7 on either side are pooled first, as VGG16 does.
-    """
-
-    @nn.compact
-    def __call__(self, x: Array) -> Array:
-        n, h, w, c = x.shape
-        kernel = self.param("kernel", self.kernel_init, (POOL_SIZE * POOL_SIZE * c, self.features), self.param_dtype)
-        bias = self.param("bias", self.bias_init, (self.features,), self.param_dtype)
-        if h > POOL_SIZE or w > POOL_SIZE:
-            x, h, w = adaptive_avg_pool(x, (POOL_SIZE, POOL_SIZE)), POOL_SIZE, POOL_SIZE
-        if (h, w) != (POOL_SIZE, POOL_SIZE):
-            ph = jnp.asarray(adaptive_avg_pool_matrix(h, POOL_SIZE), kernel.dtype)
-            pw = jnp.asarray(adaptive_avg_pool_matrix(w, POOL_SIZE), kernel.dtype)
-            k = kernel.reshape(POOL_SIZE, POOL_SIZE, c, self.features)
-            k = jnp.einsum("oa,pb,opcj->abcj", ph, pw, k, precision="highest")
-            kernel = k.reshape(h * w * c, self.features)
-        flat, kernel, bias = self.promote_dtype(x.reshape(n, -1), kernel, bias, dtype=self.dtype)
-        y = jax.lax.dot_general(flat, kernel, (((1,), (0,)), ((), ())), precision=self.precision)
-        return y + jnp.reshape(bias, (1, -1))
+        return adaptive_avg_pool(x, (POOL_SIZE, POOL_SIZE)) if self.pool else x
 
 
 class VGG16Head(nn.Module):
@@ -135,26 +105,19 @@ class VGG16Head(nn.Module):
         num_classes: fc8 outputs.
         hidden: fc6/fc7 width (4096 for VGG16).
         dropout_rate: dropout after fc6 and fc7 when ``train=True`` (needs a ``"dropout"`` rng).
-        folded: fc6's kernel is already folded for one unpooled map size (``fold_adaptive_pool``): it reads the
-            flattened map as it is.
     """
 
     num_classes: int
     hidden: int = _FC_WIDTH
     dropout_rate: float = 0.5
-    folded: bool = False
     dtype: Dtype | None = None
     param_dtype: Dtype = jnp.float32
 
     @nn.compact
     def __call__(self, pooled: Array, train: bool = False) -> tuple[Array, dict[str, Array]]:
-        """``pooled``: the trunk's ``(N, 7, 7, C)`` map, or its unpooled map (``conv_features(x, pool=False)``)."""
         kw = dict(dtype=self.dtype, param_dtype=self.param_dtype)
-        if pooled.ndim == 4 and (pooled.shape[1], pooled.shape[2]) != (POOL_SIZE, POOL_SIZE) and not self.folded:
-            fc6 = nn.relu(_PooledFC6(self.hidden, name="fc6", **kw)(pooled))
-        else:
-            x = pooled.reshape(pooled.shape[0], -1)  # NHWC flatten; fc6 rows are (h, w, c) ordered
-            fc6 = nn.relu(nn.Dense(self.hidden, name="fc6", **kw)(x))
+        x = pooled.reshape(pooled.shape[0], -1)  # NHWC flatten; fc6 rows are (h, w, c) ordered
+        fc6 = nn.relu(nn.Dense(self.hidden, name="fc6", **kw)(x))
         x = nn.Dropout(self.dropout_rate, deterministic=not train)(fc6)
         fc7 = nn.relu(nn.Dense(self.hidden, name="fc7", **kw)(x))
         x = nn.Dropout(self.dropout_rate, deterministic=not train)(fc7)
@@ -199,21 +162,18 @@ class VGG16(nn.Module):
     def setup(self) -> None:
         kw = dict(dtype=self.dtype, param_dtype=self.param_dtype)
         self.trunk = VGG16Trunk(self.width, pool=not self.folded_pool, **kw)
-        self.classifier = VGG16Head(
-            self.num_classes, _scaled(_FC_WIDTH, self.width), self.dropout_rate, folded=self.folded_pool, **kw
-        )
+        self.classifier = VGG16Head(self.num_classes, _scaled(_FC_WIDTH, self.width), self.dropout_rate, **kw)
 
     def __call__(self, x: Array, train: bool = False) -> tuple[Array, dict[str, Array]]:
         return self.classifier(self.trunk(x), train=train)
 
-    def conv_features(self, x: Array, pool: bool = True) -> Array:
+    def conv_features(self, x: Array) -> Array:
         """Frozen-trunk output ``(N, 7, 7, 512·width)`` (after adaptive average pooling, before flatten;
-        ``folded_pool`` or ``pool=False``: the unpooled ``(N, H//32, W//32, 512·width)`` map, which :meth:`head`
-        reads as well — below 224×224 a smaller map to cache and a cheaper fc6)."""
-        return self.trunk(x, pool=None if pool else False)
+        ``folded_pool``: the unpooled ``(N, H//32, W//32, 512·width)`` map)."""
+        return self.trunk(x)
 
     def head(self, pooled: Array, train: bool = False) -> tuple[Array, dict[str, Array]]:
-        """fc6..fc8 on a ``conv_features`` output, pooled or not: ``(logits, {"fc6", "fc7"})``."""
+        """fc6..fc8 on a ``conv_features`` output: ``(logits, {"fc6", "fc7"})``."""
         return self.classifier(pooled, train=train)
 
 
