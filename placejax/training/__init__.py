@@ -11,7 +11,8 @@ Public surface:
         ``jax.sharding`` data parallelism (batch axis sharded over all devices, parameters replicated), several
         processes or hosts via ``jax.distributed`` (``python -m placejax.training.launch`` starts N processes on
         one machine); every collective phase (``fit``, ``predict``, ``replicate``) starts at a barrier.
-    Checkpointer: orbax ``CheckpointManager`` around a TrainState (save every k steps, resume the latest).
+    Checkpointer, CheckpointError: orbax ``CheckpointManager`` around a TrainState (save every k steps, each step
+        sealed by a manifest of SHA-256 digests; resume the latest step that passes verification).
     train / fit: the training loop over random-access batches (``placejax.data.train_dataset``), resumable.
     predict, map_batches: batched inference over a session / fixed-size batched mapping of any function.
     launch: ``python -m placejax.training.launch``, the command that starts N cooperating processes.
@@ -19,7 +20,7 @@ Public surface:
 """
 
 from placejax.training import launch
-from placejax.training._checkpoint import Checkpointer
+from placejax.training._checkpoint import CheckpointError, Checkpointer
 from placejax.training._loop import fit, map_batches, predict, train
 from placejax.training._memory import release_free_memory
 from placejax.training._sharding import (
@@ -35,6 +36,7 @@ from placejax.training._state import TrainState, apply_fn, create_state, make_op
 from placejax.training._steps import Objective, classification_loss, predict_step, train_step
 
 __all__ = [
+    "CheckpointError",
     "Checkpointer",
     "Objective",
     "TrainState",
