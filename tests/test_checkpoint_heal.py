@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import shutil
 
 import jax
@@ -14,7 +15,7 @@ import pytest
 
 from placejax.data import train_dataset
 from placejax.models import FusionMLP
-from placejax.training import CheckpointError, Checkpointer, apply_fn, create_state, data_mesh, make_optimizer, train
+from placejax.training import Checkpointer, CheckpointError, apply_fn, create_state, data_mesh, make_optimizer, train
 from placejax.training._checkpoint import MANIFEST, verify_step, write_manifest
 
 SAVE_EVERY = 4
@@ -179,13 +180,16 @@ def test_inference_reads_refuse_a_damaged_step_naming_its_folder_and_file(finish
     target = _data_file(folder / "12")
     _flip(target)
     with Checkpointer(folder) as ck:
-        with pytest.raises(CheckpointError, match=rf"{target}: checkpoint file changed after it was saved"):
+        with pytest.raises(CheckpointError, match=re.escape(f"{target}: checkpoint file changed after it was saved")):
             ck.latest_params()
-        with pytest.raises(CheckpointError, match=str(target)):
+        with pytest.raises(CheckpointError, match=re.escape(str(target))):
             ck.restore(_template())
         assert ck.latest_step() == 12  # an inference read never deletes anything
     target.write_bytes(target.read_bytes()[:10])
-    with Checkpointer(folder) as ck, pytest.raises(CheckpointError, match=rf"{target}: checkpoint file has 10 bytes"):
+    with (
+        Checkpointer(folder) as ck,
+        pytest.raises(CheckpointError, match=re.escape(f"{target}: checkpoint file has 10 bytes")),
+    ):
         ck.latest_params()
 
 
@@ -195,7 +199,7 @@ def test_a_step_without_manifest_that_orbax_cannot_read_is_refused_then_healed(f
     (last / MANIFEST).unlink()
     metadata = last / "default" / "_METADATA"
     metadata.write_text(metadata.read_text()[:20])  # a pre-manifest step, damaged where orbax notices
-    with Checkpointer(folder) as ck, pytest.raises(CheckpointError, match=rf"{last}: orbax cannot read it"):
+    with Checkpointer(folder) as ck, pytest.raises(CheckpointError, match=re.escape(f"{last}: orbax cannot read it")):
         ck.latest_params()
     _assert_bitwise_equal(_train(folder), uninterrupted)
 
@@ -208,5 +212,5 @@ def test_manifest_entries_cannot_leave_the_step_folder(tmp_path):
     assert list(manifest["files"]) == ["d/x"]
     manifest["files"]["../outside"] = {"bytes": 1, "sha256": "0" * 64}
     (step / MANIFEST).write_text(json.dumps(manifest))
-    with pytest.raises(CheckpointError, match="malformed entry '../outside'"):
+    with pytest.raises(CheckpointError, match=re.escape("malformed entry '../outside'")):
         verify_step(step)

@@ -20,7 +20,7 @@ Public surface:
 """
 
 from placejax.training import launch
-from placejax.training._checkpoint import CheckpointError, Checkpointer
+from placejax.training._checkpoint import Checkpointer, CheckpointError
 from placejax.training._loop import fit, map_batches, predict, train
 from placejax.training._memory import release_free_memory
 from placejax.training._sharding import (

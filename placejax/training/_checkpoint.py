@@ -192,7 +192,9 @@ class Checkpointer:
                     return self._manager.restore(step, args=args)
             except Exception as e:
                 message = " ".join(str(e).split())[:500]
-                raise CheckpointError(f"{self.step_dir(step)}: orbax cannot read it ({type(e).__name__}: {message})")
+                raise CheckpointError(
+                    f"{self.step_dir(step)}: orbax cannot read it ({type(e).__name__}: {message})"
+                ) from e
 
     def _discard(self, step: int, reason: str) -> None:
         remaining = [s for s in self._manager.all_steps() if s < step]
