@@ -97,7 +97,7 @@ class Checkpointer:
             except Exception as e:
                 raise _save_error(e, self.step_dir(step)) from e
             if jax.process_index() == 0:
-                write_manifest(self.step_dir(step), step)
+                _write_manifest(self.step_dir(step), step)
 
     def verify(self, step: int) -> bool:
         """Checks the files of ``step`` against its manifest.
@@ -108,7 +108,7 @@ class Checkpointer:
         Raises:
             CheckpointError: a file is missing, truncated or changed, or the manifest is corrupt.
         """
-        return verify_step(self.step_dir(step))
+        return _verify_step(self.step_dir(step))
 
     def restore(self, template: TrainState, step: int | None = None) -> TrainState:
         """The checkpoint at ``step`` (default latest) in the structure, dtypes and shardings of ``template``,
@@ -142,7 +142,7 @@ class Checkpointer:
                 continue
             if not verified and jax.process_index() == 0:
                 with contextlib.suppress(OSError):  # read-only storage: stays unsealed, restored in full each time
-                    write_manifest(self.step_dir(step), step)
+                    _write_manifest(self.step_dir(step), step)
             return state
         return template
 
@@ -203,7 +203,7 @@ class Checkpointer:
         self._manager.delete(step)
 
 
-def write_manifest(step_dir: str | os.PathLike, step: int) -> dict:
+def _write_manifest(step_dir: str | os.PathLike, step: int) -> dict:
     """Records the size and SHA-256 of every file under ``step_dir`` (but the manifest) in :data:`MANIFEST`,
     written atomically; returns the manifest."""
     step_dir = Path(step_dir)
@@ -216,7 +216,7 @@ def write_manifest(step_dir: str | os.PathLike, step: int) -> dict:
     return manifest
 
 
-def verify_step(step_dir: str | os.PathLike) -> bool:
+def _verify_step(step_dir: str | os.PathLike) -> bool:
     """Checks every file :data:`MANIFEST` lists in ``step_dir`` for its size and SHA-256 (sizes first: a truncated
     file is found without reading it). Files added after the save are not read by orbax unless a listed file
     refers to them, and are ignored.
