@@ -16,7 +16,7 @@ import pytest
 from placejax.data import train_dataset
 from placejax.models import FusionMLP
 from placejax.training import Checkpointer, CheckpointError, apply_fn, create_state, data_mesh, make_optimizer, train
-from placejax.training._checkpoint import MANIFEST, verify_step, write_manifest
+from placejax.training._checkpoint import MANIFEST, _verify_step, _write_manifest
 
 SAVE_EVERY = 4
 
@@ -108,7 +108,7 @@ def test_every_saved_step_is_sealed_and_verifies(finished):
             if f.is_file() and f.name != MANIFEST
         )
         assert manifest["step"] == step and sorted(manifest["files"]) == on_disk
-        assert verify_step(finished / str(step)) is True
+        assert _verify_step(finished / str(step)) is True
 
 
 @pytest.mark.parametrize("damage", ["byte_flip", "truncated", "manifest_deleted", "manifest_corrupt", "file_deleted"])
@@ -142,11 +142,11 @@ def test_a_damaged_last_step_is_discarded_and_the_rerun_ends_bit_for_bit_equal(
     if damage == "manifest_deleted":
         # a step without a manifest (as placejax wrote before manifests) that orbax reads in full is used and sealed
         assert warnings == []
-        assert verify_step(last) is True
+        assert _verify_step(last) is True
     else:
         assert len(warnings) == 1
         assert str(last) in warnings[0] and "resuming from step 8" in warnings[0]
-        assert verify_step(last) is True  # retrained from step 8 and saved again, sealed
+        assert _verify_step(last) is True  # retrained from step 8 and saved again, sealed
     with Checkpointer(folder) as ck:
         assert ck.latest_step() == 12
 
@@ -208,9 +208,9 @@ def test_manifest_entries_cannot_leave_the_step_folder(tmp_path):
     step = tmp_path / "3"
     (step / "d").mkdir(parents=True)
     (step / "d" / "x").write_bytes(b"abc")
-    manifest = write_manifest(step, 3)
+    manifest = _write_manifest(step, 3)
     assert list(manifest["files"]) == ["d/x"]
     manifest["files"]["../outside"] = {"bytes": 1, "sha256": "0" * 64}
     (step / MANIFEST).write_text(json.dumps(manifest))
     with pytest.raises(CheckpointError, match=re.escape("malformed entry '../outside'")):
-        verify_step(step)
+        _verify_step(step)
