@@ -19,7 +19,6 @@ Public surface:
     release_free_memory: hands the C heap's freed memory back to the OS between the stages of a long pipeline.
 """
 
-from placejax.training import launch
 from placejax.training._checkpoint import Checkpointer, CheckpointError
 from placejax.training._loop import fit, map_batches, predict, train
 from placejax.training._memory import release_free_memory
@@ -60,3 +59,13 @@ __all__ = [
     "train",
     "train_step",
 ]
+
+
+def __getattr__(name: str):
+    # launch is also `python -m placejax.training.launch`: imported here on first use, not with the package, so that
+    # runpy does not find it imported already and warn before running it.
+    if name == "launch":
+        import importlib
+
+        return importlib.import_module("placejax.training.launch")
+    raise AttributeError(f"module 'placejax.training' has no attribute {name!r}")
