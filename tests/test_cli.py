@@ -189,7 +189,7 @@ def _cases(t: Path) -> dict[str, tuple[list[str], dict[str, str], str]]:
         "cross_season_no_session_folder": (
             ["-m", "experiments.cross_season", "--preset", "smoke", "--workdir", str(t / "r1"), *folder],
             {},
-            f"{nope / 'a'}: session folder not found",
+            str(nope),  # the missing folder named (the wording is placejax.data.folder's)
         ),
         "cross_season_disk_full": (
             ["-m", "experiments.cross_season", "--preset", "smoke", "--workdir", str(full / "run")],
@@ -199,7 +199,7 @@ def _cases(t: Path) -> dict[str, tuple[list[str], dict[str, str], str]]:
         "calibrate_world": (
             ["-m", "experiments.calibrate_world", "--workdir", str(t / "cw"), "--preset", "smoke", *folder],
             {},
-            "session folder not found",
+            str(nope),
         ),
         "lookup_gap_missing_run": (
             ["-m", "experiments.lookup_gap", "--out", str(t / "g.png"), f"size:96={nope}"],
@@ -258,6 +258,7 @@ def _cases(t: Path) -> dict[str, tuple[list[str], dict[str, str], str]]:
             f"benchmark_{name}": (["-m", f"benchmarks.{name}", *args], bogus, no_backend)
             for name, args in {
                 "data_pipeline": ["--frames", "2", "--repeats", "1", "--out", str(t / "b.json")],
+                "hha_roofline": ["--quick"],
                 "hha_speed": ["--repeats", "1"],
                 "inference_speed": ["--repeats", "1"],
                 "models_speed": ["--repeats", "1"],
@@ -266,6 +267,11 @@ def _cases(t: Path) -> dict[str, tuple[list[str], dict[str, str], str]]:
                 "training_step": ["--repeats", "1"],
             }.items()
         },
+        "benchmark_cache_shards": (
+            ["-m", "benchmarks.cache_shards", "--quick", "--root", str(afile / "x")],
+            {},
+            f"ENOTDIR: not a directory: {afile / 'x'}",
+        ),
         "benchmark_nclt_rehearsal": (
             ["-m", "benchmarks.nclt_rehearsal", "--frames", "16", "32", "--sessions", "2", "--root", str(afile / "x")],
             {},
