@@ -95,7 +95,10 @@ class Checkpointer:
                     self._manager.save(step, args=ocp.args.StandardSave(item), force=True)
                     self._manager.wait_until_finished()
             except Exception as e:
-                raise _save_error(e, self.step_dir(step)) from e
+                error = _save_error(e, self.step_dir(step))
+                if error is e:
+                    raise
+                raise error from e
             if jax.process_index() == 0:
                 _write_manifest(self.step_dir(step), step)
 
