@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._report import print_table, write_json
+from placejax import cli
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
@@ -133,6 +134,7 @@ def _run(processes: int, args, nclt_root: Path, base: Path) -> dict:
     return out
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--processes", type=int, nargs="+", default=[1, 2], help="process counts (1 first: baseline)")
@@ -141,6 +143,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--root", type=Path, default=None, help="folder for the fake tree and caches (default: temp)")
     parser.add_argument("--quick", action="store_true", help="tiny frames, 1 repeat: checks the script runs")
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     if args.child is not None:
         _child(args.child)
@@ -200,4 +203,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -29,7 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from placejax import io
+from placejax import cli, io
 from placejax.data import Augment, cache_session, nclt, train_dataset
 
 RAW_HW = (1232, 1616)  # stored sideways, like NCLT
@@ -70,13 +70,15 @@ class _MemmapFrames:
         return len(self.images)
 
 
-def main() -> None:
+@cli.command
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/data_pipeline.json"))
-    args = parser.parse_args()
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
+    args = parser.parse_args(argv)
     n, reps = args.frames, args.repeats
 
     rows = []
@@ -161,4 +163,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

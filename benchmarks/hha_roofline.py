@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from placejax import cli
+
 STAGES = ("prepare", "window_sums", "plane_fits", "gravity_rows", "gravity_iterations", "finish", "channels_last")
 _CONTAINERS = {"while", "conditional", "call"}  # their kernels are reported on their own
 
@@ -280,6 +282,7 @@ def stage_costs(batch: int, h: int, w: int) -> tuple[dict, dict]:
     return costs, {"depth": depth, "ks": ks, "depth_range": depth_range, "gravity_iterations": iterations}
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--batch", type=int, default=32)
@@ -287,6 +290,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed runs (median reported)")
     parser.add_argument("--cores", type=int, default=None, help="pin to this many cores before JAX starts")
     parser.add_argument("--quick", action="store_true", help="batch 2 at 64x64, 1 repeat: checks the script runs")
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     if args.quick:
         args.batch, args.size, args.repeats = 2, (64, 64), 1
@@ -398,4 +402,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

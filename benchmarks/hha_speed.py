@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks._report import current_rss_mb, median_seconds, peak_rss_mb, print_table, write_json
-from placejax import hha
+from placejax import cli, hha
 from placejax.hha import _encode
 from placejax.hha.scenes import ground_and_wall
 
@@ -78,6 +78,7 @@ def alternating(fns: dict, repeats: int) -> tuple[dict[str, list[float]], dict[s
     return walls, cpus
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per configuration (median reported)")
@@ -86,6 +87,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--quick", action="store_true", help="256x256, batches 1 and 2, 1 repeat: checks the script runs"
     )
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     sizes, batches = (SIZES[:1], (1, 2)) if args.quick else (SIZES, BATCHES)
     repeats, n_stream = (1, 64) if args.quick else (args.repeats, args.stream)
@@ -197,4 +199,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks import _report
+from placejax import cli
 from placejax.classify import ClassifierSpec, PlaceClassifier, stage_depth, stage_hha, stage_mlp, stage_nets
 from placejax.data import PlaceGrid
 from placejax.depth import PRESETS
@@ -152,12 +153,14 @@ def _torch_fns(batch: int, hw: int, rng: np.random.Generator) -> dict:
     return {"torch_midas": run_midas, "torch_vgg16_x2": run_vgg_twice}
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--batch", type=int, default=8, help="the larger batch (besides 1)")
     parser.add_argument("--no-torch", action="store_true")
     parser.add_argument("--only", choices=tuple(_SIZES))
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)
     rows = []

@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax import io
+from placejax import cli, io
 from placejax.models import (
     VGG16,
     DepthAnythingV2,
@@ -201,12 +201,14 @@ def _cpu_model() -> str:
     return platform.processor()
 
 
-def main() -> None:
+@cli.command
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--no-torch", action="store_true", help="skip the PyTorch baseline")
     parser.add_argument("--only", choices=("midas", "dav2", "vgg"), default=None)
-    args = parser.parse_args()
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
+    args = parser.parse_args(argv)
     torch = None if args.no_torch else _torch()
     rng = np.random.default_rng(0)
     rows = []
@@ -345,4 +347,4 @@ def _print_row(row: dict) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -63,6 +63,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._report import print_table, write_json
+from placejax import cli
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
@@ -461,7 +462,8 @@ def _measure(n_frames: int, args, weights: tuple[Path, Path], base: Path) -> dic
     return child
 
 
-def main() -> None:
+@cli.command
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, nargs="+", default=None, help="images per session, per size (60 120)")
     parser.add_argument("--sessions", type=int, default=None, help="the first N sessions of the paper preset (4)")
@@ -486,7 +488,8 @@ def main() -> None:
         "--hosts", type=int, nargs="+", default=list(HOSTS), help="host counts of the multi-host projection (1 4 16)"
     )
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
+    args = parser.parse_args(argv)
     if args.child is not None:
         _child(args.child)
         return
@@ -661,4 +664,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -30,7 +30,7 @@ import jax
 import numpy as np
 
 from benchmarks._report import peak_rss_mb, print_table, write_json
-from placejax import route
+from placejax import cli, route
 from placejax.data import PlaceGrid
 
 TRACKER_REFERENCE = 1000  # knn1 reference embeddings: about a default training session's frames
@@ -172,7 +172,8 @@ def tracker_rows(repeats: int, steps: int, first_repeats: int) -> list[dict]:
     return rows
 
 
-def main() -> None:
+@cli.command
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per case (median reported)")
     parser.add_argument("--frames", type=int, default=2000, help="frames of the batch session")
@@ -182,7 +183,8 @@ def main() -> None:
     parser.add_argument("--tracker-steps", type=int, default=20, help="Tracker.step calls per timed run")
     parser.add_argument("--first-repeats", type=int, default=3, help="first Tracker steps, each compiled afresh")
     parser.add_argument("--no-tracker", action="store_true", help="leave out the Tracker.step rows")
-    args = parser.parse_args()
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
+    args = parser.parse_args(argv)
 
     grid = PlaceGrid(0.0, 20.0 * args.n, 0.0, 20.0 * args.n, n=args.n)
     probs, moved = _inputs(args.n, args.frames)
@@ -232,4 +234,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

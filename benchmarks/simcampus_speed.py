@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax import io
+from placejax import cli, io
 from placejax.data import simcampus
 from placejax.data.simcampus import render_batch, season_scene
 
@@ -44,11 +44,13 @@ def _time(fn, runs: int, calls: int = 1) -> tuple[list[float], list[float]]:
     return wall, cpu
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "simcampus_speed.json")
     ap.add_argument("--quick", action="store_true", help="64x64 only, 1 run: checks the script (figures mean nothing)")
+    ap.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = ap.parse_args(argv)
     cases = CASES[:1] if args.quick else CASES
     runs = 1 if args.quick else args.runs
@@ -120,4 +122,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

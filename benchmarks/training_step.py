@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks._report import median_seconds, print_table, write_json
+from placejax import cli
 from placejax.data import train_dataset
 from placejax.models import VGG16, FusionMLP
 from placejax.training import (
@@ -70,11 +71,13 @@ def _steps(model, x_shape, mesh, steps: int, repeats: int) -> float:
     return med / steps
 
 
-def main() -> None:
+@cli.command
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--steps", type=int, default=10)
-    args = parser.parse_args()
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
+    args = parser.parse_args(argv)
     rows = []
     vgg = VGG16(num_classes=100, width=0.125, dropout_rate=0.0)
     one = _steps(vgg, (32, 64, 64, 3), data_mesh(1), args.steps, args.repeats)
@@ -109,4 +112,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

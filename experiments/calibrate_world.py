@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments.cross_season import PRESETS, apply_overrides, get_config, validate
-from placejax import io, stages
+from placejax import cli, io, stages
 from placejax.evaluation import mean_sd, top1
 from placejax.training import data_mesh
 
@@ -107,6 +107,7 @@ def format_table(out: dict) -> str:
     return "\n".join(lines)
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m experiments.calibrate_world",
@@ -116,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workdir", required=True, type=Path)
     parser.add_argument("--preset", default="default", choices=PRESETS)
     parser.add_argument("overrides", nargs="*", help="key=value overrides of experiments.cross_season's config")
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     cfg = get_config(args.preset)
     apply_overrides(cfg, args.overrides)

@@ -38,7 +38,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from placejax import hha, stages
+from placejax import cli, hha, stages
 from placejax.classify import run_layout
 from placejax.data import PlaceGrid, open_array_cache
 from placejax.data.simcampus import SKY_DEPTH
@@ -142,6 +142,7 @@ def per_channel_nn(hha_images: dict[str, np.ndarray], labels: dict[str, np.ndarr
     }
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> None:
     from placejax.depth import PRESETS
 
@@ -156,6 +157,7 @@ def main(argv: list[str] | None = None) -> None:
         "--shift-px", type=int, nargs="+", default=[], help="--network: also average over views shifted by ±K px"
     )
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="the --network run's config overrides")
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_intermixed_args(argv)
     if (args.overrides or args.flip_average or args.shift_px or args.preset != "default") and args.network is None:
         parser.error(
@@ -275,4 +277,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -19,7 +19,7 @@ import json
 import math
 from pathlib import Path
 
-from placejax import io
+from placejax import cli, io
 
 # results.json fields: (section, key, label, is a net).
 COLUMNS = (
@@ -102,10 +102,12 @@ def _plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.lookup_gap", description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, required=True, help="folder for lookup_gap.json and lookup_gap.png")
     ap.add_argument("runs", nargs="+", metavar="LEVER:VALUE=WORKDIR")
+    ap.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = ap.parse_args(argv)
     rows = []
     for lever, value, workdir in map(parse_run, args.runs):

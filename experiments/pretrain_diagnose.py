@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from placejax import training
+from placejax import cli, training
 from placejax.data import train_dataset
 from placejax.models import VGG16, he_init, imagenet_normalise
 from placejax.pretrain import place_frames, trunk_map_size
@@ -74,6 +74,7 @@ def _scales(rgb: np.ndarray, labels: np.ndarray) -> None:
             )
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m experiments.pretrain_diagnose", description=__doc__)
     parser.add_argument("--steps", type=int, default=300)
@@ -81,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--quick", action="store_true", help="16 frames of 2 worlds, 3 steps, one rate, 64² only: checks the script"
     )
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     frames_per_world, n_worlds, memorise_steps = (16, 2, 3) if args.quick else (256, 4, 150)
     steps = 3 if args.quick else args.steps

@@ -27,7 +27,8 @@ import time
 from pathlib import Path
 
 from experiments.overrides import dataclass_overrides, presets_epilog
-from placejax import pretrain
+from placejax import cli, io, pretrain
+from placejax.weights import training_lock
 
 
 def parse_overrides(cfg: pretrain.PretrainConfig, overrides: list[str]) -> pretrain.PretrainConfig:
@@ -35,6 +36,7 @@ def parse_overrides(cfg: pretrain.PretrainConfig, overrides: list[str]) -> pretr
     return dataclass_overrides(cfg, overrides)
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     presets = sorted(pretrain.PRESETS)
     parser = argparse.ArgumentParser(
@@ -48,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--export", type=Path, default=None, help="write the trunk and the run's record here")
     parser.add_argument("--export-heads", default="", help="also export these layers, e.g. fc6,fc7 (large)")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     try:
         cfg = parse_overrides(pretrain.PRESETS[args.preset], args.overrides)
@@ -55,27 +58,29 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(e))
     workdir = args.workdir or pretrain.run_dir(cfg, args.preset)
     print(f"trunk pretraining run: {workdir}", file=sys.stderr)
-    t0 = time.perf_counter()
-    try:
-        pretrain.train(cfg, workdir)
-    except KeyboardInterrupt:
-        print(f"\ninterrupted: rerun the same command to resume from the last checkpoint in {workdir}", file=sys.stderr)
-        return 130
-    t_train = time.perf_counter() - t0
-    record = Path(workdir) / "pretrain_eval.json"
-    if record.exists():  # a finished run re-evaluated: keep the time its training took, not this call's
-        t_train = json.loads(record.read_text()).get("train_seconds", t_train)
-    params = pretrain.load_trained(workdir, cfg)
-    report = pretrain.heldout_report(params["trunk"], cfg)
-    payload = {
-        "config": dataclasses.asdict(cfg),
-        "fingerprint": cfg.fingerprint(),
-        "heldout": report,
-        "train_seconds": t_train,
-    }
-    from placejax import io
-
-    io.write_json(Path(workdir) / "pretrain_eval.json", payload)
+    with training_lock(workdir):  # one training per folder: another one (ensure_trained, ...) waits for this one
+        t0 = time.perf_counter()
+        try:
+            pretrain.train(cfg, workdir)
+        except KeyboardInterrupt:
+            print(
+                f"\ninterrupted: rerun the same command to resume from the last checkpoint in {workdir}",
+                file=sys.stderr,
+            )
+            return 130
+        t_train = time.perf_counter() - t0
+        record = Path(workdir) / "pretrain_eval.json"
+        if record.exists():  # a finished run re-evaluated: keep the time its training took, not this call's
+            t_train = json.loads(record.read_text()).get("train_seconds", t_train)
+        params = pretrain.load_trained(workdir, cfg)
+        report = pretrain.heldout_report(params["trunk"], cfg)
+        payload = {
+            "config": dataclasses.asdict(cfg),
+            "fingerprint": cfg.fingerprint(),
+            "heldout": report,
+            "train_seconds": t_train,
+        }
+        io.write_json(Path(workdir) / "pretrain_eval.json", payload)
     print("held-out cross-look recall@1 (mean of worlds):")
     for method, r in report["mean"].items():
         print(f"  {method:20s} view {r['view']:.3f}  place {r['place']:.3f}")

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import tqdm
 
-from placejax import io
+from placejax import cli, io
 from placejax.data import simcampus
 
 
@@ -40,12 +40,14 @@ def nn_predict(train_x, train_y, test_x, chunk: int = 512) -> np.ndarray:
     return np.concatenate(out)
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--world-seed", type=int, default=0)
     ap.add_argument("--frame-spacing", type=float, default=2.0)
     ap.add_argument("--size", type=int, default=32)
     ap.add_argument("--out", type=Path, default=Path("runs") / "simcampus_sanity.json")
+    ap.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = ap.parse_args(argv)
 
     sessions = {
@@ -96,4 +98,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -26,7 +26,8 @@ import time
 from pathlib import Path
 
 from experiments.overrides import dataclass_overrides, presets_epilog
-from placejax import depth
+from placejax import cli, depth
+from placejax.weights import training_lock
 
 
 def parse_overrides(cfg: depth.DepthTrainConfig, overrides: list[str]) -> depth.DepthTrainConfig:
@@ -38,6 +39,7 @@ def parse_overrides(cfg: depth.DepthTrainConfig, overrides: list[str]) -> depth.
     return dataclass_overrides(cfg, overrides)
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     presets = sorted(depth.PRESETS)
     parser = argparse.ArgumentParser(
@@ -50,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workdir", type=Path, default=None, help="run folder (default: the cache, see above)")
     parser.add_argument("--export", type=Path, default=None, help="also write the network as a shippable .npz")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     try:
         cfg = parse_overrides(depth.PRESETS[args.preset], args.overrides)
@@ -57,15 +60,19 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(e))
     workdir = args.workdir or depth.run_dir(cfg, args.preset)
     print(f"depth training run: {workdir}", file=sys.stderr)
-    t0 = time.perf_counter()
-    try:
-        depth.train(cfg, workdir)
-    except KeyboardInterrupt:
-        print(f"\ninterrupted: rerun the same command to resume from the last checkpoint in {workdir}", file=sys.stderr)
-        return 130
-    trained = depth.load_trained(workdir, cfg)
-    t_train = time.perf_counter() - t0
-    payload = depth.write_report(trained, workdir)
+    with training_lock(workdir):  # one training per folder: another one (ensure_trained, ...) waits for this one
+        t0 = time.perf_counter()
+        try:
+            depth.train(cfg, workdir)
+        except KeyboardInterrupt:
+            print(
+                f"\ninterrupted: rerun the same command to resume from the last checkpoint in {workdir}",
+                file=sys.stderr,
+            )
+            return 130
+        trained = depth.load_trained(workdir, cfg)
+        t_train = time.perf_counter() - t0
+        payload = depth.write_report(trained, workdir)
     print(depth.report_markdown(payload["per_season"]))
     print(f"training {t_train:.0f} s, evaluation {payload['eval_seconds']:.0f} s; report in {workdir}")
     if args.export:

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from placejax import io
+from placejax import cli, io
 from placejax.classify import run_layout
 
 SCORE = "knn1"
@@ -343,11 +343,13 @@ def _strict(x: Any) -> Any:
     return x
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.unseen_diagnose", description=__doc__.split("\n")[0])
     ap.add_argument("workdir", type=Path, help="a finished experiments.cross_season run (read only)")
     ap.add_argument("--seed-index", type=int, default=0, help="whose nets: 0 is the run's first seed (default)")
     ap.add_argument("--out", type=Path, default=None, help="the JSON report (default WORKDIR/unseen_diagnose.json)")
+    ap.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = ap.parse_args(argv)
     try:
         report = diagnose(args.workdir, args.seed_index)

@@ -17,11 +17,13 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import hashlib
 import json
 import os
 import socket
+import sys
 import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -45,6 +47,11 @@ __all__ = [
 ]
 
 
+# Errors of the write itself (a full disk or quota, a file over the size limit, an I/O error), which Python reports
+# without the file's name.
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO})
+
+
 def _umask() -> int:
     # os.umask can only be read by setting it; restore it at once (no thread in placejax changes it).
     mask = os.umask(0o022)
@@ -62,6 +69,10 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
 
     Yields:
         The open temporary file. On an exception it is removed and ``path`` is left as it was.
+
+    Raises:
+        OSError: the write failed; a full disk (``ENOSPC``, ``EDQUOT``), ``EFBIG`` or ``EIO`` with ``path`` as its
+            ``filename`` and "... while writing" in its ``strerror`` (Python's own error names no file).
     """
     if mode not in ("wb", "w"):
         raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
@@ -76,6 +87,11 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
         # mkstemp creates the file 0600; a result file should be readable like any other file the user writes.
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        if e.errno in _WRITE_ERRNOS and e.filename is None:  # write() and fsync() name no file: name the target
+            raise OSError(e.errno, f"{os.strerror(e.errno)} while writing", str(path)) from e
+        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -209,19 +225,21 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 
 @contextlib.contextmanager
-def run_lock(folder: str | os.PathLike, *, hint: str = "use another folder") -> Iterator[None]:
-    """Exclusive use of a folder by one process: a second holder fails at once instead of colliding later.
+def run_lock(folder: str | os.PathLike, *, hint: str = "use another folder", wait: bool = False) -> Iterator[None]:
+    """Exclusive use of a folder by one process: a second holder fails at once (or, with ``wait``, waits its turn)
+    instead of colliding later.
 
     The lock is an ``flock`` on ``folder/.lock`` (which names the holder: pid and host), so the kernel drops it
     when its process dies, however it dies; a stale ``.lock`` file left behind locks nothing. Not reentrant: a
-    process that takes the lock of a folder it already holds fails like any other.
+    process that takes the lock of a folder it already holds fails (or waits forever) like any other.
 
     Args:
         folder: an existing folder.
         hint: what the error message tells the second run to do instead (e.g. which option names the folder).
+        wait: block until the holder is done, after saying on stderr whom it waits for (Ctrl-C stops waiting).
 
     Raises:
-        RuntimeError: another process holds the lock (the message names it).
+        RuntimeError: another process holds the lock and ``wait`` is False (the message names it).
     """
     folder = Path(folder)
     f = open(folder / ".lock", "a+")  # held open for the whole block: closing it releases the lock
@@ -231,8 +249,11 @@ def run_lock(folder: str | os.PathLike, *, hint: str = "use another folder") -> 
         except BlockingIOError:
             f.seek(0)
             holder = f.read().strip() or "another process"
-            message = f"{folder} is in use by another run ({holder}); wait for it to finish, or {hint}"
-            raise RuntimeError(message) from None
+            if not wait:
+                message = f"{folder} is in use by another run ({holder}); wait for it to finish, or {hint}"
+                raise RuntimeError(message) from None
+            print(f"placejax: {folder} is in use ({holder}); waiting for it to finish", file=sys.stderr, flush=True)
+            fcntl.flock(f, fcntl.LOCK_EX)
         f.seek(0)
         f.truncate()
         f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")

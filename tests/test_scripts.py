@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 SEASONS = ("WI", "SP", "SU", "AU")
 
 
-def _run(args: list[str], *, cwd: Path, pythonpath: Path = REPO, timeout: float = 600) -> str:
+def _run(args: list[str], *, cwd: Path, pythonpath: Path | str = REPO, timeout: float = 600) -> str:
     """Runs ``python ARGS`` in ``cwd`` and returns its stdout; fails with the tail of stderr."""
     env = {
         **os.environ,
@@ -53,7 +53,8 @@ def bench(tmp_path) -> Path:
 
 def _bench(root: Path, name: str, *args: str, result: str | None = None) -> tuple[str, dict]:
     """Runs ``python -m benchmarks.NAME ARGS`` from the copy; its stdout and ``results/RESULT.json`` (default NAME)."""
-    out = _run(["-m", f"benchmarks.{name}", *args], cwd=root, pythonpath=root)
+    # the copy of benchmarks first, then this tree's placejax (not whichever one is installed)
+    out = _run(["-m", f"benchmarks.{name}", *args], cwd=root, pythonpath=f"{root}{os.pathsep}{REPO}")
     return out, json.loads((root / "benchmarks" / "results" / f"{result or name}.json").read_text())
 
 

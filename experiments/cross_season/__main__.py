@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from experiments.cross_season import config as _config
+from placejax import cli
 
 
 def _help_epilog() -> str:
@@ -28,6 +29,7 @@ def _help_epilog() -> str:
     return "\n".join(lines)
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     """The command line (module docstring); returns the exit status (130 after Ctrl-C: rerun to resume)."""
     parser = argparse.ArgumentParser(

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from placejax import cli
 from placejax.classify import _images
 from placejax.classify._images import MAX_IMAGE_PIXELS
 
@@ -73,6 +74,7 @@ def _text(name: str, rec: dict, grid_n: int) -> str:
     )
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m placejax.classify",
@@ -93,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
         default=MAX_IMAGE_PIXELS,
         help=f"refuse images whose header declares more pixels than this (default {MAX_IMAGE_PIXELS})",
     )
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     try:
         images = [read_image(p, args.max_pixels) for p in args.images]

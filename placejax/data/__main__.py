@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from placejax import cli
 from placejax.data import folder, nclt
 from placejax.data.cache import cache_session
 from placejax.data.grid import PlaceGrid
@@ -229,6 +230,7 @@ def nclt_command(args: argparse.Namespace) -> int:
     return 0
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     """The command line (module docstring); returns the exit status."""
     argv = sys.argv[1:] if argv is None else list(argv)

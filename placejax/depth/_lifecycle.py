@@ -115,8 +115,10 @@ def ensure_trained(
     that has one (:data:`SHIPPED`, when trained with the preset's current config), else loaded from the cache, or
     trained there first.
 
-    Training resumes from the last checkpoint if an earlier run was interrupted; the evaluation report
-    (``depth_eval.{json,md,png}``) is written beside the checkpoints the first time.
+    Training resumes from the last checkpoint that passes verification if an earlier run was interrupted (or its
+    checkpoint damaged); the evaluation report (``depth_eval.{json,md,png}``) is written beside the checkpoints the
+    first time. One process at a time trains into a cache folder (``placejax.weights.training_lock``): a second
+    caller waits for the first, then loads its network.
 
     Args:
         preset: a key of ``placejax.depth.PRESETS`` (also names the cache folder).
@@ -133,19 +135,20 @@ def ensure_trained(
         config = PRESETS[preset]
     workdir = run_dir(config, preset, cache_root)
     primary = jax.process_index() == 0  # several processes train together; one of them speaks and writes
-    if progress and primary and not (workdir / "depth_eval.json").exists():
-        _shipped.announce_training(
-            "the depth network",
-            preset,
-            f"{config.steps} steps at {config.image_size}²; it turns RGB into pseudo depth for the HHA images, once "
-            "per machine",
-            _EXPECTED_MINUTES.get(preset),
-            workdir,
-        )
-    train(config, workdir, progress=progress)
-    trained = load_trained(workdir, config)
-    if primary and not (workdir / "depth_eval.json").exists():
-        write_report(trained, workdir, progress=progress)
+    with _shipped.training_lock(workdir):  # a second caller waits here, then loads what the first trained
+        if progress and primary and not (workdir / "depth_eval.json").exists():
+            _shipped.announce_training(
+                "the depth network",
+                preset,
+                f"{config.steps} steps at {config.image_size}²; it turns RGB into pseudo depth for the HHA images, "
+                "once per machine",
+                _EXPECTED_MINUTES.get(preset),
+                workdir,
+            )
+        train(config, workdir, progress=progress)
+        trained = load_trained(workdir, config)
+        if primary and not (workdir / "depth_eval.json").exists():
+            write_report(trained, workdir, progress=progress)
     return trained
 
 

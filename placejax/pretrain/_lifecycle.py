@@ -21,6 +21,7 @@ from flax import traverse_util
 from placejax import io
 from placejax.pretrain import _evaluate
 from placejax.pretrain._train import PRESETS, PretrainConfig, load_trained, train
+from placejax.training import CheckpointError
 from placejax.weights import _resolve, _shipped
 
 # The trunk shipped with the package (its README records command, seed, config and held-out metrics).
@@ -206,30 +207,33 @@ def ensure_trained(
     progress: bool = True,
 ) -> tuple[dict[str, Any], dict]:
     """The pretrained parameters of ``preset`` (or ``config``) and their held-out report: loaded from the cache,
-    or trained there first (resuming an interrupted run). The report ``pretrain_eval.json`` is written once."""
+    or trained there first (resuming an interrupted run from its last checkpoint that passes verification). The
+    report ``pretrain_eval.json`` is written once. One process at a time trains into a cache folder
+    (``placejax.weights.training_lock``): a second caller waits for the first, then loads its trunk."""
     if config is None:
         if preset not in PRESETS:
             raise ValueError(f"unknown pretraining preset {preset!r}; choose one of {sorted(PRESETS)}")
         config = PRESETS[preset]
     workdir = run_dir(config, preset, cache_root)
     report_path = workdir / "pretrain_eval.json"
-    if progress and not report_path.exists():
-        _shipped.announce_training(
-            "the pretrained VGG16 trunk", preset, f"{config.steps} steps", _EXPECTED_MINUTES.get(preset), workdir
-        )
-    t0 = time.perf_counter()
-    try:
-        params = load_trained(workdir, config)
-    except FileNotFoundError:  # not trained yet, or interrupted: (resume and) finish it
-        train(config, workdir, progress=progress)
-        params = load_trained(workdir, config)
-    if report_path.exists():
-        return params, json.loads(report_path.read_text())
-    report = {
-        "config": dataclasses.asdict(config),
-        "fingerprint": config.fingerprint(),
-        "train_seconds_this_call": time.perf_counter() - t0,
-        "heldout": heldout_report(params["trunk"], config),
-    }
-    io.write_json(report_path, report)
+    with _shipped.training_lock(workdir):  # a second caller waits here, then loads what the first trained
+        if progress and not report_path.exists():
+            _shipped.announce_training(
+                "the pretrained VGG16 trunk", preset, f"{config.steps} steps", _EXPECTED_MINUTES.get(preset), workdir
+            )
+        t0 = time.perf_counter()
+        try:
+            params = load_trained(workdir, config)
+        except (FileNotFoundError, CheckpointError):  # not trained yet, interrupted or damaged: finish (or heal) it
+            train(config, workdir, progress=progress)
+            params = load_trained(workdir, config)
+        if report_path.exists():
+            return params, json.loads(report_path.read_text())
+        report = {
+            "config": dataclasses.asdict(config),
+            "fingerprint": config.fingerprint(),
+            "train_seconds_this_call": time.perf_counter() - t0,
+            "heldout": heldout_report(params["trunk"], config),
+        }
+        io.write_json(report_path, report)
     return params, report

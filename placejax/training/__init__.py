@@ -11,15 +11,15 @@ Public surface:
         ``jax.sharding`` data parallelism (batch axis sharded over all devices, parameters replicated), several
         processes or hosts via ``jax.distributed`` (``python -m placejax.training.launch`` starts N processes on
         one machine); every collective phase (``fit``, ``predict``, ``replicate``) starts at a barrier.
-    Checkpointer: orbax ``CheckpointManager`` around a TrainState (save every k steps, resume the latest).
+    Checkpointer, CheckpointError: orbax ``CheckpointManager`` around a TrainState (save every k steps, each step
+        sealed by a manifest of SHA-256 digests; resume the latest step that passes verification).
     train / fit: the training loop over random-access batches (``placejax.data.train_dataset``), resumable.
     predict, map_batches: batched inference over a session / fixed-size batched mapping of any function.
     launch: ``python -m placejax.training.launch``, the command that starts N cooperating processes.
     release_free_memory: hands the C heap's freed memory back to the OS between the stages of a long pipeline.
 """
 
-from placejax.training import launch
-from placejax.training._checkpoint import Checkpointer
+from placejax.training._checkpoint import Checkpointer, CheckpointError
 from placejax.training._loop import fit, map_batches, predict, train
 from placejax.training._memory import release_free_memory
 from placejax.training._sharding import (
@@ -35,6 +35,7 @@ from placejax.training._state import TrainState, apply_fn, create_state, make_op
 from placejax.training._steps import Objective, classification_loss, predict_step, train_step
 
 __all__ = [
+    "CheckpointError",
     "Checkpointer",
     "Objective",
     "TrainState",
@@ -58,3 +59,13 @@ __all__ = [
     "train",
     "train_step",
 ]
+
+
+def __getattr__(name: str):
+    # launch is also `python -m placejax.training.launch`: imported here on first use, not with the package, so that
+    # runpy does not find it imported already and warn before running it.
+    if name == "launch":
+        import importlib
+
+        return importlib.import_module("placejax.training.launch")
+    raise AttributeError(f"module 'placejax.training' has no attribute {name!r}")

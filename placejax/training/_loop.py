@@ -39,8 +39,9 @@ def fit(
     stop_after: int | None = None,
     desc: str = "train",
     progress: bool = True,
+    resume: bool = True,
 ) -> tuple[TrainState, list[dict[str, float]]]:
-    """Runs ``train_step`` for steps ``state.step .. num_steps − 1``, resuming from the latest checkpoint.
+    """Runs ``train_step`` for steps ``state.step .. num_steps − 1``, resuming from the latest verified checkpoint.
 
     Batch k is ``batches[k]`` (a random-access source such as a grain ``MapDataset``), so a run resumed at
     step k reads exactly the batches an uninterrupted run reads from step k on, and — with the step key folded
@@ -60,14 +61,16 @@ def fit(
         stop_after: stop (after a checkpoint) once this many steps are done, as an interruption would.
         desc: progress bar label.
         progress: show a tqdm bar.
+        resume: restore ``state`` from ``checkpointer`` first (``Checkpointer.resume``: a step that fails
+            verification is discarded); False when the caller restored it.
 
     Returns:
         ``(final state, per-step metrics of the steps run in this call)``.
     """
     if spans_processes(mesh):
         sync_processes(desc)  # each step is a collective: start together (gloo gives a late process 30 s)
-    if checkpointer is not None and checkpointer.latest_step() is not None:
-        state = checkpointer.restore(state)
+    if checkpointer is not None and resume:
+        state = checkpointer.resume(state)
     start = int(state.step)
     last = num_steps if stop_after is None else min(num_steps, stop_after)
     if start < last and len(batches) < last:
@@ -127,20 +130,16 @@ def train(
         num_steps: steps of the run (default ``len(batches)``; required when ``batches`` is a function).
         batch_stats: initial BatchNorm statistics, for models that have them.
         objective: the loss; default cross-entropy of a classifier.
-        checkpoint_dir: orbax checkpoints (resumed from when present); ``None``: none.
+        checkpoint_dir: orbax checkpoints, resumed from the latest step that passes verification (one that fails
+            is discarded with a warning: the run goes on from the step before, or from scratch, and ends in the same
+            parameters); ``None``: none.
         save_every: steps between checkpoints (not part of any result: changing it changes no weight).
         stop_after: stop early after a checkpoint (to simulate an interruption).
         desc: progress-bar label.
         progress: show a progress bar.
     """
-    if callable(batches):
-        if num_steps is None:
-            raise ValueError(f"{desc}: num_steps is required when batches is a function")
-        done = None
-        if checkpoint_dir is not None:
-            with Checkpointer(checkpoint_dir) as ck:
-                done = ck.latest_step()
-        batches = () if done is not None and done >= num_steps else batches()
+    if callable(batches) and num_steps is None:
+        raise ValueError(f"{desc}: num_steps is required when batches is a function")
     num_steps = len(batches) if num_steps is None else num_steps
     state = create_state(
         apply_fn,
@@ -165,9 +164,12 @@ def train(
     )
     try:
         if checkpoint_dir is None:
-            return fit(state, batches, **run)[0]
+            return fit(state, batches() if callable(batches) else batches, **run)[0]
         with Checkpointer(checkpoint_dir) as ck:
-            return fit(state, batches, checkpointer=ck, **run)[0]
+            state = ck.resume(state)
+            if callable(batches):  # a finished run renders or reads no data
+                batches = () if int(state.step) >= num_steps else batches()
+            return fit(state, batches, checkpointer=ck, resume=False, **run)[0]
     finally:
         release_free_memory()  # the freed batches: ~1 GB of the depth network's training (see _memory)
 

@@ -26,6 +26,8 @@ import sys
 import threading
 import time
 
+from placejax import cli
+
 __all__ = ["launch", "main"]
 
 
@@ -111,6 +113,7 @@ def launch(
     return code
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point (``python -m placejax.training.launch --help``); returns the exit status."""
     parser = argparse.ArgumentParser(
@@ -122,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--devices-per-process", type=int, default=None, help="CPU: host devices per process")
     parser.add_argument("--port", type=int, default=None, help="coordinator port (default: a free one)")
     parser.add_argument("command", nargs=argparse.REMAINDER, help="-- then the command each process runs")
+    parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     command = args.command[1:] if args.command[:1] == ["--"] else args.command
     if not command:

@@ -3,9 +3,10 @@
 Public surface:
     resolve: ``registry:NAME``, ``shipped:NAME`` or a path → :class:`WeightsRecord` ``(variables, meta)``; every
         network placejax loads goes through it. ``identity`` says what a spec names, for cache keys.
-    WeightsRecord, read_record, load_shipped, shipped_names, shipped_file, run_dir, announce_training: the one
-        lifecycle of the networks placejax trains itself (the depth network, the pretrained trunks): trained
-        once into the cache, recorded as an ``.npz`` with its ``meta``, shipped, verified, loaded.
+    WeightsRecord, read_record, load_shipped, shipped_names, shipped_file, run_dir, announce_training,
+        training_lock: the one lifecycle of the networks placejax trains itself (the depth network, the pretrained
+        trunks): trained once into the cache (one process at a time), recorded as an ``.npz`` with its ``meta``,
+        shipped (SHA-256 in ``SHIPPED_SHA256``, else ``ShippedWeightsError``), verified, loaded.
     REGISTRY, load, fetch, cache_dir: official pretrained weights (MiDaS, Depth Anything V2, VGG16), downloaded
         once and converted.
     read_torch_checkpoint and the converters: a torch-free safe reader of ``torch.save`` files → Flax variables.
@@ -24,6 +25,8 @@ from placejax.weights._registry import (
 from placejax.weights._resolve import REGISTRY_PREFIX, SHIPPED_PREFIX, identity, resolve
 from placejax.weights._shipped import (
     SHIPPED_PACKAGES,
+    SHIPPED_SHA256,
+    ShippedWeightsError,
     WeightsRecord,
     announce_training,
     load_shipped,
@@ -31,6 +34,7 @@ from placejax.weights._shipped import (
     run_dir,
     shipped_file,
     shipped_names,
+    training_lock,
 )
 from placejax.weights._torch_checkpoint import (
     DEFAULT_MAX_BYTES,
@@ -45,8 +49,10 @@ __all__ = [
     "REGISTRY_PREFIX",
     "SHIPPED_PACKAGES",
     "SHIPPED_PREFIX",
+    "SHIPPED_SHA256",
     "Preprocessing",
     "PretrainedWeights",
+    "ShippedWeightsError",
     "TorchCheckpointError",
     "UnsafeCheckpointError",
     "WeightsRecord",
@@ -66,4 +72,5 @@ __all__ = [
     "run_dir",
     "shipped_file",
     "shipped_names",
+    "training_lock",
 ]

@@ -5,13 +5,18 @@ weights record (an ``.npz`` of flat ``"a/b/leaf"`` arrays plus a JSON ``meta``: 
 quick check; written by ``placejax.io.write_npz``), verify it (the tests recompute the recorded quick check, and a
 shipped record whose fingerprint is not the preset's is not used), and load it (:func:`read_record`,
 :func:`load_shipped`). Records of the default presets ship inside the package, under ``placejax/depth/weights/``
-and ``placejax/pretrain/weights/``, because a fresh machine cannot afford to train them.
+and ``placejax/pretrain/weights/``, because a fresh machine cannot afford to train them; each file's SHA-256 is
+recorded here (:data:`SHIPPED_SHA256`) and checked before the file is used. Trainings into one cache folder are
+serialised (:func:`training_lock`): a second caller waits, then loads what the first trained.
 """
 
+import contextlib
+import hashlib
 import importlib.resources
 import io as _io
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
@@ -22,6 +27,8 @@ from placejax import io
 
 __all__ = [
     "SHIPPED_PACKAGES",
+    "SHIPPED_SHA256",
+    "ShippedWeightsError",
     "WeightsRecord",
     "announce_training",
     "load_shipped",
@@ -29,11 +36,27 @@ __all__ = [
     "run_dir",
     "shipped_file",
     "shipped_names",
+    "training_lock",
 ]
 
 # Packages whose ``weights/`` folder holds shipped records; a record's file name (without ``.npz``) is its name.
 SHIPPED_PACKAGES = ("placejax.depth", "placejax.pretrain")
 """Packages whose ``weights/`` folder holds shipped records; a record's file name (without ``.npz``) is its name."""
+
+# A file shipped in a weights/ folder is used only when its bytes have the digest recorded here; one shipped anew
+# (``--export`` of experiments.train_depth / experiments.pretrain_trunk) needs its line here.
+SHIPPED_SHA256 = {
+    "simcampus_depth_default_128": "6ab86dd06a551f07a67d3c8a8ce7f37726e6e696464e0d1adaf66a07c5c8fa25",
+    "simcampus_places_hha_predicted_w0125_s64": "563c51f021b710bd5e38b46fd0869d2e7058763a6f82d1c1eb176efd6b206afa",
+    "simcampus_places_hha_w0125_s64": "c6cd093d788ed46b5d4a967ddc2933e3951246046c2765d70c2e48ebc24a85db",
+    "simcampus_places_w0125_s64": "e1e4770fd6eaf5b9397ea389721561e7d9c0e66bc6ec33407408e1464f79874c",
+}
+"""Name → SHA-256 (hex) of each weights record shipped with placejax, checked by :func:`load_shipped` before use."""
+
+
+class ShippedWeightsError(ValueError):
+    """A shipped weights file whose bytes are not the ones placejax shipped (damaged or replaced), or one without a
+    recorded digest; the message names the file and how to restore it."""
 
 
 class WeightsRecord(NamedTuple):
@@ -92,9 +115,29 @@ def shipped_file(name: str):
 
 def load_shipped(name: str) -> WeightsRecord:
     """The record ``name`` shipped with placejax (e.g. ``"simcampus_depth_default_128"`` or
-    ``"simcampus_places_w0125_s64"``), read with :func:`read_record`."""
-    with shipped_file(name).open("rb") as f:
-        return read_record(_io.BytesIO(f.read()), what=f"shipped weights record {name!r}")
+    ``"simcampus_places_w0125_s64"``), read with :func:`read_record` once its SHA-256 is the one recorded in
+    :data:`SHIPPED_SHA256`.
+
+    Raises:
+        FileNotFoundError: no shipped record of that name.
+        ShippedWeightsError: the file's bytes are not those placejax shipped, or no digest is recorded for it.
+    """
+    path = shipped_file(name)
+    data = path.read_bytes()
+    want = SHIPPED_SHA256.get(name)
+    got = hashlib.sha256(data).hexdigest()
+    if want is None:
+        raise ShippedWeightsError(
+            f"{path}: no SHA-256 recorded for shipped weights {name!r}; record {got} in "
+            "placejax.weights._shipped.SHIPPED_SHA256 if this file is the one to ship"
+        )
+    if got != want:
+        raise ShippedWeightsError(
+            f"{path}: SHA-256 {got[:16]}… is not the {want[:16]}… placejax shipped (the file is damaged or was "
+            "replaced); restore it: reinstall placejax (pip install --force-reinstall placejax), or in a source "
+            f"checkout git checkout -- {Path(*Path(str(path)).parts[-4:])}"
+        )
+    return read_record(_io.BytesIO(data), what=f"shipped weights record {name!r}")
 
 
 def run_dir(kind: str, preset: str, fingerprint: str, root: str | os.PathLike | None = None) -> Path:
@@ -119,3 +162,24 @@ def announce_training(what: str, preset: str, detail: str, minutes: float | None
         f"placejax: training {what} '{preset}' ({detail}, {took}); cached in {workdir} (interrupt and rerun to resume)",
         file=sys.stderr,
     )
+
+
+@contextlib.contextmanager
+def training_lock(workdir: str | os.PathLike) -> Iterator[None]:
+    """Exclusive use of a training's cache folder (``workdir``, created): a second process that trains into the same
+    folder waits for the first, saying so on stderr, then finds the training done and loads it (two trainings at
+    once collided in orbax's step folders). An ``flock`` on ``workdir/.lock`` (``placejax.io.run_lock``), dropped
+    by the kernel when its holder dies.
+
+    The processes of one multi-process run train together and do not lock (each would wait for the others at
+    their first collective).
+    """
+    import jax
+
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    if jax.process_count() > 1:
+        yield
+        return
+    with io.run_lock(workdir, wait=True):
+        yield

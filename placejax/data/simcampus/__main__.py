@@ -17,7 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from placejax import io
+from placejax import cli, io
 from placejax.data import simcampus
 
 
@@ -35,6 +35,7 @@ def pick_place(session: simcampus.SimCampusSession, stride: int = 25) -> int:
     return int(idx[np.argmax(score)])
 
 
+@cli.command
 def main(argv: list[str] | None = None) -> int:
     """The command line (module docstring); returns the exit status."""
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -47,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--world-seed", type=int, default=0)
     ap.add_argument("--size", type=int, default=160, help="rendered image height and width (pixels)")
     ap.add_argument("--frame", type=int, default=None, help="frame of the SU session (default: picked)")
+    ap.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = ap.parse_args(argv)
 
     ref = simcampus.load_session("SU", world_seed=args.world_seed, image_size=(32, 32))
