@@ -484,3 +484,27 @@ def test_shared_build_refuses_an_unfinished_share(tmp_path):
         # Process 0 alone, told there are two processes (its barrier lets it through): process 1's part is missing.
         build_array_cache(root, fn=_producer(), shard=CacheShard(0, 2, lambda name: None), **_SHARED)
     assert not _complete_dirs(root)
+
+
+def test_a_full_disk_is_an_oserror_naming_the_cache_file(tmp_path, monkeypatch):
+    """The cache's data file is allocated when it is created, so a full disk is ENOSPC naming the file then, not a
+    SIGBUS later when a write through the memory map finds no block (seen on a full tmpfs)."""
+    import errno
+    import os
+
+    from placejax.data import cache
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    with pytest.raises(OSError, match=r"No space left on device while reserving the cache file.*data\.npy") as err:
+        cache.build_array_cache(
+            tmp_path, "big", 4, lambda a, b: np.zeros((b - a, 8), np.float32), (8,), np.float32, key={"x": 1}
+        )
+    assert err.value.errno == errno.ENOSPC
+    monkeypatch.undo()
+    done = cache.build_array_cache(
+        tmp_path, "big", 4, lambda a, b: np.ones((b - a, 8), np.float32), (8,), np.float32, key={"x": 1}
+    )
+    assert np.asarray(done.data).sum() == 32  # the failed build left nothing that is trusted

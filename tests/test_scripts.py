@@ -255,8 +255,14 @@ def test_benchmark_data_pipeline(bench):
 
 @pytest.mark.slow
 def test_benchmark_route_speed(bench):
-    out, r = _bench(bench, "route_speed", "--repeats", "1", "--frames", "40", "--stream-frames", "5", "--n", "3")
-    assert r["cells"] == 9 and len(r["rows"]) == 5 and "frames/s" in out
+    out, r = _bench(
+        bench,
+        *("route_speed", "--repeats", "1", "--frames", "40", "--stream-frames", "5", "--n", "3"),
+        *("--tracker-steps", "2", "--first-repeats", "1"),
+    )
+    cases = [row["case"] for row in r["rows"]]
+    assert r["cells"] == 9 and len(cases) == 7 and "frames/s" in out
+    assert any(c.startswith("Tracker.step") for c in cases) and "PlaceClassifier.logits (1 image)" in cases
 
 
 @pytest.mark.slow

@@ -45,6 +45,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="default", choices=_config.PRESETS, help="configuration preset")
     parser.add_argument("--workdir", default=None, help="work directory (default: runs/cross_season-<preset>)")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. train.epochs=3")
+    parser.add_argument(
+        "--traceback", action="store_true", help="on a failure, the full traceback (also PLACEJAX_TRACEBACK=1)"
+    )
     args = parser.parse_args(argv)
 
     # Multi-host launches must initialise before anything touches a JAX backend.
@@ -56,7 +59,10 @@ def main(argv: list[str] | None = None) -> int:
         _config.apply_overrides(cfg, args.overrides)
         _config.validate(cfg)
     except ValueError as e:
-        parser.error(str(e))
+        # One line a user can act on: every bad key with what it needs, and where the keys are listed.
+        head, *problems = [line.strip() for line in str(e).splitlines() if line.strip()]
+        message = f"{head} {'; '.join(problems)}" if problems else head
+        raise SystemExit(f"{message} (python -m experiments.cross_season --help lists every key)") from None
     from experiments.cross_season.driver import run
     from experiments.cross_season.report.table import table_markdown
 

@@ -27,6 +27,7 @@ from placejax.data.cache import (
     _open_partial,
     cache_digest,
     open_array_cache,
+    reserve_space,
     shard_rows,
 )
 
@@ -85,6 +86,7 @@ def _assemble(count: int, root: Path, stem: str, full_key: dict, chunk: int, ext
             partial.mkdir(parents=True)
             # open_memmap writes the header a one-process build writes; the rows are then copied behind it.
             mm = np.lib.format.open_memmap(partial / _DATA, mode="w+", dtype=dtype, shape=(n, *shape))
+            reserve_space(partial / _DATA)
             offset, row_bytes = mm.offset, mm.itemsize * math.prod(shape)
             del mm
             with open(partial / _DATA, "r+b") as out:

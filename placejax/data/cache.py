@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import fcntl
 import hashlib
 import json
@@ -259,7 +260,22 @@ def _open_partial(partial: Path, digest: str, n: int, shape: tuple[int, ...], dt
         _discard(partial)
     partial.mkdir(parents=True)
     mm = np.lib.format.open_memmap(data_path, mode="w+", dtype=dtype, shape=(n, *shape))
+    reserve_space(data_path)
     return mm, 0
+
+
+def reserve_space(path: Path) -> None:
+    """Allocates the disk blocks of a (sparse) file now: a full disk is then an ``OSError`` (ENOSPC) naming the
+    file here, instead of a SIGBUS later, when a write through its memory map finds no block to fill."""
+    if not hasattr(os, "posix_fallocate"):  # not on macOS: the map's writes find out instead
+        return
+    with open(path, "r+b") as f:
+        try:
+            os.posix_fallocate(f.fileno(), 0, os.fstat(f.fileno()).st_size)
+        except OSError as e:
+            if e.errno in (errno.EOPNOTSUPP, errno.EINVAL):  # a file system without allocation: nothing to do
+                return
+            raise OSError(e.errno, f"{e.strerror} while reserving the cache file", str(path)) from None
 
 
 def _fsync_dir(path: Path) -> None:

@@ -736,13 +736,20 @@ def load_session(
     )
 
 
-if __name__ == "__main__":
-    # python -m placejax.data.nclt export ROOT DIR [...]: NCLT sessions as session folders (placejax.data.export).
+def _export_main(argv: list[str] | None = None) -> int:
+    """``python -m placejax.data.nclt export ROOT DIR [...]``: NCLT sessions as session folders
+    (``placejax.data.export``)."""
     import sys
 
     from placejax.data.export import nclt_main
 
-    if sys.argv[1:2] != ["export"]:
-        print("usage: python -m placejax.data.nclt export ROOT DIR [--dates ...] (see --help)", file=sys.stderr)
-        raise SystemExit(2)
-    raise SystemExit(nclt_main(sys.argv[2:]))
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] != ["export"]:
+        raise SystemExit("usage: python -m placejax.data.nclt export ROOT DIR [--dates ...] (see --help)")
+    return nclt_main(argv[1:])
+
+
+if __name__ == "__main__":
+    from placejax import cli
+
+    raise SystemExit(cli.command(_export_main)())
