@@ -63,6 +63,18 @@ def _parse(text: str, old):
     return value
 
 
+def _nearest_keys(key: str, known: list[str]) -> str:
+    """What to say after an unknown key: the close spellings, else the keys of its section, else all of them."""
+    import difflib
+
+    close = difflib.get_close_matches(key, known, n=3, cutoff=0.6)
+    if close:
+        return f"did you mean {' or '.join(close)}? (--help lists every key)"
+    section = key.rpartition(".")[0]
+    same = [k for k in known if section and k.startswith(section + ".")]
+    return f"known keys: {', '.join(same or known)}"
+
+
 def apply_overrides(c: ml_collections.ConfigDict, overrides: list[str]) -> ml_collections.ConfigDict:
     """Applies ``key=value`` overrides (``train.epochs=3``, ``data.sessions=('WI','SU')``) in place.
 
@@ -78,7 +90,7 @@ def apply_overrides(c: ml_collections.ConfigDict, overrides: list[str]) -> ml_co
         key, text = item.split("=", 1)
         key = key.strip()
         if key not in known:
-            raise ValueError(f"unknown config key {key!r}; known keys: {', '.join(known)}")
+            raise ValueError(f"unknown config key {key!r}; {_nearest_keys(key, known)}")
         *parents, leaf = key.split(".")
         node = c
         for p in parents:
