@@ -69,7 +69,7 @@ def _nearest_keys(key: str, known: list[str]) -> str:
 
     close = difflib.get_close_matches(key, known, n=3, cutoff=0.6)
     if close:
-        return f"did you mean {' or '.join(close)}? (--help lists every key)"
+        return f"did you mean {' or '.join(close)}?"
     section = key.rpartition(".")[0]
     same = [k for k in known if section and k.startswith(section + ".")]
     return f"known keys: {', '.join(same or known)}"
