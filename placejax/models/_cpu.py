@@ -18,16 +18,8 @@ __all__ = ["cpu_compiler_options"]
 
 _YNN_DOT = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
 
-# Measured with jaxlib 0.10.2 on 2 cores (benchmarks/models_speed.py; ms/image, batch 8), Intel Xeon with
-# AVX-512, 2026-12-02, for XLA's defaults / YNNPACK dots / YNNPACK convolutions / both:
-#   vgg16 fc7 224²: 329 / 129 / 148 / 149;  64²: 20.0 / 17.6 / 19.0 / 20.7.
-#   midas_small 256²: 80.7 / 50.6 / 80.0 / 80.0 (dots carry MiDaS's 1×1 convolutions and most of its time).
-# "Dots only" is the fastest for both networks. (An earlier round on a 2-core AMD EPYC with AVX2 had measured
-# convolutions + dots: ~400 → ~230 ms at 224² for VGG16, no gain for MiDaS.)
-# Depth Anything V2 Small (2-core AMD EPYC shared with other jobs, load average 6–13, 2026-12-05), per image,
-# defaults / YNNPACK dots: 518² batch 8 6.53 / 4.66 s, batch 1 4.00 / 3.99 s; 266² batch 8 455 / 495 ms; 70²
-# batch 8 35 / 43 ms (benchmarks/models_speed.py --only dav2; spreads of 7–90 % between runs). Dots help where
-# its ViT blocks' matrix products dominate, at the trained size; kept for that size.
+# YNNPACK dots, not convolutions: the fastest of the four settings for every network measured
+# (benchmarks/models_speed.py; the per-network figures are in docs/research-log.md, 2026-12-02 and 2026-12-05).
 _KINDS: dict[str, dict[str, str]] = {"vgg16": _YNN_DOT, "midas_small": _YNN_DOT, "depth_anything_v2": _YNN_DOT}
 
 

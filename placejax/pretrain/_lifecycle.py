@@ -35,11 +35,8 @@ SHIPPED_HHA = "simcampus_places_hha_w0125_s64"
 SHIPPED_HHA_PREDICTED = "simcampus_places_hha_predicted_w0125_s64"
 """Name of the HHA net's trunk pretrained on HHA of the default depth network's predictions: the one the experiment's
 HHA net reads."""
-# The depth network whose predictions it was pretrained on (its ``meta["hha_depth_network"]``): the default preset
-# at 96² and 2400 steps, shipped before the 128² networks. A trunk pretrained on the 128² 2400-step network's
-# predictions scored lower on world 1 (HHA-Net 20.4 against 20.7 %, README of placejax/pretrain/weights), so
-# this one stayed. ``image_size`` and ``steps`` are the settings in which that network's recipe differs from the
-# preset's.
+# The depth network its HHA images came from (its ``meta["hha_depth_network"]``): the settings in which that
+# network's recipe differs from the preset's; why not a newer one: docs/research-log.md, 2026-12-05.
 SHIPPED_HHA_PREDICTED_DEPTH = ("default", {"image_size": 96, "steps": 2400})
 """``(preset, settings)`` of the depth network :data:`SHIPPED_HHA_PREDICTED` was pretrained on."""
 _EXPECTED_MINUTES = {"smoke": 1, "default": 45}
