@@ -25,7 +25,8 @@ import optax
 from placejax import cli, training
 from placejax.data import train_dataset
 from placejax.models import VGG16, he_init, imagenet_normalise
-from placejax.pretrain import place_frames, trunk_map_size
+from placejax.pretrain import trunk_map_size
+from placejax.pretrain.data import place_frames
 
 
 def _fit(rgb: np.ndarray, labels: np.ndarray, lr: float, steps: int, width: float = 0.125) -> float:

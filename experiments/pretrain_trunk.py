@@ -7,9 +7,9 @@ The pretext (``placejax.pretrain``): place classification (grid cell × heading 
 cross-look contrastive term, every view rendered twice with independent random looks per object and frame —
 never the evaluation campus, never its season palettes. ``modality=hha`` pretrains the trunk of the HHA
 net instead: the two versions of a view are HHA images of its depth in summer's and in another season's geometry,
-each perturbed as a monocular depth network errs (``placejax.pretrain.perturb_depth``), or, with
+each perturbed as a monocular depth network errs (``placejax.pretrain.data.perturb_depth``), or, with
 ``hha_depth=trained:default``, as the experiment's default depth network predicts it from each version rendered
-in a random look (``placejax.pretrain.network_depth``; trained into the cache first if missing). Without
+in a random look (``placejax.pretrain.data.network_depth``; trained into the cache first if missing). Without
 ``--workdir`` the run lives in the cache (``$PLACEJAX_CACHE/pretrain/<preset>-<config hash>``). A killed run
 resumes from its last checkpoint when the same command is run again. ``pretrain_eval.json`` in the run folder
 holds the held-out cross-look recall@1 of the trunk and of raw pixels, 12 × 12 gradient and 16 × 16 colour
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     with training_lock(workdir):  # one training per folder: another one (ensure_trained, ...) waits for this one
         t0 = time.perf_counter()
         try:
-            pretrain.train(cfg, workdir)
+            pretrain.train_trunk(cfg, workdir)
         except KeyboardInterrupt:
             print(
                 f"\ninterrupted: rerun the same command to resume from the last checkpoint in {workdir}",
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         if record.exists():  # a finished run re-evaluated: keep the time its training took, not this call's
             t_train = json.loads(record.read_text()).get("train_seconds", t_train)
         params = pretrain.load_trained(workdir, cfg)
-        report = pretrain.heldout_report(params["trunk"], cfg)
+        report = pretrain.evaluation.heldout_report(params["trunk"], cfg)
         payload = {
             "config": dataclasses.asdict(cfg),
             "fingerprint": cfg.fingerprint(),
@@ -89,12 +89,12 @@ def main(argv: list[str] | None = None) -> int:
             **payload,
             "command": "python -m experiments.pretrain_trunk " + shlex.join(sys.argv[1:] if argv is None else argv),
             "preset": args.preset,
-            "quick_check": pretrain.quick_check(params["trunk"], cfg),
+            "quick_check": pretrain.evaluation.quick_check(params["trunk"], cfg),
         }
         if cfg.hha_depth_network() is not None:  # which depth network's predictions it learnt from
             meta["hha_depth_network"] = cfg.hha_depth_network()
         heads = tuple(h for h in args.export_heads.split(",") if h)
-        pretrain.save_npz(params, args.export, meta, heads)
+        pretrain.save_trunk(params, args.export, meta, heads)
         print(f"exported {args.export}")
     print(f"training {t_train:.0f} s; report in {workdir}")
     return 0

@@ -92,9 +92,11 @@ def _documented_members() -> list[tuple[str, str]]:
         member = pdoc.doc.Module(sys.modules[modname]).get(name)
         if member is not None and member.docstring.strip():
             return member.docstring
-        # A constant re-exported by its package: its docstring is where it is assigned, in a private module.
+        # A constant re-exported by its package (or a public module of it): its docstring is where it is assigned,
+        # in a private module of that package.
+        packages = (modname + ".", modname.rpartition(".")[0] + ".")
         for other, module in list(sys.modules.items()):
-            if other.startswith(modname + ".") and module is not None and vars(module).get(name) is value:
+            if other.startswith(packages) and module is not None and vars(module).get(name) is value:
                 found = pdoc.doc.Module(module).get(name)
                 if found is not None and found.docstring.strip():
                     return found.docstring

@@ -116,7 +116,7 @@ def test_ensure_trained_trains_once_and_reports(uninterrupted_dir, tmp_path, mon
 
 
 def test_network_depth_averages_views_as_the_experiment_does(uninterrupted_dir, tmp_path, monkeypatch):
-    """``placejax.pretrain.network_depth("trained:<preset>")`` (the HHA trunk's pretraining depth) finds the cached
+    """``placejax.pretrain.data.network_depth("trained:<preset>")`` (the HHA trunk's pretraining depth) finds the cached
     network and averages the views the experiment's default depth stage averages (mirror and ±2, ±4 px), then puts
     everything from 50 m on as sky: the step the shipped HHA trunk learnt with (the experiment's is 60 m)."""
     from experiments.cross_season import config as experiment_config

@@ -8,8 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from placejax import pretrain, training
+from placejax import pretrain, training, weights
 from placejax.models import VGG16
+from placejax.pretrain._train import init_params
 
 # Under the README's ``--dist loadgroup`` every test of this module runs on one worker, so the smoke pretraining
 # (module fixture, about a minute) is done once rather than once per worker that runs one of its tests.
@@ -35,12 +36,12 @@ def test_place_labels_are_cell_and_heading():
     box = (0.0, 10.0, 0.0, 10.0)
     poses = np.array([[0.5, 0.5, 0, 0.0, 0, 0], [9.9, 0.5, 0, np.pi, 0, 0], [0.5, 9.9, 0, np.pi / 2, 0, 0]])
     # grid 2, 4 headings: (row · 2 + col) · 4 + heading bin (0: +x, 1: +y, 2: −x).
-    assert pretrain.place_labels(poses, box, 2, 4).tolist() == [0, 2 * 4 + 2, 1 * 4 + 1]
+    assert pretrain.data.place_labels(poses, box, 2, 4).tolist() == [0, 2 * 4 + 2, 1 * 4 + 1]
 
 
 def test_recall_at_1_is_exact_on_identical_descriptors():
     x = np.random.default_rng(0).normal(size=(5, 7))
-    assert pretrain.recall_at_1(x, x, np.arange(5)) == {"view": 1.0, "place": 1.0}
+    assert pretrain.evaluation.recall_at_1(x, x, np.arange(5)) == {"view": 1.0, "place": 1.0}
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +93,7 @@ def test_ensure_trained_reuses_the_cached_run(smoke_run, monkeypatch):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [pretrain.SHIPPED, pretrain.SHIPPED_HHA, pretrain.SHIPPED_HHA_PREDICTED])
 def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall(name):
-    params, meta = pretrain.load_shipped(name)
+    params, meta = weights.resolve(f"shipped:{name}")
     cfg = pretrain.PretrainConfig(**meta["config"])
     assert cfg.modality == ("rgb" if name == pretrain.SHIPPED else "hha")
     s = cfg.image_size
@@ -101,10 +102,10 @@ def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall(name):
     shapes = lambda t: jax.tree_util.tree_map(np.shape, t)
     assert set(params) == {"trunk"}
     assert shapes(params["trunk"]) == shapes(template["trunk"])
-    got = pretrain.quick_check(params["trunk"], cfg)
+    got = pretrain.evaluation.quick_check(params["trunk"], cfg)
     want = meta["quick_check"]
     # Same frames, same weights: equal up to a tie flipped by float noise.
-    assert abs(got["view"] - want["view"]) <= 1 / pretrain.CHECK_FRAMES + 1e-9, (got, want)
+    assert abs(got["view"] - want["view"]) <= 1 / pretrain.evaluation.CHECK_FRAMES + 1e-9, (got, want)
     # And the record is a trunk that learned: far above an untrained one on the full held-out set.
     mean = meta["heldout"]["mean"]
     assert mean["trunk"]["view"] > mean["random_trunk"]["view"] + 0.1
@@ -118,13 +119,13 @@ def test_config_refuses_an_evaluation_seed_equal_to_the_training_seed():
 
 def test_export_round_trip_keeps_the_trunk_and_the_named_heads(tmp_path):
     cfg = pretrain.PRESETS["smoke"]
-    params = pretrain.init_params(cfg, 5)
-    pretrain.save_npz(params, tmp_path / "t.npz", {"config": dataclasses.asdict(cfg)}, heads=("fc6", "fc7"))
-    got, meta = pretrain.read_npz(tmp_path / "t.npz")
+    params = init_params(cfg, 5)
+    pretrain.save_trunk(params, tmp_path / "t.npz", {"config": dataclasses.asdict(cfg)}, heads=("fc6", "fc7"))
+    got, meta = pretrain.read_trunk(tmp_path / "t.npz")
     assert meta["config"]["width"] == cfg.width
     assert set(got["classifier"]) == {"fc6", "fc7"}
-    pretrain.save_npz(params, tmp_path / "trunk.npz", {})
-    assert set(pretrain.read_npz(tmp_path / "trunk.npz")[0]) == {"trunk"}
+    pretrain.save_trunk(params, tmp_path / "trunk.npz", {})
+    assert set(pretrain.read_trunk(tmp_path / "trunk.npz")[0]) == {"trunk"}
     for a, b in zip(jax.tree_util.tree_leaves(got["trunk"]), jax.tree_util.tree_leaves(params["trunk"]), strict=True):
         np.testing.assert_array_equal(a, np.asarray(b))
     # An exported file is usable as it is wherever pretrained weights are named (vgg.weights, vgg.hha_weights).
@@ -194,7 +195,7 @@ def test_rgb_fingerprint_is_unchanged_by_the_modality_field():
 def test_hha_depth_field_keeps_the_shipped_hha_trunks_hash_and_is_validated():
     """Runs on perturbed depth keep the cache hash recorded in the shipped HHA trunk; a trunk pretrained on a depth
     network's predictions gets its own; bad values name the field."""
-    _, meta = pretrain.load_shipped(pretrain.SHIPPED_HHA)
+    _, meta = weights.resolve(f"shipped:{pretrain.SHIPPED_HHA}")
     recorded = {k: v for k, v in meta["config"].items() if k != "hha_depth"}
     cfg = pretrain.PretrainConfig(**recorded)
     assert cfg.hha_depth == "perturbed" and cfg.fingerprint() == meta["fingerprint"]
@@ -207,7 +208,7 @@ def test_hha_depth_field_keeps_the_shipped_hha_trunks_hash_and_is_validated():
     with pytest.MonkeyPatch.context() as mp:
         mp.setitem(depth.PRESETS, "default", other)
         assert dataclasses.replace(cfg, hha_depth="trained:default").fingerprint() != network
-    _, meta = pretrain.load_shipped(pretrain.SHIPPED_HHA_PREDICTED)
+    _, meta = weights.resolve(f"shipped:{pretrain.SHIPPED_HHA_PREDICTED}")
     # The shipped trunk was pretrained on the depth network its module names (the default recipe at 96²): its
     # record's fingerprints are that network's and those of its config with that network as the default.
     preset, changes = pretrain.SHIPPED_HHA_PREDICTED_DEPTH

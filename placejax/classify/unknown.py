@@ -26,8 +26,8 @@ Their thresholds come from training frames *held out* from the reference (:func:
 
 from __future__ import annotations
 
+import dataclasses
 import re
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -178,12 +178,18 @@ def _knn_k(score: str) -> int:
     return int(m.group(1))
 
 
-class KnnReference(NamedTuple):
+@dataclasses.dataclass(frozen=True)
+class KnnReference:
     """A k-NN reference prepared once for many queries (:func:`knn_reference`): what :func:`knn_distance` would
-    otherwise convert on every call (a streaming caller queries one frame at a time)."""
+    otherwise convert on every call (a streaming caller queries one frame at a time).
 
-    rows_t: np.ndarray  # float64 (D, M): the reference rows, transposed
-    norms2: np.ndarray  # float64 (M,): their squared lengths
+    Attributes:
+        rows_t: float64 ``(D, M)`` the reference rows, transposed.
+        norms2: float64 ``(M,)`` their squared lengths.
+    """
+
+    rows_t: np.ndarray
+    norms2: np.ndarray
 
     def __len__(self) -> int:
         return self.norms2.shape[0]

@@ -65,7 +65,7 @@ def _unflatten(arrays: dict[str, np.ndarray]) -> dict:
 
 def load_shipped(preset: str = "default") -> _shipped.WeightsRecord:
     """The record of the network of ``preset`` shipped in ``placejax/depth/weights``:
-    ``(variables, meta)`` (a ``placejax.weights.WeightsRecord``, as ``placejax.pretrain.load_shipped`` returns),
+    ``(variables, meta)`` (a ``placejax.weights.WeightsRecord``, as ``placejax.weights.resolve("shipped:…")`` returns),
     ``meta`` with the config and its seed, fingerprint, command, evaluation and quick check (training time and the
     rest in the README there). ``TrainedDepth.from_record(record)`` makes it a network.
 

@@ -3,97 +3,59 @@
 The paper fine-tunes fc6–fc8 of an ImageNet VGG16 with frozen convolutions. Here the trunk is pretrained on
 SimCampus worlds other than the evaluation campus (random looks per object and frame, never the season
 palettes), on :class:`PretextObjective`, through ``placejax.training``'s one engine; its held-out quality is
-cross-look place retrieval on worlds it never saw (:func:`heldout_report`). The result of the ``default`` preset
-is shipped as ``placejax/pretrain/weights/<SHIPPED>.npz`` (:func:`load_shipped`), because a fresh machine cannot
-afford to pretrain; :func:`ensure_trained` reproduces it into the cache. ``PretrainConfig.modality="hha"``
-pretrains the trunk of the HHA net on HHA images of perturbed rendered depth (:func:`perturb_depth`), or, with
-``hha_depth="trained:<preset>"``, of what a trained placejax depth network predicts (:func:`network_depth`).
+cross-look place retrieval on worlds it never saw (`placejax.pretrain.evaluation`). The result of the ``default``
+preset ships as ``placejax/pretrain/weights/<SHIPPED>.npz`` (``placejax.weights.resolve("shipped:" + SHIPPED)``),
+because a fresh machine cannot afford to pretrain; :func:`ensure_trained` reproduces it into the cache.
+``PretrainConfig.modality="hha"`` pretrains the trunk of the HHA net on HHA images of perturbed rendered depth, or,
+with ``hha_depth="trained:<preset>"``, of what a trained placejax depth network predicts
+(`placejax.pretrain.data`).
+
+Public surface:
+    PretrainConfig, PRESETS, PretextObjective: the recipe.
+    train_trunk, ensure_trained, load_trained, run_dir: training into a folder or once into the cache.
+    pretrained_vgg16, modality_weights: VGG16 parameters from a weights spec, for the place classifiers.
+    save_trunk, read_trunk, export_params: trunk files (what the shipped ones are).
+    SHIPPED, SHIPPED_HHA, SHIPPED_HHA_PREDICTED, SHIPPED_HHA_PREDICTED_DEPTH: the shipped trunks' names.
+    trunk_map_size: the trunk's last map for an input size.
+    data, evaluation: the pretraining data and the held-out evaluation.
 """
 
-from placejax.pretrain._data import (
-    network_depth,
-    perturb_depth,
-    place_frames,
-    place_labels,
-    place_world_seeds,
-    render_random_looks,
-)
-from placejax.pretrain._evaluate import (
-    baselines,
-    evaluate_trunk,
-    gradient_thumbnail,
-    heldout_frames,
-    recall_at_1,
-    trunk_descriptor,
-)
+from placejax.pretrain import data, evaluation
 from placejax.pretrain._lifecycle import (
-    CHECK_FRAMES,
     SHIPPED,
     SHIPPED_HHA,
     SHIPPED_HHA_PREDICTED,
     SHIPPED_HHA_PREDICTED_DEPTH,
-    SHIPPED_PREFIX,
     ensure_trained,
     export_params,
-    heldout_report,
-    load_shipped,
     modality_weights,
     pretrained_vgg16,
-    quick_check,
-    read_npz,
     run_dir,
-    save_npz,
-    shipped_file,
 )
+from placejax.pretrain._lifecycle import read_npz as read_trunk
+from placejax.pretrain._lifecycle import save_npz as save_trunk
 from placejax.pretrain._shape import trunk_map_size
-from placejax.pretrain._train import (
-    PRESETS,
-    PretextObjective,
-    PretrainConfig,
-    init_params,
-    load_trained,
-    num_classes,
-    train,
-    training_frames,
-)
+from placejax.pretrain._train import PRESETS, PretextObjective, PretrainConfig, load_trained
+from placejax.pretrain._train import train as train_trunk
 
 __all__ = [
-    "CHECK_FRAMES",
     "PRESETS",
     "SHIPPED",
     "SHIPPED_HHA",
     "SHIPPED_HHA_PREDICTED",
     "SHIPPED_HHA_PREDICTED_DEPTH",
-    "SHIPPED_PREFIX",
     "PretextObjective",
     "PretrainConfig",
-    "baselines",
+    "data",
     "ensure_trained",
-    "evaluate_trunk",
+    "evaluation",
     "export_params",
-    "gradient_thumbnail",
-    "heldout_frames",
-    "heldout_report",
-    "init_params",
-    "load_shipped",
     "load_trained",
     "modality_weights",
-    "network_depth",
-    "num_classes",
-    "perturb_depth",
-    "place_frames",
-    "place_labels",
-    "place_world_seeds",
     "pretrained_vgg16",
-    "quick_check",
-    "read_npz",
-    "recall_at_1",
-    "render_random_looks",
+    "read_trunk",
     "run_dir",
-    "save_npz",
-    "shipped_file",
-    "train",
-    "training_frames",
-    "trunk_descriptor",
+    "save_trunk",
+    "train_trunk",
     "trunk_map_size",
 ]

@@ -33,7 +33,7 @@ def heldout_frames(
 ) -> dict[str, np.ndarray]:
     """``n`` views of held-out world ``world`` of validation seed ``seed``, rendered with two independent look sets
     (``modality="hha"``: as HHA of perturbed depth in summer's and in other seasons' geometry, or of ``depth_fn``'s
-    prediction, ``placejax.pretrain.network_depth``).
+    prediction, ``placejax.pretrain.data.network_depth``).
 
     Validation worlds use seeds ``place_world_seeds(seed, ...)``; pick a ``seed`` no pretraining run uses.
 

@@ -41,7 +41,7 @@ class PretrainConfig:
     Attributes:
         image_size: square input (multiple of 32; ≥ 64 so that the trunk leaves ≥ 2 × 2 cells before fc6).
         width: VGG16 channel multiplier (0.125 = the built-in path's net).
-        n_worlds: pretraining worlds (seeds ``placejax.pretrain.place_world_seeds``, never the evaluation campus).
+        n_worlds: pretraining worlds (seeds ``placejax.pretrain.data.place_world_seeds``, never the evaluation campus).
         frames_per_world: frames rendered per world, each with its own random look.
         grid: place cells per axis of a world's grid (5: coarser than the paper's 10 × 10, so that a class has
             several views; with 10 × 10 × 4 a world's few hundred views give ~1.5 per class, which no net fits).
@@ -61,11 +61,11 @@ class PretrainConfig:
         eval_frames: held-out views per validation world.
         world_seed: the evaluation campus (never rendered here).
         modality: what the trunk reads: ``"rgb"`` (two random looks of each view) or ``"hha"`` (HHA of the depth
-            of each view in two seasons' geometry; ``placejax.pretrain.place_frames``).
+            of each view in two seasons' geometry; ``placejax.pretrain.data.place_frames``).
         hha_depth: ``modality="hha"`` only: where that depth comes from — ``"perturbed"`` (rendered depth through
-            ``placejax.pretrain.perturb_depth``) or ``"trained:<preset>"`` (that placejax depth network's
+            ``placejax.pretrain.data.perturb_depth``) or ``"trained:<preset>"`` (that placejax depth network's
             prediction from each version's RGB image, with the experiment's default views and sky step;
-            ``placejax.pretrain.network_depth``).
+            ``placejax.pretrain.data.network_depth``).
     """
 
     image_size: int = 64

@@ -3,7 +3,7 @@
 - ``registry:NAME``: official weights of ``placejax.weights.REGISTRY`` (downloaded once, converted, cached).
 - ``shipped:NAME``: a record shipped inside the package (the depth network, the pretrained VGG16 trunks).
 - a path ending in ``.npz``: a placejax weights record (``placejax.io.write_npz(..., meta=...)``, e.g. written by
-  ``placejax.depth.save_shipped`` or ``placejax.pretrain.save_npz``).
+  ``placejax.depth.save_shipped`` or ``placejax.pretrain.save_trunk``).
 - any other path: a ``torch.save`` file, read by the safe reader and converted by the caller's ``convert``.
 """
 

@@ -61,7 +61,7 @@ class ShippedWeightsError(ValueError):
 
 class WeightsRecord(NamedTuple):
     """Network variables and their record: what :func:`resolve`, :func:`read_record`, :func:`load_shipped`,
-    ``placejax.depth.load_shipped`` and ``placejax.pretrain.load_shipped`` return.
+    ``placejax.weights.resolve("shipped:NAME")`` returns.
 
     A tuple, so ``variables, meta = record`` works.
 
