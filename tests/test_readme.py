@@ -1,6 +1,7 @@
 """README.md and docs/*.md as a test: every ```python block runs as written, every bash block names real modules
 and options, every relative link resolves.
 
+Snippets run offline (a ``sitecustomize`` makes every socket fail), as on a fresh machine without a network.
 A Python block whose first line is a ``# not run: <why>`` comment is a fragment (it needs a finished run folder or
 the real dataset) and is only compiled; every other block runs. Each Python block runs in its own interpreter (a
 fresh namespace, the working directory a temporary folder) with
@@ -65,11 +66,23 @@ def readme_env(tmp_path_factory, midas_recipe_npz) -> dict[str, str]:
     from fake_nclt import make_fake_nclt
 
     nclt = make_fake_nclt(tmp / "nclt", ["2012-01-22", "2012-03-31"], n_frames=40, stored_hw=(40, 32))
+    # No network in the snippets: every socket a snippet opens fails at once, as on a machine offline (the README's
+    # tour must run so; MiDaS's weights are the pre-filled cache's, as after their one download).
+    offline = tmp / "offline"
+    offline.mkdir()
+    (offline / "sitecustomize.py").write_text(
+        "import socket\n"
+        "def _refuse(*args, **kwargs):\n"
+        "    raise OSError('network disabled by tests/test_readme.py')\n"
+        "socket.socket.connect = _refuse\n"
+        "socket.create_connection = _refuse\n"
+        "socket.getaddrinfo = _refuse\n"
+    )
     env = dict(os.environ)
     env.update(
         PLACEJAX_CACHE=str(cache),
         NCLT_ROOT=str(nclt.root),
-        PYTHONPATH=os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+        PYTHONPATH=os.pathsep.join([str(offline), str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep),
         # Share compiled programs with the rest of the suite (only ever saves time).
         JAX_COMPILATION_CACHE_DIR=os.environ.get("PLACEJAX_TEST_JAX_CACHE", "/tmp/placejax-test-jax-cache"),
     )

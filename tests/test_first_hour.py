@@ -1,0 +1,97 @@
+"""A newcomer's documented paths, as commands in fresh processes: each gives a result, or one line that names the fix.
+
+The README's tour runs offline in tests/test_readme.py (every snippet there runs with sockets disabled); the
+smoke run → classify → Tracker path is in tests/test_classify.py and tests/test_tracker.py. Here: the mistakes a
+first hour with one's own recordings makes (docs/own-data.md), each caught before any work with one line on
+stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env.pop(  # the user's own traceback switch would add lines
+        "PLACEJAX_TRACEBACK", None
+    )
+    return subprocess.run([sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+
+
+def _one_error_line(done: subprocess.CompletedProcess) -> str:
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2, (done.returncode, done.stderr[-2000:])
+    assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr[-2000:]
+    assert "Traceback" not in done.stderr
+    return lines[0]
+
+
+@pytest.fixture()
+def two_sessions(tmp_path) -> Path:
+    """A folder holding two session folders (a camera.json each: what marks a session folder)."""
+    root = tmp_path / "recordings"
+    for name in ("monday", "friday"):
+        (root / name).mkdir(parents=True)
+        camera = {"width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 23.5}
+        (root / name / "camera.json").write_text(json.dumps(camera))
+    return root
+
+
+def test_data_root_without_the_folder_source_is_named(tmp_path, two_sessions):
+    """``data.root=DIR`` alone would be ignored (the run would train on SimCampus): refused, naming the fix."""
+    line = _one_error_line(
+        _run("-m", "experiments.cross_season", "--preset", "smoke", f"data.root={two_sessions}", cwd=tmp_path)
+    )
+    assert "data.root" in line and "add data.source=folder" in line
+    assert not (tmp_path / "runs").exists()  # refused before any work
+
+
+def test_default_session_names_on_own_folders_list_the_folders_there(tmp_path, two_sessions):
+    """``data.source=folder`` with the SimCampus season names: one line naming the missing folders, the session
+    folders that exist and the ``data.sessions`` that would use them."""
+    line = _one_error_line(
+        _run(
+            *("-m", "experiments.cross_season", "--preset", "smoke", "--workdir", str(tmp_path / "run")),
+            *("data.source=folder", f"data.root={two_sessions}"),
+            cwd=tmp_path,
+        )
+    )
+    assert "no session folder 'WI', 'SP', 'SU', 'AU'" in line
+    assert "'friday', 'monday'" in line and "data.sessions=('friday','monday')" in line
+
+
+def test_a_misspelt_key_gets_its_spelling(tmp_path):
+    line = _one_error_line(_run("-m", "experiments.cross_season", "--preset", "smoke", "train.epoch=3", cwd=tmp_path))
+    assert "unknown config key 'train.epoch'" in line and "did you mean train.epochs?" in line
+
+
+def test_check_explains_names_that_are_not_timestamps(tmp_path):
+    """Images named by frame number without images.csv: ``check`` says names are read as timestamps and points
+    at images.csv, in one line (exit status 1: a defect of the folder, docs/own-data.md)."""
+    import numpy as np
+
+    from placejax.data import folder
+
+    rng = np.random.default_rng(0)
+    n = 6
+    camera = folder.CameraSpec(64, 48, np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]))
+    positions = np.stack([np.arange(n, dtype=float), np.zeros(n), np.full(n, 1.3)], axis=1)
+    quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    utimes = 1_700_000_000_000_000 + np.arange(n, dtype=np.int64) * 500_000
+    images = rng.integers(0, 256, (n, 48, 64, 3), dtype=np.uint8)
+    session = folder.write_session(tmp_path / "session", camera, utimes, positions, quaternions, images)
+    (session / folder.IMAGE_TABLE).unlink()  # images/000000.png ... : frame numbers, not timestamps
+    done = _run("-m", "placejax.data", "check", str(session), cwd=tmp_path)
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert len(lines) == 1 and "images.csv" in lines[0] and "timestamp" in lines[0], done.stderr[-2000:]
+    assert not (tmp_path / "sessions_map.png").exists()  # no map without --map
