@@ -1,0 +1,102 @@
+"""placejax.stages and the config sections it reads: the pieces of a run that need no trained network."""
+
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from placejax import config, depth, stages
+from placejax.data import DataConfig, GridConfig
+from placejax.route import FilterConfig
+
+
+def test_true_depth_of_a_folder_is_resized_like_its_images():
+    """A session folder's depth comes at its images' size; the cached images are at ``data.image_size``: the
+    depth is resized to them by nearest neighbour (no depth invented across an edge), exactly."""
+    native = np.arange(2 * 24 * 32, dtype=np.float32).reshape(2, 24, 32)
+    source = SimpleNamespace(has_depth=True, depths=lambda idx: native[np.asarray(idx)])
+    s = stages.SessionData("a", SimpleNamespace(image_shape=(12, 16)), source)
+    got = stages.true_depth(s, 0, 2)
+    assert got.shape == (2, 12, 16) and got.dtype == np.float32
+    np.testing.assert_array_equal(got, native[:, ::2, ::2])  # nearest neighbour at exactly half the size
+    same = stages.SessionData("b", SimpleNamespace(image_shape=(24, 32)), source)
+    np.testing.assert_array_equal(stages.true_depth(same, 1, 2), native[1:2])
+    none = stages.SessionData("c", SimpleNamespace(image_shape=(24, 32)), SimpleNamespace(has_depth=False))
+    with pytest.raises(ValueError, match="session 'c' has none"):
+        stages.true_depth(none, 0, 1)
+
+
+def test_every_section_checks_its_ranges_and_names_the_field():
+    for cls, bad, match in (
+        (DataConfig, {"image_size": (8, 8)}, r"image_size=\(8, 8\): expected \(H, W\), ints >= 16"),
+        (DataConfig, {"sessions": ("WI",)}, r"two or more distinct session names"),
+        (DataConfig, {"root": "/x"}, r"read only with source='folder'"),
+        (GridConfig, {"n": 0}, r"n=0: expected a positive int"),
+        (depth.DepthSourceConfig, {"source": "lidar"}, r"source='lidar': expected one of"),
+        (depth.DepthSourceConfig, {"near_m": 60.0}, r"near_m=60.0 must be below far_m=50.0"),
+        (stages.VGGConfig, {"dropout": 1.0}, r"dropout=1.0: expected a number in \[0, 1\)"),
+        (stages.TrainConfig, {"optimizer": "lbfgs"}, r"optimizer='lbfgs': expected one of \('sgd', 'adamw'\)"),
+        (stages.TrainConfig, {"epochs": True}, r"epochs=True: expected a positive int"),
+        (stages.MLPConfig, {"modality_dropout": 0.6}, r"modality_dropout=0.6: expected a number in \[0, 0.5\]"),
+        (stages.EvalConfig, {"batch_size": 0}, r"batch_size=0"),
+    ):
+        with pytest.raises(config.ConfigError, match=match):
+            cls(**bad)
+    # build() names the section, as the experiment's keys read.
+    with pytest.raises(config.ConfigError, match=r"train\.epochs=0: expected a positive int"):
+        config.build(stages.TrainConfig, {"epochs": 0}, "train")
+    with pytest.raises(config.ConfigError, match=r"unknown train key\(s\) \['epoch'\]"):
+        config.build(stages.TrainConfig, {"epoch": 3}, "train")
+
+
+def test_every_default_is_stated_once_with_its_help():
+    """Each section's fields carry a help line (what ``--help`` prints); the defaults build without error."""
+    for cls in (DataConfig, GridConfig, depth.DepthSourceConfig, stages.VGGConfig, stages.TrainConfig):
+        cls()
+        for f in dataclasses.fields(cls):
+            assert config.help_text(cls, f.name).strip(), (cls.__name__, f.name)
+    for cls in (stages.MLPConfig, stages.EvalConfig, FilterConfig):
+        cls()
+        for f in dataclasses.fields(cls):
+            assert config.help_text(cls, f.name).strip(), (cls.__name__, f.name)
+    assert config.section(stages.EvalConfig) == {"batch_size": 128}
+
+
+def test_the_depth_source_registry():
+    """Sources by name; ``true`` has no network (the session's own depth), an unknown name is refused with the
+    registered ones, and a registered source is what ``depth_source`` returns for its name."""
+    true = depth.depth_source(depth.DepthSourceConfig(source="true"))
+    assert true.needs_true_depth and true.classifier is None and true.key == {"source": "true (rendered z-depth)"}
+    assert set(depth.SOURCE_NAMES) == {"trained", "midas", "true", "depth_anything_v2", "depth_anything_v2_metric"}
+
+    def flat(cfg, progress, train):
+        return depth.DepthSource("flat", {"source": "flat"}, lambda x: np.full(np.shape(x)[:3], 7.0, np.float32))
+
+    depth.register_source("flat")(flat)
+    try:
+        src = depth.depth_source(SimpleNamespace(source="flat"))
+        assert src.predict(np.zeros((2, 4, 5, 3), np.uint8)).shape == (2, 4, 5) and not src.needs_true_depth
+        with pytest.raises(KeyError, match=r"unknown depth source 'nope'; registered: .*'flat'"):
+            depth.depth_source(SimpleNamespace(source="nope"))
+    finally:
+        from placejax.depth import _sources
+
+        _sources._REGISTRY.pop("flat")
+
+
+def test_workspace_times_stages_and_tells_a_listener(tmp_path):
+    from placejax.training import data_mesh
+
+    seen = []
+    ws = stages.Workspace(tmp_path, data_mesh(1), progress=False, on_stage=lambda s, started: seen.append((s, started)))
+    with ws.timed("depth"):
+        with ws.timed("hha"):
+            pass
+    with ws.timed("depth"):
+        pass
+    assert seen == [("depth", True), ("hha", True), ("hha", False), ("depth", False), ("depth", True), ("depth", False)]
+    assert set(ws.timings) == {"depth", "hha"} and ws.timings["depth"] >= ws.timings["hha"] >= 0
+    assert ws.peak_rss_mib["depth"] > 0 and ws.cache_root == tmp_path / "cache"
