@@ -100,3 +100,88 @@ def test_workspace_times_stages_and_tells_a_listener(tmp_path):
     assert seen == [("depth", True), ("hha", True), ("hha", False), ("depth", False), ("depth", True), ("depth", False)]
     assert set(ws.timings) == {"depth", "hha"} and ws.timings["depth"] >= ws.timings["hha"] >= 0
     assert ws.peak_rss_mib["depth"] > 0 and ws.cache_root == tmp_path / "cache"
+
+
+@pytest.mark.slow
+def test_trainings_at_once_equal_trainings_one_by_one(tmp_path):
+    """``Workspace.parallel_trainings``: the nets and MLPs of a seed trained two at a time (threads) are bit for bit
+    the ones trained one after the other, and so are their outputs; the order of the result is the same."""
+    from experiments.cross_season import apply_overrides, get_config
+    from experiments.cross_season.config import sections
+    from placejax.training import data_mesh
+
+    cfg = get_config("smoke")
+    apply_overrides(
+        cfg, ["data.sessions=('WI','SU')", "depth.source=true", "train.epochs=3", "mlp.epochs=2", "progress=False"]
+    )
+    c = sections(cfg)
+    runs = []
+    for workers in (1, 2):
+        ws = stages.Workspace(tmp_path / f"w{workers}", data_mesh(1), progress=False, parallel_trainings=workers)
+        sessions = stages.open_sessions(ws, c["data"])
+        grid = stages.fit_grid(ws, sessions, c["grid"])
+        stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, depth.depth_source(c["depth"]), 64))
+        runs.append(
+            stages.train_seed(
+                ws,
+                sessions,
+                grid.num_classes,
+                vgg=c["vgg"],
+                train_cfg=c["train"],
+                mlp=c["mlp"],
+                eval_cfg=c["eval"],
+                seed=0,
+                modalities=("rgb", "hha", "depth1"),
+            )
+        )
+    one, two = runs
+    assert list(one.nets) == list(two.nets) == [(s, m) for m in ("rgb", "hha", "depth1") for s in ("WI", "SU")]
+    for k in one.nets:
+        assert one.nets[k].key["weights"] == two.nets[k].key["weights"], k
+    for k in one.fused:
+        np.testing.assert_array_equal(one.fused[k], two.fused[k])
+
+
+def test_a_stop_request_checkpoints_and_the_rerun_ends_where_an_uninterrupted_run_ends(tmp_path):
+    """``training.request_stop()`` (what Ctrl-C during parallel trainings sends the other threads): ``fit`` saves
+    the step it finished and raises KeyboardInterrupt; the same call again resumes there and ends with the
+    parameters of a run never stopped, bit for bit."""
+    import jax
+
+    from placejax import training
+    from placejax.data import train_dataset
+    from placejax.models import FusionMLP
+
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(64, 6)).astype(np.float32), rng.integers(0, 3, 64).astype(np.int32)
+    model = FusionMLP(num_classes=3, hidden=8, dropout_rate=0.5)
+    params = model.init(jax.random.key(0), np.zeros((1, 6), np.float32))["params"]
+
+    def run(folder):
+        ds = train_dataset(x, y, batch_size=8, seed=1, num_epochs=2)
+        return training.train(
+            training.apply_fn(model),
+            jax.tree.map(np.array, params),
+            training.make_optimizer("adamw", weight_decay=1e-4),
+            ds,
+            key=jax.random.key(2),
+            mesh=training.data_mesh(1),
+            prepare=stages.features_prepare,
+            learning_rate=1e-2,
+            checkpoint_dir=folder,
+            save_every=100,
+            progress=False,
+        )
+
+    whole = run(tmp_path / "whole")
+    training.request_stop()
+    try:
+        with pytest.raises(KeyboardInterrupt, match="stopped at step 1"):
+            run(tmp_path / "stopped")
+    finally:
+        training.request_stop(False)
+    with training.Checkpointer(tmp_path / "stopped") as ck:
+        assert ck.latest_step() == 1
+    resumed = run(tmp_path / "stopped")
+    for a, b in zip(jax.tree.leaves(whole.params), jax.tree.leaves(resumed.params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
