@@ -450,15 +450,14 @@ def test_filter_config_refuses_each_bad_setting_by_name(field, value):
 
 
 def test_the_experiments_filter_config_is_filter_configs():
-    from experiments.cross_season.route import filter_config
-
     from experiments.cross_season import get_config
+    from experiments.cross_season.config import sections
 
     cfg = get_config("default")
-    assert filter_config(cfg) == route.FilterConfig()
-    assert filter_config(cfg, bounded=True) == route.FilterConfig(bounded=True)
+    assert sections(cfg)["route"] == route.FilterConfig()
     cfg.route.temperature = 2.0
-    assert filter_config(cfg).temperature == 2.0
+    assert sections(cfg)["route"] == route.FilterConfig(temperature=2.0)
+    assert sections(cfg)["route"].replace(bounded=True).bounded
 
 
 # ---------------------------------------------------------------------------------------------------- fail closed
