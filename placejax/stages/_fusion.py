@@ -148,26 +148,21 @@ def train_seed(
         }
     fused: dict[tuple[str, str], np.ndarray] = {}
     mlp_dirs: dict[str, Path] = {}
-
-    def train_one(si: int):
-        s = sessions[si]
-        rgb, hha = (outputs[(s.name, m, s.name)]["fc7"] for m in ("rgb", "hha"))
-        emb = np.concatenate([rgb, hha], 1)
-        labels = training_labels(s.labels, shuffle=train_cfg.shuffle_labels, seed=seed, session_index=si)
-        if mlp.jittered:
-            # The copies' embeddings: the nets trained on these views, but not memorised them as the originals.
-            copies = np.concatenate([jittered_fc7(ws, nets[(s.name, m)], s, eval_cfg) for m in ("rgb", "hha")], 1)
-            emb = np.concatenate([emb, copies])
-            labels = np.tile(labels, train_cfg.jitter_copies + 1)
-        upstream = {m: cache_digest(nets[(s.name, m)].key) for m in ("rgb", "hha")}
-        sizes = (rgb.shape[1], hha.shape[1])
-        return train_mlp(ws, s, emb, labels, sizes, num_classes, si, upstream, mlp=mlp, seed=seed)
-
     with ws.timed("mlp"):
-        # Each session's MLP is independent of the others': trained several at once (Workspace.map_trainings).
-        trained = ws.map_trainings(train_one, list(range(len(sessions))))
-        for s, (state, prepare, folder) in zip(sessions, trained, strict=True):
-            mlp_dirs[s.name] = folder
+        for si, s in enumerate(sessions):
+            rgb, hha = (outputs[(s.name, m, s.name)]["fc7"] for m in ("rgb", "hha"))
+            emb = np.concatenate([rgb, hha], 1)
+            labels = training_labels(s.labels, shuffle=train_cfg.shuffle_labels, seed=seed, session_index=si)
+            if mlp.jittered:
+                # The copies' embeddings: the nets trained on these views, but not memorised them as the originals.
+                copies = np.concatenate([jittered_fc7(ws, nets[(s.name, m)], s, eval_cfg) for m in ("rgb", "hha")], 1)
+                emb = np.concatenate([emb, copies])
+                labels = np.tile(labels, train_cfg.jitter_copies + 1)
+            upstream = {m: cache_digest(nets[(s.name, m)].key) for m in ("rgb", "hha")}
+            sizes = (rgb.shape[1], hha.shape[1])
+            state, prepare, mlp_dirs[s.name] = train_mlp(
+                ws, s, emb, labels, sizes, num_classes, si, upstream, mlp=mlp, seed=seed
+            )
             for t in sessions:
                 ds = eval_dataset(
                     fused_embedding(outputs, s.name, t.name), batch_size=eval_cfg.batch_size // jax.process_count()

@@ -259,22 +259,6 @@ def features_prepare(b: dict) -> dict:
     return {"x": np.asarray(b["image"], np.float32), "label": b["label"], "valid": b["valid"]}
 
 
-@dataclasses.dataclass(frozen=True)
-class _NetJob:
-    """One place classifier to train: its modality, session, initial weights and inputs."""
-
-    modality: str
-    modality_index: int
-    session_index: int
-    session: SessionData
-    pretrained: dict | None
-    jittered: dict | None
-    inputs: Callable[[SessionData], Any]
-    prepare: Callable[[dict], dict]
-    fn: Callable[..., Any]
-    vgg_key: dict
-
-
 def train_nets(
     ws: Workspace,
     sessions: list[SessionData],
@@ -289,9 +273,7 @@ def train_nets(
     """Trains (or resumes, or reloads) a VGG16 per (training session, modality); timed as stages ``features`` (the
     frozen trunk's cached features) and ``nets``.
 
-    A net's seed and key depend on the modality's index in :data:`MODALITIES`, not in ``modalities``. The nets are
-    independent: ``ws.map_trainings`` trains several at once (``Workspace.parallel_trainings``), each exactly as
-    alone.
+    A net's seed and key depend on the modality's index in :data:`MODALITIES`, not in ``modalities``.
 
     Returns:
         ``(session name, modality) → TrainedNet``.
@@ -305,7 +287,6 @@ def train_nets(
     # per call) bought nothing.
     shapes = jax.eval_shape(model.init, jax.random.key(0), jax.ShapeDtypeStruct((1, h, w, 3), jnp.float32))["params"]
     vgg_key = {k: v for k, v in dataclasses.asdict(vgg).items() if k not in ("weights", "hha_weights")}
-    jobs: list[_NetJob] = []  # every (modality, session) net, in the order the result lists them
     for modality in modalities:
         mi = MODALITIES.index(modality)
         pretrained = jittered = None
@@ -338,68 +319,61 @@ def train_nets(
             fn = apply_fn(model)
         net_vgg_key = {**vgg_key, **({"weights": _weights_identity(vgg, modality)} if vgg.pretrained else {})}
         for si, s in enumerate(sessions):
-            jobs.append(_NetJob(modality, mi, si, s, pretrained, jittered, inputs, prepare, fn, net_vgg_key))
+            with ws.timed("nets"):
+                name = f"{s.name}-{modality}"
+                labels = training_labels(s.labels, shuffle=train_cfg.shuffle_labels, seed=seed, session_index=si)
+                net_key = {
+                    "modality": modality,
+                    "images": s.cached.key if modality == "rgb" else s.hha.key,
+                    "labels": cache_digest({"labels": labels.tolist()}),
+                    "num_classes": num_classes,
+                    "vgg": net_vgg_key,
+                    "train": results_only(train_cfg),
+                    "seed": seed,
+                }
+                init_key, run_key = jax.random.split(jax.random.fold_in(key, 1000 * mi + si))
+                params = he_init(shapes, init_key)
+                if pretrained is not None:
+                    # Paper §IV: pretrained convs frozen (features cached), fc6/fc7 fine-tuned, fc8 new; weights
+                    # without fc6/fc7 (a shipped trunk) start them from He init.
+                    cls = dict(params["classifier"])
+                    for layer in ("fc6", "fc7"):
+                        if layer in pretrained.get("classifier", {}):
+                            cls[layer] = pretrained["classifier"][layer]
+                    params = {"classifier": cls}
+                folder = ws.workdir / NETS_DIR / f"{name}-{cache_digest(net_key)}"
+                frames, frame_labels = inputs(s), labels
+                if jittered is not None:
+                    # The originals and their jittered copies (copy-major), every copy with its frame's label.
+                    frames = np.concatenate([np.asarray(frames), np.asarray(jittered[s.name].data)])
+                    frame_labels = np.tile(labels, train_cfg.jitter_copies + 1)
+                state = train_classifier(
+                    ws,
+                    name,
+                    fn,
+                    params,
+                    frames,
+                    frame_labels,
+                    prepare,
+                    train_cfg,
+                    seed=seed + si,
+                    key=run_key,
+                    folder=folder,
+                )
+                # Only the parameters are used from here on: the optimiser state of every net kept until the end
+                # of the run doubled the paper preset's peak memory (research log, 2026-11).
+                state = state.replace(opt_state=None)
+                # Outputs and the fusion MLP are keyed by the weights themselves, not only by the recipe: a net
+                # retrained under the same recipe (another device count groups a step's sums differently) must
+                # not meet the outputs of the one before.
+                identity_key = {**net_key, "ckpt": folder.name, "weights": params_digest(state.params)}
+                copies = None
+                if jittered is not None:
 
-    def train_one(job: _NetJob) -> TrainedNet:
-        s, modality, si = job.session, job.modality, job.session_index
-        name = f"{s.name}-{modality}"
-        labels = training_labels(s.labels, shuffle=train_cfg.shuffle_labels, seed=seed, session_index=si)
-        net_key = {
-            "modality": modality,
-            "images": s.cached.key if modality == "rgb" else s.hha.key,
-            "labels": cache_digest({"labels": labels.tolist()}),
-            "num_classes": num_classes,
-            "vgg": job.vgg_key,
-            "train": results_only(train_cfg),
-            "seed": seed,
-        }
-        init_key, run_key = jax.random.split(jax.random.fold_in(key, 1000 * job.modality_index + si))
-        params = he_init(shapes, init_key)
-        if job.pretrained is not None:
-            # Paper §IV: pretrained convs frozen (features cached), fc6/fc7 fine-tuned, fc8 new; weights
-            # without fc6/fc7 (a shipped trunk) start them from He init.
-            cls = dict(params["classifier"])
-            for layer in ("fc6", "fc7"):
-                if layer in job.pretrained.get("classifier", {}):
-                    cls[layer] = job.pretrained["classifier"][layer]
-            params = {"classifier": cls}
-        folder = ws.workdir / NETS_DIR / f"{name}-{cache_digest(net_key)}"
-        frames, frame_labels = job.inputs(s), labels
-        if job.jittered is not None:
-            # The originals and their jittered copies (copy-major), every copy with its frame's label.
-            frames = np.concatenate([np.asarray(frames), np.asarray(job.jittered[s.name].data)])
-            frame_labels = np.tile(labels, train_cfg.jitter_copies + 1)
-        state = train_classifier(
-            ws,
-            name,
-            job.fn,
-            params,
-            frames,
-            frame_labels,
-            job.prepare,
-            train_cfg,
-            seed=seed + si,
-            key=run_key,
-            folder=folder,
-        )
-        # Only the parameters are used from here on: the optimiser state of every net kept until the end of the
-        # run doubled the paper preset's peak memory (research log, 2026-11).
-        state = state.replace(opt_state=None)
-        # Outputs and the fusion MLP are keyed by the weights themselves, not only by the recipe: a net retrained
-        # under the same recipe (another device count groups a step's sums differently) must not meet the outputs
-        # of the one before.
-        identity_key = {**net_key, "ckpt": folder.name, "weights": params_digest(state.params)}
-        copies = None
-        if job.jittered is not None:
+                    def copies(t, jittered=jittered):
+                        return jittered[t.name].data
 
-            def copies(t, jittered=job.jittered):
-                return jittered[t.name].data
-
-        return TrainedNet(name, state, job.inputs, job.prepare, identity_key, copies)
-
-    with ws.timed("nets"):
-        for job, net in zip(jobs, ws.map_trainings(train_one, jobs), strict=True):
-            nets[(job.session.name, job.modality)] = net
+                nets[(s.name, modality)] = TrainedNet(name, state, inputs, prepare, identity_key, copies)
     return nets
 
 

@@ -3,10 +3,8 @@ of one session that the stages fill in."""
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import functools
-import os
 import resource
 import sys
 import time
@@ -48,10 +46,6 @@ class Workspace:
             (e.g. to sample memory per stage).
         shard_caches: with several processes, build every per-frame cache together (:attr:`cache_shard`);
             ``False``: the first process to take a cache's lock builds all of it while the others wait.
-        parallel_trainings: independent trainings run at once (:meth:`map_trainings`): a step of the CPU-sized
-            heads keeps one core busy, so two cores train two heads in about the time of one. Default: the
-            process's CPUs, at most 2; 1 with several JAX processes (each step is a collective across them, and
-            two trainings at once would interleave their collectives). No result depends on it.
     """
 
     workdir: Path
@@ -62,36 +56,11 @@ class Workspace:
     peak_rss_mib: dict[str, float] = dataclasses.field(default_factory=dict)
     on_stage: Callable[[str, bool], None] | None = None
     shard_caches: bool = True
-    parallel_trainings: int | None = None
 
     def __post_init__(self):
         self.workdir = Path(self.workdir)
         if self.local_mesh is None:
             self.local_mesh = data_mesh(jax.local_devices())
-        if self.parallel_trainings is None:
-            cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-            self.parallel_trainings = 1 if jax.process_count() > 1 else max(1, min(2, cpus))
-
-    def map_trainings(self, fn: Callable[[Any], Any], jobs: list) -> list:
-        """``[fn(job) for job in jobs]``, up to ``parallel_trainings`` at a time (in threads: JAX runs compiled
-        steps without the GIL), results in the jobs' order; the first failure is raised once the others stop."""
-        if self.parallel_trainings <= 1 or len(jobs) <= 1:
-            return [fn(job) for job in jobs]
-        from placejax.training import request_stop
-
-        with concurrent.futures.ThreadPoolExecutor(self.parallel_trainings, thread_name_prefix="train") as pool:
-            futures = [pool.submit(fn, job) for job in jobs]
-            try:
-                return [f.result() for f in futures]
-            except BaseException:
-                # Ctrl-C reaches this thread only: the trainings in the others stop after their current step
-                # (checkpointed, as a rerun resumes there), and nothing new starts.
-                for f in futures:
-                    f.cancel()
-                request_stop()
-                concurrent.futures.wait(futures)
-                request_stop(False)
-                raise
 
     @property
     def cache_root(self) -> Path:

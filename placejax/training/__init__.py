@@ -20,7 +20,7 @@ Public surface:
 """
 
 from placejax.training._checkpoint import Checkpointer, CheckpointError
-from placejax.training._loop import fit, map_batches, predict, request_stop, train
+from placejax.training._loop import fit, map_batches, predict, train
 from placejax.training._memory import release_free_memory
 from placejax.training._sharding import (
     data_mesh,
@@ -53,7 +53,6 @@ __all__ = [
     "predict_step",
     "release_free_memory",
     "replicate",
-    "request_stop",
     "shard_batch",
     "spans_processes",
     "sync_processes",

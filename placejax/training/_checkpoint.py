@@ -295,9 +295,6 @@ def _save_error(e: Exception, step_dir: Path) -> Exception:
     return CheckpointError(f"{step_dir}: orbax could not save the step ({type(e).__name__}: {' '.join(text.split())})")
 
 
-_HOLDING = threading.RLock()
-
-
 class _HeldLogs(logging.Handler):
     def __init__(self) -> None:
         super().__init__(logging.DEBUG)
@@ -313,26 +310,25 @@ def _orbax_reports_held() -> Iterator[None]:
     exceptions raised in their helper threads — and replays them if the block succeeds. When it fails they are
     dropped: the exception it raises names the failure once (a full disk otherwise printed the same error with three
     tracebacks). ``PLACEJAX_TRACEBACK=1`` replays them in both cases."""
-    with _HOLDING:  # the logger and hook are process-wide: trainings in other threads take turns here
-        logger = logging.getLogger("absl")
-        held = _HeldLogs()
-        unraisable: list[Any] = []
-        saved = (logger.handlers, logger.propagate, sys.unraisablehook)
-        logger.handlers, logger.propagate = [held], False
-        sys.unraisablehook = unraisable.append
-        ok = False
-        try:
-            yield
-            ok = True
-        finally:
-            logger.handlers, logger.propagate, hook = saved
-            if sys.unraisablehook is unraisable.append:
-                sys.unraisablehook = hook
-            if ok or os.environ.get("PLACEJAX_TRACEBACK", "") not in ("", "0"):
-                for record in held.records:
-                    logger.handle(record)
-                for report in unraisable:
-                    hook(report)
+    logger = logging.getLogger("absl")
+    held = _HeldLogs()
+    unraisable: list[Any] = []
+    saved = (logger.handlers, logger.propagate, sys.unraisablehook)
+    logger.handlers, logger.propagate = [held], False
+    sys.unraisablehook = unraisable.append
+    ok = False
+    try:
+        yield
+        ok = True
+    finally:
+        logger.handlers, logger.propagate, hook = saved
+        if sys.unraisablehook is unraisable.append:
+            sys.unraisablehook = hook
+        if ok or os.environ.get("PLACEJAX_TRACEBACK", "") not in ("", "0"):
+            for record in held.records:
+                logger.handle(record)
+            for report in unraisable:
+                hook(report)
 
 
 @contextlib.contextmanager

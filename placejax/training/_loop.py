@@ -7,7 +7,6 @@ network alike: a fresh state, replicated on the mesh, resumed from its checkpoin
 from __future__ import annotations
 
 import os
-import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -24,15 +23,6 @@ from placejax.training._state import TrainState, create_state
 from placejax.training._steps import Objective, classification_loss, predict_step, train_step
 
 Batch = Mapping[str, np.ndarray]
-
-_STOP = threading.Event()
-
-
-def request_stop(stop: bool = True) -> None:
-    """Asks every :func:`fit` running in this process (e.g. in other threads) to stop after its current step, as
-    Ctrl-C would: the step is checkpointed and ``fit`` raises ``KeyboardInterrupt``; a rerun resumes there and ends
-    where an uninterrupted run ends. ``request_stop(False)`` clears the request."""
-    (_STOP.set if stop else _STOP.clear)()
 
 
 def fit(
@@ -93,11 +83,8 @@ def fit(
             state, metrics = train_step(state, batch, key, objective)
             pending.append(metrics)
             done = k + 1
-            stopping = _STOP.is_set()
-            if checkpointer is not None and (done % save_every == 0 or done == last or stopping):
+            if checkpointer is not None and (done % save_every == 0 or done == last):
                 checkpointer.save(state)
-            if stopping:  # request_stop(): as a Ctrl-C between two steps, with this step saved
-                raise KeyboardInterrupt(f"{desc}: stopped at step {done} (saved)")
             if done % 10 == 0 or done == last:
                 # Reading metrics back syncs with the device: only every few steps, to keep dispatch async.
                 history += [{n: float(v) for n, v in m.items()} for m in jax.device_get(pending)]
