@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     with training_lock(workdir):  # one training per folder: another one (ensure_trained, ...) waits for this one
         t0 = time.perf_counter()
         try:
-            depth.train(cfg, workdir)
+            depth.train_network(cfg, workdir)
         except KeyboardInterrupt:
             print(
                 f"\ninterrupted: rerun the same command to resume from the last checkpoint in {workdir}",

@@ -48,7 +48,7 @@ def smoke_depth_run(tmp_path_factory) -> Path:
     from placejax import depth
 
     workdir = tmp_path_factory.mktemp("smoke_depth_run")
-    depth.train(depth.PRESETS["smoke"], workdir, progress=False)
+    depth.train_network(depth.PRESETS["smoke"], workdir, progress=False)
     return workdir
 
 

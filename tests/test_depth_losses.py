@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from placejax.depth import _losses as L
-from placejax.depth import _metrics as M
+from placejax.depth import losses as L
+from placejax.depth import metrics as M
 
 
 @pytest.fixture

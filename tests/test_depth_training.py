@@ -30,10 +30,10 @@ def uninterrupted(uninterrupted_dir):
 
 
 def test_resumed_training_equals_uninterrupted(uninterrupted, tmp_path):
-    depth.train(CFG, tmp_path, stop_after=2, progress=False)  # "killed" after the step-2 checkpoint
+    depth.train_network(CFG, tmp_path, stop_after=2, progress=False)  # "killed" after the step-2 checkpoint
     with pytest.raises(FileNotFoundError, match="no finished depth-training run"):
         depth.load_trained(tmp_path, CFG)
-    depth.train(CFG, tmp_path, progress=False)  # the same command again continues from step 2
+    depth.train_network(CFG, tmp_path, progress=False)  # the same command again continues from step 2
     resumed = depth.load_trained(tmp_path, CFG)
     for a, b in zip(
         jax.tree_util.tree_leaves(resumed.variables), jax.tree_util.tree_leaves(uninterrupted.variables), strict=True
@@ -141,7 +141,7 @@ def test_network_depth_averages_views_as_the_experiment_does(uninterrupted_dir, 
 
 
 def test_baselines_and_overrides():
-    base = depth.baseline_predictions((2, 4, 3))
+    base = depth.evaluation.baseline_predictions((2, 4, 3))
     assert base["farther_toward_top"][0, 0, 0] < base["farther_toward_top"][0, -1, 0]
     cfg = train_depth.parse_overrides(CFG, ["steps=7", "learning_rate=0.5", "loss=mse"])
     assert (cfg.steps, cfg.learning_rate, cfg.loss) == (7, 0.5, "mse")
@@ -202,8 +202,8 @@ def test_evaluation_with_and_without_sky_on_an_analytic_scene():
     }
     exact = np.where(sky, 1.0 / far, 1.0 / np.where(sky, 1.0, ground))[None].astype(np.float32)
     sky_near = np.where(sky, 1.0 / 40.0, exact[0])[None].astype(np.float32)
-    good = depth.evaluate(lambda rgb: exact, frames)["S"]["model"]
-    bad = depth.evaluate(lambda rgb: sky_near, frames)["S"]["model"]
+    good = depth.evaluation.evaluate(lambda rgb: exact, frames)["S"]["model"]
+    bad = depth.evaluation.evaluate(lambda rgb: sky_near, frames)["S"]["model"]
     assert good["abs_rel"] < 1e-4 and good["abs_rel_with_sky"] < 1e-4 and good["delta1_with_sky"] == 1.0
     assert bad["abs_rel"] < 1e-4  # the sky is not scored without it
     assert bad["abs_rel_with_sky"] > 0.1 and bad["delta1_with_sky"] < 1.0, bad
@@ -561,10 +561,10 @@ def test_shifted_views_average_the_networks_log_depth_over_real_columns(uninterr
 
     net = jax.jit(lambda v: v[..., 0] * 0.01 + v[..., 1] * 0.02 + (v[..., 2] > 100))  # a per-pixel "network"
     f = np.asarray(x, np.float32)
-    eager = depth.average_views(net, f, flip=True, shifts=(2, 5))
-    jitted = jax.jit(lambda v: depth.average_views(net, v, flip=True, shifts=(2, 5)))(f)
+    eager = depth.views.average_views(net, f, flip=True, shifts=(2, 5))
+    jitted = jax.jit(lambda v: depth.views.average_views(net, v, flip=True, shifts=(2, 5)))(f)
     np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=1e-6)
-    mapped = jax.jit(lambda v: depth.average_views(net, v, flip=True, shifts=(2, 5), map_views=jax.lax.map))(f)
+    mapped = jax.jit(lambda v: depth.views.average_views(net, v, flip=True, shifts=(2, 5), map_views=jax.lax.map))(f)
     np.testing.assert_allclose(np.asarray(mapped), np.asarray(eager), rtol=1e-6)
     # A per-pixel network sees every real column unchanged in every view: the mean is its own output, which
     # only holds if made-up columns are left out and every view is shifted back the right way.
@@ -572,15 +572,15 @@ def test_shifted_views_average_the_networks_log_depth_over_real_columns(uninterr
 
 
 def test_shifts_are_checked_with_a_clear_error():
-    assert depth.validate_shifts([2, 4], width=64) == (2, 4)
+    assert depth.views.validate_shifts([2, 4], width=64) == (2, 4)
     for bad in ((0,), (2, 2), (-1,), (1.5,), (True,)):
         with pytest.raises(ValueError, match="distinct positive ints"):
-            depth.validate_shifts(bad)
+            depth.views.validate_shifts(bad)
     with pytest.raises(ValueError, match="below the image width 8"):
-        depth.validate_shifts((8,), width=8)
+        depth.views.validate_shifts((8,), width=8)
     x = np.zeros((1, 4, 6, 3), np.float32)
     with pytest.raises(ValueError, match="below the image width 6"):
-        depth.average_views(lambda v: v[..., 0], x, shifts=(6,))
+        depth.views.average_views(lambda v: v[..., 0], x, shifts=(6,))
 
 
 @pytest.mark.slow
@@ -614,7 +614,7 @@ def test_shipped_default_network_is_the_presets_and_reaches_its_recorded_quick_c
     """The file in ``placejax/depth/weights`` was trained with the default preset's current config, loads into
     its architecture, reproduces the AbsRel / δ1 recorded at export on the evaluation campus, beats both trivial
     baselines there, and is what ``ensure_trained("default")`` returns: nothing is trained or cached."""
-    record = depth.load_shipped("default")
+    record = weights.resolve("shipped:" + depth.SHIPPED["default"])
     net, meta = depth.TrainedDepth.from_record(record), record.meta
     resolved = weights.resolve("shipped:" + depth.SHIPPED["default"])  # the same record, named as everywhere
     assert resolved.meta == meta
@@ -625,8 +625,8 @@ def test_shipped_default_network_is_the_presets_and_reaches_its_recorded_quick_c
     got = depth.quick_check(net)
     for k in ("abs_rel", "delta1"):
         assert got[k] == pytest.approx(meta["quick_check"][k], abs=2e-3), k
-    frames = depth.evaluation_frames(net.config.image_size, 4, world_seed=0, max_depth_m=80.0)
-    report = depth.evaluate(net.predict, frames)
+    frames = depth.evaluation.evaluation_frames(net.config.image_size, 4, world_seed=0, max_depth_m=80.0)
+    report = depth.evaluation.evaluate(net.predict, frames)
     for season in report.values():
         assert season["model"]["abs_rel"] < min(season[b]["abs_rel"] for b in ("constant", "farther_toward_top"))
     again = depth.ensure_trained("default", tmp_path, progress=False)
@@ -665,7 +665,7 @@ def test_shipped_file_round_trips_in_float16_and_a_stale_one_is_not_used(uninter
     assert "another config" in capsys.readouterr().err
     assert depth.shipped_network("full") is None
     with pytest.raises(FileNotFoundError, match="'full'"):
-        depth.load_shipped("full")
+        _lifecycle._load_shipped("full")
     other = tmp_path / "other.npz"
     np.savez(other, w=np.zeros(3))
     with pytest.raises(ValueError, match=r"other\.npz.*not a placejax weights record"):

@@ -218,7 +218,10 @@ def test_hha_depth_field_keeps_the_shipped_hha_trunks_hash_and_is_validated():
         mp.setitem(depth.PRESETS, preset, then)
         assert pretrain.PretrainConfig(**meta["config"]).fingerprint() == meta["fingerprint"]
     assert pretrain.PretrainConfig(**meta["config"]).fingerprint() != meta["fingerprint"]  # not the 128² network
-    assert depth.load_shipped("default")[1]["fingerprint"] == depth.PRESETS["default"].fingerprint()
+    assert (
+        weights.resolve("shipped:" + depth.SHIPPED["default"])[1]["fingerprint"]
+        == depth.PRESETS["default"].fingerprint()
+    )
     with pytest.raises(ValueError, match="hha_depth must be"):
         dataclasses.replace(cfg, hha_depth="trained:nonsense")
     with pytest.raises(ValueError, match="needs modality='hha'"):

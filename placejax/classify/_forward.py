@@ -15,8 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import hha as _hha
-from placejax.depth import average_views, depth_from_log, far_to_sky, network_size
+from placejax.depth import depth_from_log, far_to_sky, network_size
 from placejax.depth._inference import network_on_images
+from placejax.depth.views import average_views
 from placejax.models import (
     VGG16,
     DepthAnythingV2,
@@ -125,7 +126,7 @@ def stage_depth(spec: ClassifierSpec, depth_vars: Any, rgb: jax.Array) -> jax.Ar
     The MiDaS transform (bicubic resize to the network size, ImageNet normalisation), the network, the bicubic
     resize back and the percentile mapping to metres (``hha.inverse_depth_to_metric``) — or, for a metric
     log-depth network, ``placejax.depth.depth_from_log`` (of the log depth averaged over mirrored and shifted
-    views, ``placejax.depth.average_views``, as ``TrainedDepth.predict_metric(flip_average=, shifts=)``) and
+    views, ``placejax.depth.views.average_views``, as ``TrainedDepth.predict_metric(flip_average=, shifts=)``) and
     ``placejax.depth.far_to_sky``. Depth Anything V2 runs through ``placejax.models.dav2_apply`` (the official
     pre- and post-processing, as the experiment's depth stage); its metric head's metres are used as they are,
     its relative head's output goes through the percentile mapping.

@@ -23,7 +23,7 @@ Work directory::
      "grid": {...},                    # PlaceGrid.to_dict()
      "normalise": {"mean": [3], "std": [3]},   # network input = (uint8 − mean) / std, both modalities
      "depth": {"source": "trained", "dir": ".../depth/<preset>-<hash>", "config": {...DepthTrainConfig}}
-            | {"source": "trained", "shipped": "<preset>", "config": {...}}   # placejax.depth.load_shipped
+            | {"source": "trained", "shipped": "<preset>", "config": {...}}   # placejax.depth.SHIPPED[preset]
             | {"source": "midas", "weights": "<path or 'registry:...'>", "features": 64, "encoder_width": 1.0}
             | {"source": "true"},
      "sessions": {"WI": {"rgb": "nets/...", "hha": "nets/...", "mlp": "mlp/...",     # relative to the workdir

@@ -17,8 +17,8 @@ import numpy as np
 from flax import traverse_util
 
 from placejax import io
-from placejax.depth import _evaluate
-from placejax.depth._train import PRESETS, DepthTrainConfig, TrainedDepth, load_trained, train
+from placejax.depth import evaluation
+from placejax.depth._train import PRESETS, DepthTrainConfig, TrainedDepth, load_trained, train_network
 from placejax.weights import _shipped
 
 # Measured on an idle 2-core x86 CPU (placejax/depth/weights/README.md; docs/research-log.md, 2026-12-05): shown
@@ -63,7 +63,7 @@ def _unflatten(arrays: dict[str, np.ndarray]) -> dict:
     return traverse_util.unflatten_dict({k: np.asarray(v, np.float32) for k, v in arrays.items()}, sep="/")
 
 
-def load_shipped(preset: str = "default") -> _shipped.WeightsRecord:
+def _load_shipped(preset: str = "default") -> _shipped.WeightsRecord:
     """The record of the network of ``preset`` shipped in ``placejax/depth/weights``:
     ``(variables, meta)`` (a ``placejax.weights.WeightsRecord``, as ``placejax.weights.resolve("shipped:…")`` returns),
     ``meta`` with the config and its seed, fingerprint, command, evaluation and quick check (training time and the
@@ -81,10 +81,10 @@ def quick_check(trained: TrainedDepth, n_frames: int = QUICK_CHECK_FRAMES) -> di
     """Mean AbsRel and δ<1.25 (objects and ground, after alignment) over the four seasons on ``n_frames`` frames
     per season of the evaluation campus: a few seconds, the figure a shipped file records and the tests check."""
     cfg = trained.config
-    frames = _evaluate.evaluation_frames(
+    frames = evaluation.evaluation_frames(
         cfg.image_size, n_frames, world_seed=cfg.world_seed, max_depth_m=cfg.max_depth_m
     )
-    report = _evaluate.evaluate(trained.predict, frames)
+    report = evaluation.evaluate(trained.predict, frames)
     return {k: float(np.mean([r["model"][k] for r in report.values()])) for k in ("abs_rel", "delta1")}
 
 
@@ -92,7 +92,7 @@ def shipped_network(preset: str) -> TrainedDepth | None:
     """The shipped network of ``preset`` when there is one trained with the preset's current config, else None."""
     if preset not in SHIPPED:
         return None
-    record = load_shipped(preset)
+    record = _load_shipped(preset)
     meta = record.meta
     if meta["fingerprint"] != PRESETS[preset].fingerprint():
         print(
@@ -145,7 +145,7 @@ def ensure_trained(
                 _EXPECTED_MINUTES.get(preset),
                 workdir,
             )
-        train(config, workdir, progress=progress)
+        train_network(config, workdir, progress=progress)
         trained = load_trained(workdir, config)
         if primary and not (workdir / "depth_eval.json").exists():
             write_report(trained, workdir, progress=progress)
@@ -161,10 +161,10 @@ def write_report(trained: TrainedDepth, workdir: str | Path, *, progress: bool =
     workdir = Path(workdir)
     cfg = trained.config
     t0 = time.perf_counter()
-    frames = _evaluate.evaluation_frames(
+    frames = evaluation.evaluation_frames(
         cfg.image_size, cfg.eval_frames, world_seed=cfg.world_seed, max_depth_m=cfg.max_depth_m
     )
-    report = _evaluate.evaluate(trained.predict, frames)
+    report = evaluation.evaluate(trained.predict, frames)
     payload = {
         "config": dataclasses.asdict(cfg),
         "fingerprint": cfg.fingerprint(),
@@ -218,7 +218,7 @@ def _figure(trained: TrainedDepth, frames: dict, path: Path, n_examples: int = 2
         f = frames[season]
         pick = np.linspace(0, len(f["rgb"]) - 1, n_examples).round().astype(int)
         sub = {k: v[pick] for k, v in f.items()}
-        pred = _evaluate.aligned_prediction(trained.predict, sub)
+        pred = evaluation.aligned_prediction(trained.predict, sub)
         for j in range(n_examples):
             row = axes[si * n_examples + j]
             true = np.where(sub["mask"][j], sub["depth"][j], np.nan)

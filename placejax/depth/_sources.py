@@ -79,7 +79,7 @@ class DepthSourceConfig:
             string=("midas_weights", "dav2_weights", "trained_preset", "trained_cache"),
         )
         from placejax.depth._train import PRESETS
-        from placejax.depth._views import validate_shifts
+        from placejax.depth.views import validate_shifts
 
         errors = []
         try:
@@ -275,8 +275,8 @@ def _trained(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource
     # The placejax-trained depth network: shipped with the package (default preset), or trained once per machine
     # into the cache, then reused.
     from placejax.depth import _lifecycle
-    from placejax.depth._losses import far_to_sky
     from placejax.depth._train import PRESETS, load_trained
+    from placejax.depth.losses import far_to_sky
 
     cache = Path(cfg.trained_cache) if cfg.trained_cache else None
     trained = _lifecycle.shipped_network(cfg.trained_preset)

@@ -26,8 +26,8 @@ import numpy as np
 from placejax import training
 from placejax.data.simcampus import CAMERA_TILTS
 from placejax.data.simcampus import intrinsics as simcampus_intrinsics
-from placejax.depth._losses import depth_from_log, log_depth, log_metric_loss, midas_loss, normal_loss
-from placejax.depth._views import average_views
+from placejax.depth.losses import depth_from_log, log_depth, log_metric_loss, midas_loss, normal_loss
+from placejax.depth.views import average_views
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall
 
 # Bumped whenever the training recipe changes in a way the config does not show, so that a cached network of an
@@ -52,7 +52,7 @@ class DepthTrainConfig:
         weight_decay: AdamW weight decay.
         target: ``"inverse"``: relative inverse depth with MiDaS's scale- and shift-invariant loss (``loss``,
             ``trim``, ``sky_in_loss`` apply), converted to metres downstream by a percentile mapping, like MiDaS;
-            ``"log_metric"``: metric log depth (:func:`placejax.depth.log_metric_loss`; sky and everything
+            ``"log_metric"``: metric log depth (:func:`placejax.depth.losses.log_metric_loss`; sky and everything
             beyond ``max_depth_m`` at ``max_depth_m``), in metres with no mapping — possible because the
             camera and its height are the same in every frame.
         loss: ``"trimmed"`` (ssitrim) or ``"mse"`` (ssimse); plus the gradient-matching term.
@@ -89,7 +89,7 @@ class DepthTrainConfig:
             pairs (the same number of images), both members are supervised as usual, and the mean
             |log depth of look A − log depth of look B| over all pixels is added with this weight.
         normal_weight: ``target="log_metric"`` only; 0 (off) or the weight of a surface-normal term
-            (:func:`placejax.depth.normal_loss`): 1 − cos between the normals of the planes fitted in 7×7
+            (:func:`placejax.depth.losses.normal_loss`): 1 − cos between the normals of the planes fitted in 7×7
             windows — the HHA angle channel's normals — of the predicted and the rendered depth, over windows of
             real surface, object windows weighted by ``object_weight``. The L1 term prices a wall drawn as a
             slope by its depth error only; this prices its orientation, which is what HHA's angle channel shows.
@@ -328,8 +328,8 @@ class DepthObjective:
     and, with ``object_weight != 1``, ``batch["objects"]``. A batch with ``batch["image_b"]`` (the same views in
     a second look, :func:`training_source` with pairs) is read as 2B images over the B depths, one flip per
     pair, plus ``look_consistency`` × their mean log-depth gap (metric ``look_gap``). With ``normal_weight > 0``
-    (metric only) it adds that weight × :func:`placejax.depth.normal_loss` (metric ``normals``) under the training
-    frames' camera (SimCampus's default field of view).
+    (metric only) it adds that weight × :func:`placejax.depth.losses.normal_loss` (metric ``normals``) under the
+    training frames' camera (SimCampus's default field of view).
     A frozen dataclass: hashable, so each configuration compiles one step.
     """
 
@@ -470,7 +470,7 @@ def training_source(cfg: DepthTrainConfig, frames: dict[str, np.ndarray]):
     )
 
 
-def train(
+def train_network(
     cfg: DepthTrainConfig,
     workdir: str | os.PathLike,
     *,
@@ -542,7 +542,7 @@ class TrainedDepth:
     @classmethod
     def from_record(cls, record: tuple[Any, dict]) -> TrainedDepth:
         """The network of a weights record ``(variables, meta)`` with ``meta["config"]`` (what
-        ``placejax.depth.load_shipped`` and ``placejax.weights.resolve("shipped:...")`` return)."""
+        ``placejax.weights.resolve("shipped:NAME")`` returns for ``NAME`` in ``placejax.depth.SHIPPED``)."""
         variables, meta = record
         if "config" not in meta:
             raise ValueError("not a placejax depth-network record: its meta has no 'config'")
@@ -580,7 +580,7 @@ class TrainedDepth:
         image (a geometric mean in metres): the network was trained on random flips, so both are predictions of
         the same scene, and their mean is steadier from frame to frame. ``shifts``: also the image shifted
         sideways by ±k pixels for each k (and, with ``flip_average``, their mirror images), each prediction
-        shifted back; columns a view made up at the image's edge do not count (``placejax.depth.average_views``).
+        shifted back; columns a view made up at the image's edge do not count (``placejax.depth.views.average_views``).
         """
         if not self.metric:
             raise ValueError(

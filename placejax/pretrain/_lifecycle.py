@@ -79,7 +79,7 @@ def shipped_file(name: str = SHIPPED):
 def load_shipped(name: str = SHIPPED) -> _shipped.WeightsRecord:
     """The trunk shipped in ``placejax/pretrain/weights/<name>.npz`` and its record (config, seed,
     command, held-out metrics): ``(params, meta)``, a ``placejax.weights.WeightsRecord`` as
-    ``placejax.depth.load_shipped`` returns.
+    ``placejax.weights.resolve("shipped:NAME")`` returns.
 
     Example::
 

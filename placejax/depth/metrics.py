@@ -5,7 +5,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from placejax.depth._losses import align_least_squares
+from placejax.depth.losses import align_least_squares
+
+__all__ = ["aligned_depth", "depth_metrics"]
 
 
 def aligned_depth(pred_inverse: jax.Array, depth_m: jax.Array, mask: jax.Array, *, max_depth_m: float = 80.0):

@@ -16,6 +16,22 @@ import numpy as np
 from placejax.hha._constants import MAX_DEPTH_M, RADIUS_ANGLE
 from placejax.hha._encode import _correlate
 
+__all__ = [
+    "LOG_DEPTH_UNIT_M",
+    "align_least_squares",
+    "depth_from_log",
+    "far_to_sky",
+    "gradient_matching",
+    "log_depth",
+    "log_metric_loss",
+    "midas_loss",
+    "normal_loss",
+    "normalise_median_mad",
+    "ssi_mse",
+    "ssi_trimmed_mae",
+    "window_normals",
+]
+
 _EPS = 1e-6
 
 

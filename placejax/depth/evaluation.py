@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from placejax.depth._metrics import aligned_depth, depth_metrics
+from placejax.depth.metrics import aligned_depth, depth_metrics
+
+__all__ = ["aligned_prediction", "baseline_predictions", "evaluate", "evaluation_frames"]
 
 
 def evaluation_frames(
