@@ -592,3 +592,34 @@ def test_fusion_head_options_train_on_the_copies(smoke_run, tmp_path, monkeypatc
     for (_, t), logits in fused.items():
         assert logits.shape == (len({x.name: x for x in sessions}[t]), grid.num_classes)
         assert np.all(np.isfinite(logits))
+
+
+def test_a_run_with_rendered_depth_is_refused_with_the_command_that_fixes_it(tmp_path):
+    """``depth.source=true`` has no network to turn a photograph into depth: the error names the run and prints
+    the command that reruns it with the shipped depth network."""
+    from placejax.classify._build import run_depth_source
+
+    cfg = get_config("smoke")
+    apply_overrides(cfg, ["depth.source=true"])
+    files = run_layout.RunFiles(
+        workdir=tmp_path / "run",
+        train_session="WI",
+        config=json.loads(json.dumps(cfg.to_dict())),
+        grid={},
+        normalise={},
+        depth={"source": "true"},
+        rgb_checkpoint=tmp_path,
+        hha_checkpoint=tmp_path,
+        mlp_checkpoint=tmp_path,
+        intrinsics=[],
+        image_size=(64, 64),
+        visited_classes=[],
+        unknown={},
+    )
+    with pytest.raises(ValueError) as e:
+        run_depth_source(files)
+    message = str(e.value)
+    assert f"the run in {tmp_path / 'run'} used depth.source='true'" in message
+    assert f"python -m experiments.cross_season --preset smoke depth.source=trained --workdir {tmp_path / 'run'}-" in (
+        message
+    )

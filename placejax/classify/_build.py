@@ -134,7 +134,9 @@ def run_depth_source(files: run_layout.RunFiles) -> DepthSource:
         raise ValueError(
             f"the run in {files.workdir} used depth.source='true': there is no depth network to turn a photograph "
             f"into depth (PlaceClassifier rebuilds {', '.join(repr(n) for n in SOURCE_NAMES if n != 'true')}); "
-            "rerun with one of those, e.g. depth.source=trained"
+            "rerun its command with depth.source=trained and a new work directory, e.g. python -m "
+            f"experiments.cross_season --preset {files.config.get('preset') or 'default'} depth.source=trained "
+            f"--workdir {files.workdir}-trained"
         )
     source = depth_source(DepthSourceConfig(**section), progress=False, train=False)
     recorded = d.get("key")
