@@ -214,7 +214,7 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> dict
 def _cross_section_errors(c: ml_collections.ConfigDict, n_devices: int | None) -> list[str]:
     """What no single section can check: settings that only make sense together. Reads the raw values, so that
     it also reports what a section that fails on its own would hide."""
-    from placejax.depth import validate_shifts
+    from placejax.depth.views import validate_shifts
 
     errors = []
     size = tuple(c.data.image_size)
