@@ -211,9 +211,10 @@ def test_run_layout_names_every_cache_of_the_run(smoke):
     workdir, results = smoke
     n_seeds = len(results["seeds"]["seeds"])
     source = results["config"]["depth"]["source"]
+    assert source != "true"  # so the rendered depth's caches (the baselines' oracle) are there beside the network's
     found = []
     for s in SEASONS:
-        for stage, variant in (("frames", "64x64"), ("depth", source), ("hha", source)):
+        for stage, variant in (("frames", "64x64"), *((k, v) for k in ("depth", "hha") for v in (source, "true"))):
             (one,) = run_layout.cache_folders(workdir, s, stage, variant)
             found.append(one)
         for m in ("rgb", "hha", "depth1"):
