@@ -75,6 +75,14 @@ def test_a_smoke_run_feeds_the_classifier_and_the_tracker(smoke, tmp_path):
     steps = [tracker.step(im, 1.0) for im in images]
     assert [s.frame_label for s in steps] == [a["class"] for a in answers]
     assert all(0 <= s.label < 9 and 0.0 < s.probability <= 1.0 for s in steps)
+    # benchmarks.first_run's footprint of the work directory (the numbers docs/workdir.md quotes): every file once.
+    from benchmarks.first_run import footprint
+
+    walked = [Path(d) / f for d, _, files in os.walk(workdir) for f in files]
+    size = footprint(workdir)
+    assert (size["bytes"], size["files"]) == (sum(p.stat().st_size for p in walked), len(walked))
+    assert size["entries"]["results.json"] == {"bytes": (workdir / "results.json").stat().st_size, "files": 1}
+    assert sum(e["files"] for e in size["entries"].values()) == size["files"] and size["entries"]["nets"]["files"] > 0
 
 
 def _accuracies(results: dict) -> dict:
