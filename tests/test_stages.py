@@ -100,3 +100,38 @@ def test_workspace_times_stages_and_tells_a_listener(tmp_path):
     assert seen == [("depth", True), ("hha", True), ("hha", False), ("depth", False), ("depth", True), ("depth", False)]
     assert set(ws.timings) == {"depth", "hha"} and ws.timings["depth"] >= ws.timings["hha"] >= 0
     assert ws.peak_rss_mib["depth"] > 0 and ws.cache_root == tmp_path / "cache"
+
+
+def test_hha_caches_are_keyed_by_the_camera_and_the_encoder_version(tmp_path, monkeypatch):
+    """The HHA cache of a depth cache is rebuilt, not reused, when the session's intrinsics or the encoder's
+    version change (a folder's camera.json edited; an encoder whose outputs moved), and its images are the
+    encoder's for that camera."""
+    from placejax import hha
+    from placejax.training import data_mesh
+
+    ws = stages.Workspace(tmp_path, data_mesh(None), progress=False)
+    ramp = np.broadcast_to(np.linspace(2.0, 20.0, 24, dtype=np.float32)[:, None], (3, 24, 32)).copy()
+    source = depth.DepthSource("ramp", {"source": "ramp"}, lambda x: ramp[: len(x)])
+    k = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+
+    @dataclasses.dataclass
+    class Cached:  # what the stage reads of a placejax.data.CachedSession
+        intrinsics: np.ndarray
+        images: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((3, 24, 32, 3), np.uint8))
+        image_shape: tuple = (24, 32)
+        key: dict = dataclasses.field(default_factory=lambda: {"session": "a"})
+
+        def __len__(self):
+            return 3
+
+    def build(intrinsics):
+        ((_, h),) = stages.depth_and_hha(ws, [stages.SessionData("a", Cached(intrinsics), None)], source, 8)
+        return h
+
+    first = build(k)
+    np.testing.assert_array_equal(np.asarray(first.data), np.asarray(hha.encode(ramp, k)))
+    assert build(k).path == first.path  # the same camera and encoder: read back
+    other_camera = build(k * np.array([[2.0], [2.0], [1.0]]))
+    assert other_camera.path != first.path
+    monkeypatch.setattr(hha, "ENCODER_VERSION", hha.ENCODER_VERSION + 1)
+    assert build(k).path not in (first.path, other_camera.path)

@@ -14,6 +14,7 @@ Submodules: :mod:`placejax.depth.losses` (the training objectives and log depth)
 """
 
 from placejax.depth import evaluation, losses, metrics, views
+from placejax.depth._config import PRESETS, DepthTrainConfig
 from placejax.depth._inference import apply, network_size, predict, preprocess
 from placejax.depth._lifecycle import (
     SHIPPED,
@@ -26,7 +27,7 @@ from placejax.depth._lifecycle import (
     write_report,
 )
 from placejax.depth._sources import SOURCE_NAMES, DepthSource, DepthSourceConfig, depth_source, register_source
-from placejax.depth._train import PRESETS, DepthObjective, DepthTrainConfig, TrainedDepth, load_trained, train_network
+from placejax.depth._train import DepthObjective, TrainedDepth, load_trained, train_network
 from placejax.depth.losses import LOG_DEPTH_UNIT_M, depth_from_log, far_to_sky, log_depth
 
 __all__ = [

@@ -18,7 +18,8 @@ from flax import traverse_util
 
 from placejax import io
 from placejax.depth import evaluation
-from placejax.depth._train import PRESETS, DepthTrainConfig, TrainedDepth, load_trained, train_network
+from placejax.depth._config import PRESETS, DepthTrainConfig
+from placejax.depth._train import TrainedDepth, load_trained, train_network
 from placejax.weights import _shipped
 
 # Measured on an idle 2-core x86 CPU (placejax/depth/weights/README.md; docs/research-log.md, 2026-12-05): shown

@@ -78,7 +78,7 @@ class DepthSourceConfig:
             boolean=("flip_average",),
             string=("midas_weights", "dav2_weights", "trained_preset", "trained_cache"),
         )
-        from placejax.depth._train import PRESETS
+        from placejax.depth._config import PRESETS
         from placejax.depth.views import validate_shifts
 
         errors = []
@@ -275,7 +275,8 @@ def _trained(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource
     # The placejax-trained depth network: shipped with the package (default preset), or trained once per machine
     # into the cache, then reused.
     from placejax.depth import _lifecycle
-    from placejax.depth._train import PRESETS, load_trained
+    from placejax.depth._config import PRESETS
+    from placejax.depth._train import load_trained
     from placejax.depth.losses import far_to_sky
 
     cache = Path(cfg.trained_cache) if cfg.trained_cache else None

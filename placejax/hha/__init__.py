@@ -2,6 +2,7 @@
 
 Public surface:
     encode: depth (metres) + intrinsics → ``uint8`` HHA images, jitted and batched.
+    ENCODER_VERSION: the encoder's version, in every HHA cache key (bumped whenever its outputs may change).
     encode_full: the same plus the intermediates (:class:`HHAResult`).
     encode_stream: bounded-memory encoding of a stream of images in fixed-size batches.
     intrinsics_valid: the camera check the encoder applies, usable on traced arrays.
@@ -10,11 +11,12 @@ Public surface:
 """
 
 from placejax.hha._api import encode, encode_full, encode_stream, intrinsics_valid
-from placejax.hha._encode import HHAResult
+from placejax.hha._encode import ENCODER_VERSION, HHAResult
 from placejax.hha._metric import inverse_depth_to_metric
 from placejax.hha._reference import encode_reference
 
 __all__ = [
+    "ENCODER_VERSION",
     "HHAResult",
     "encode",
     "encode_full",

@@ -57,6 +57,11 @@ from placejax.hha._windows import (
     unit_normals,
 )
 
+ENCODER_VERSION = 2
+"""The encoder's version, part of every HHA cache key: bumped whenever its outputs may change (2: the per-image
+loop of 2026-12-06, one level apart from version 1 on about 7e-5 of the values), so that a cache of an older
+encoder is rebuilt, not reused."""
+
 
 class HHAResult(NamedTuple):
     """HHA image and the intermediates it was computed from (leading batch axes as in the input).

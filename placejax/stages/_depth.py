@@ -84,7 +84,12 @@ def depth_and_hha(ws: Workspace, sessions: list[SessionData], source: DepthSourc
                     encode,
                     (*s.cached.image_shape, 3),
                     np.uint8,
-                    key={"kind": "hha", "depth": depth.key},
+                    key={
+                        "kind": "hha",
+                        "depth": depth.key,
+                        "intrinsics": np.asarray(k, np.float64).tolist(),
+                        "encoder": _hha.ENCODER_VERSION,
+                    },
                     chunk=batch_size,
                     progress=ws.progress,
                     desc=f"HHA {s.name}",
