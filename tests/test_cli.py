@@ -272,6 +272,11 @@ def _cases(t: Path) -> dict[str, tuple[list[str], dict[str, str], str]]:
             {},
             f"ENOTDIR: not a directory: {afile / 'x'}",
         ),
+        "benchmark_first_run": (
+            ["-m", "benchmarks.first_run", "--workdir", str(t / "run_a")],
+            {},
+            f"--workdir {t / 'run_a'} is not empty: a first run starts from an empty folder",
+        ),
         "benchmark_nclt_rehearsal": (
             ["-m", "benchmarks.nclt_rehearsal", "--frames", "16", "32", "--sessions", "2", "--root", str(afile / "x")],
             {},
