@@ -389,7 +389,9 @@ DEPTH_NETWORKS = {
 
 
 def _du_mb(path: Path) -> float:
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
+    from benchmarks.first_run import footprint
+
+    return footprint(path)["bytes"] / 2**20
 
 
 def _nn_pair_seconds(n: int, cfg: dict) -> float:
