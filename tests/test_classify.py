@@ -520,7 +520,7 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_r
     cfg, workdir, _ = smoke_run
     assert clf._spec.far_as_sky_m == cfg.depth.far_as_sky_m > 0  # the run's settings reached the classifier
     assert clf._spec.flip_average is cfg.depth.flip_average is True  # (the equality tests above cover it)
-    assert clf._spec.shifts == tuple(cfg.depth.shift_px) == (2, 4)  # (and so the shifted views)
+    assert clf._spec.shifts == tuple(cfg.depth.shift_px) == ()  # (no shifted views by default since 2026-12-07)
     from placejax.depth import depth_source
 
     c = sections(cfg)

@@ -115,10 +115,11 @@ def test_ensure_trained_trains_once_and_reports(uninterrupted_dir, tmp_path, mon
     assert out.shape == (2, 40, 48) and np.all(np.isfinite(out))
 
 
-def test_network_depth_averages_views_as_the_experiment_does(uninterrupted_dir, tmp_path, monkeypatch):
+def test_network_depth_averages_the_shipped_trunks_views(uninterrupted_dir, tmp_path, monkeypatch):
     """``placejax.pretrain.data.network_depth("trained:<preset>")`` (the HHA trunk's pretraining depth) finds the cached
-    network and averages the views the experiment's default depth stage averages (mirror and ±2, ±4 px), then puts
-    everything from 50 m on as sky: the step the shipped HHA trunk learnt with (the experiment's is 60 m)."""
+    network and averages the views the shipped HHA trunk was pretrained with (mirror and ±2, ±4 px: the experiment's
+    default until 2026-12-07, now the image and its mirror), then puts everything from 50 m on as sky: the step the
+    shipped HHA trunk learnt with (the experiment's is 60 m)."""
     from experiments.cross_season import config as experiment_config
     from placejax.data.simcampus import SKY_DEPTH
     from placejax.pretrain import _data
@@ -127,7 +128,9 @@ def test_network_depth_averages_views_as_the_experiment_does(uninterrupted_dir, 
     shutil.copytree(uninterrupted_dir, depth.run_dir(CFG, "smoke", tmp_path))
     monkeypatch.setenv("PLACEJAX_CACHE", str(tmp_path))
     default = experiment_config.get_config("default").depth
-    assert (_data.NETWORK_FLIP, _data.NETWORK_SHIFTS) == (default.flip_average, tuple(default.shift_px))
+    # The shipped trunk's recipe; the experiment keeps the mirror but no longer the shifted views.
+    assert (_data.NETWORK_FLIP, _data.NETWORK_SHIFTS) == (True, (2, 4))
+    assert (default.flip_average, tuple(default.shift_px)) == (True, ())
     # The sky step the shipped HHA trunk was pretrained with (its recipe), not the experiment's since 2026-12-05.
     assert _data.NETWORK_SKY_FROM_M == 50.0 and default.far_as_sky_m == 60.0
     rgb = np.random.default_rng(0).integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)

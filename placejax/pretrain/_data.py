@@ -12,7 +12,8 @@ seasons' geometry (summer and one of the others: foliage, snow banks, parked car
 blur, the far range handed over as sky), so the pretext asks for what cross-season HHA recognition needs. Or,
 with ``hha_depth="trained:<preset>"``, through the experiment's own depth network: each version is rendered in its
 own random look and its depth is what the trained network (``placejax.depth``) predicts from that RGB image, with
-the experiment's default views and sky step (:func:`network_depth`), so the trunk sees the errors it will meet.
+the views and sky step the shipped trunk was pretrained with (:func:`network_depth`), so the trunk sees the errors it
+will meet.
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ PERTURB_FIELD_PX = 0.125  # its correlation length, as a share of the image widt
 PERTURB_BLUR_PX = (0.0, 1.5)  # log-depth blur sigma, pixels at 64 x 64 (scaled with the width)
 PERTURB_SKY_FROM_M = (40.0, 70.0)
 
-# network_depth: the experiment's default depth views (its depth.flip_average and depth.shift_px), so a trunk
-# pretrained on the network's depth sees HHA made as the experiment makes it, and the sky step the shipped HHA trunk
+# network_depth: the depth views the experiment averaged until 2026-12-07 (mirror, shifts ±2 and ±4 px; its default is
+# now the image and its mirror, docs/depth-network.md "Fewer views"), and the sky step the shipped HHA trunk
 # was pretrained with (50 m, the experiment's depth.far_as_sky_m until 2026-12-05; the experiment's 60 m came with
 # the 4800-step depth network): kept so that the shipped trunk's recipe still makes that trunk.
 NETWORK_FLIP = True
