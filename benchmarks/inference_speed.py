@@ -1,11 +1,13 @@
 """End-to-end speed of ``PlaceClassifier.predict`` from uint8 RGB, per stage, against PyTorch's heavy stages.
 
     python -m benchmarks.inference_speed [--repeats 3] [--batch 8] [--no-torch] [--only builtin|paper]
+        [--baseline-shift-px 2 4]
 
 Two model sizes, both with random weights of the exact architectures (speed does not depend on the values):
     builtin: the default SimCampus preset — 64×64 images, the placejax metric depth network (the default depth
-        preset's: MidasSmall features 16, encoder ×0.35, run at 128×128) over the preset's views (the image, its
-        mirror and copies shifted by ±2 and ±4 px: ten passes), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
+        preset's: MidasSmall features 16, encoder ×0.35, run at 128×128) over the preset's views (the image and its
+        mirror: two passes; ten with the copies shifted by ±2 and ±4 px of ``depth.shift_px=(2, 4)``, the default
+        until 2026-12-07), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
     paper: the paper's setting — 256×256 images, MiDaS v2.1 small (official size, run at 256×256), ImageNet
         VGG16 at full width (conv features rounded to float16 as the experiment caches them), MLP 8192 → 1024 → 100.
 
@@ -14,6 +16,8 @@ padding buckets and all), and the share of each stage (depth: MiDaS transform + 
 mapping; hha: HHA encoding; nets: RGB-Net and HHA-Net; mlp: fusion MLP) from each stage jitted and timed alone.
 At the paper size PyTorch (``benchmarks.torch_baselines``, ``no_grad``, all cores) runs MiDaS small on the same
 normalised input and VGG16 fc7 twice (two nets) in the same run, interleaved with JAX so both see the same load.
+``--baseline-shift-px 2 4``: the built-in classifier also with those shifted depth views, its ``predict`` timed in
+the same interleaved rounds (columns "baseline images/s" and "speed-up").
 Writes ``benchmarks/results/inference_speed.json``.
 """
 
@@ -52,16 +56,17 @@ _SIZES = {
 
 
 def _default_depth_views() -> dict:
-    """The default preset's depth views and sky step (what its classifiers run: mirror, ±2 and ±4 px, sky from
-    50 m on), read from the experiment's config so that the benchmark follows it."""
+    """The default preset's depth views and sky step (what its classifiers run), read from the experiment's config so
+    that the benchmark follows it."""
     from experiments.cross_season.config import get_config
 
     d = get_config("default").depth
     return {"far_as_sky_m": d.far_as_sky_m, "flip_average": d.flip_average, "shifts": list(d.shift_px)}
 
 
-def synthetic_classifier(size: str, seed: int = 0) -> PlaceClassifier:
-    """A classifier of the given size with random weights (He-scaled, so activations stay finite)."""
+def synthetic_classifier(size: str, seed: int = 0, shifts: tuple[int, ...] | None = None) -> PlaceClassifier:
+    """A classifier of the given size with random weights (He-scaled, so activations stay finite); ``shifts``
+    replaces the default preset's shifted depth views (metric depth only)."""
     s = _SIZES[size]
     kind, features, width, net = s["depth"]
     f = 500.0 * s["image"] / 640
@@ -80,6 +85,7 @@ def synthetic_classifier(size: str, seed: int = 0) -> PlaceClassifier:
             "far_m": s["far_m"],
             "metric": s["metric"],
             **(_default_depth_views() if s["metric"] else {}),
+            **({"shifts": list(shifts)} if shifts is not None and s["metric"] else {}),
         },
         "vgg": {"width": s["vgg"][0], "pretrained": s["vgg"][1]},
         "mlp_hidden": 1024,
@@ -160,6 +166,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=8, help="the larger batch (besides 1)")
     parser.add_argument("--no-torch", action="store_true")
     parser.add_argument("--only", choices=tuple(_SIZES))
+    parser.add_argument(
+        "--baseline-shift-px",
+        type=int,
+        nargs="+",
+        metavar="K",
+        help="also time the built-in classifier with these shifted depth views, in the same rounds (e.g. 2 4)",
+    )
     parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)
@@ -170,6 +183,9 @@ def main(argv: list[str] | None = None) -> int:
         for batch in (1, args.batch):
             rgb = rng.integers(0, 256, (batch, hw, hw, 3), dtype=np.uint8)
             fns = {"predict": lambda rgb=rgb, clf=clf: clf.predict(rgb)}
+            if args.baseline_shift_px and size == "builtin":
+                base = synthetic_classifier(size, shifts=tuple(args.baseline_shift_px))
+                fns["baseline"] = lambda rgb=rgb, base=base: base.predict(rgb)
             fns.update(_stage_fns(clf, rgb))
             if size == "paper" and not args.no_torch:
                 fns.update(_torch_fns(batch, hw, rng))
@@ -184,6 +200,10 @@ def main(argv: list[str] | None = None) -> int:
                 **{f"share_{k}": t[k] / stages for k in ("depth", "hha", "nets", "mlp")},
                 **{f"{k}_ms_per_image": 1e3 * t[k] / batch for k in ("depth", "hha", "nets", "mlp")},
             }
+            if "baseline" in t:
+                row["baseline_shift_px"] = list(args.baseline_shift_px)
+                row["baseline_images_per_s"] = batch / t["baseline"]
+                row["speedup"] = t["baseline"] / t["predict"]
             if "torch_midas" in t:
                 row["torch_midas_ms_per_image"] = 1e3 * t["torch_midas"] / batch
                 row["torch_vgg16_x2_ms_per_image"] = 1e3 * t["torch_vgg16_x2"] / batch
@@ -195,6 +215,8 @@ def main(argv: list[str] | None = None) -> int:
         ("size", "size"),
         ("batch", "batch"),
         ("images_per_s", "images/s"),
+        ("baseline_images_per_s", "baseline images/s"),
+        ("speedup", "speed-up"),
         ("ms_per_image", "ms/image"),
         ("share_depth", "depth share"),
         ("share_hha", "HHA share"),
