@@ -5,6 +5,8 @@ import os
 # Two CPU devices so that data-parallel code is tested on a real (if virtual) mesh. Must be set before jax loads.
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
 
+import json
+import shutil
 from pathlib import Path
 
 import jax
@@ -43,19 +45,73 @@ def midas_recipe_npz(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def smoke_depth_run(tmp_path_factory) -> Path:
-    """A finished run of the smoke depth-training preset, trained once per test process for every test that needs
-    one (the depth tests, ``experiments.hha_diagnose``'s). Read it only: copy it before writing to it."""
+    """A finished run of the smoke depth-training preset, trained once for the whole test run (shared by the
+    pytest-xdist workers) for every test that needs one (the depth tests, ``experiments.hha_diagnose``'s, the
+    classifier's). Read it only: copy it before writing to it."""
     from placejax import depth
 
-    workdir = tmp_path_factory.mktemp("smoke_depth_run")
-    depth.train_network(depth.PRESETS["smoke"], workdir, progress=False)
-    return workdir
+    return _built_once(
+        tmp_path_factory,
+        "smoke_depth_run",
+        lambda folder: depth.train_network(depth.PRESETS["smoke"], folder, progress=False),
+    )
+
+
+# The smoke preset as the end-to-end modules run it: on one device, as the default run does on a machine with one CPU
+# device (under the suite's two forced host devices a step costs about twice as much on 2 devices as on 1; the
+# 2-device path and 2 processes have their own test).
+SMOKE_OVERRIDES = ("devices=1", "progress=False")
+
+
+def _built_once(tmp_path_factory, name: str, build) -> Path:
+    """``build(folder)`` run once for the whole test run, its folder shared by every pytest-xdist worker: the first
+    worker to ask builds it under a lock, the others wait and read the finished folder (a build that failed half
+    way is started again from an empty folder)."""
+    from placejax import io
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the workers' common base folder
+    lock = root / f"{name}.lock"
+    lock.mkdir(exist_ok=True)
+    folder, done = root / name, root / f"{name}.done"
+    with io.run_lock(lock, wait=True):
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            build(folder)
+            done.touch()
+    return folder
+
+
+@pytest.fixture(scope="session")
+def shared_smoke_run(tmp_path_factory) -> tuple[Path, dict]:
+    """``(workdir, results)`` of one smoke run (``SMOKE_OVERRIDES``: the shipped depth network, four seasons), run
+    once for the whole suite, for every module that needs a finished run. Read it only: a module that writes to a
+    run (the experiment's caches, a lock) works on a copy (:func:`copy_of_smoke_run`)."""
+
+    def build(folder: Path) -> None:
+        from experiments.cross_season import apply_overrides, get_config, run
+
+        cfg = get_config("smoke")
+        apply_overrides(cfg, list(SMOKE_OVERRIDES))
+        run(cfg, folder)
+
+    folder = _built_once(tmp_path_factory, "shared_smoke_run", build)
+    return folder, json.loads((folder / "results.json").read_text())
+
+
+def copy_of_smoke_run(shared_smoke_run, tmp_path_factory, name: str) -> tuple[Path, dict]:
+    """A module's own copy of :func:`shared_smoke_run` (a second of copying instead of a minute of running)."""
+    source, results = shared_smoke_run
+    workdir = tmp_path_factory.mktemp(name) / "run"
+    shutil.copytree(source, workdir, ignore=shutil.ignore_patterns(".lock"))
+    return workdir, results
 
 
 # Fixtures that train a network or run the experiment end to end (a minute or more each, built once per module or
 # session). Every test that uses one, directly or through another fixture, is marked `slow`, so that the fast inner
 # loop (`pytest -m "not slow"`) leaves it out; CI runs everything.
-SLOW_FIXTURES = frozenset({"smoke", "smoke_run", "smoke_depth_run"})
+SLOW_FIXTURES = frozenset({"smoke", "smoke_run", "smoke_depth_run", "shared_smoke_run"})
 
 
 def pytest_collection_modifyitems(config, items):

@@ -339,6 +339,8 @@ def _shown_lines(stderr: str) -> list[str]:
     return [part for part in parts if part and not _PROGRESS_BAR.search(part)]
 
 
+# One worker runs every case (under --dist loadgroup): the fixture starts all the commands, once.
+@pytest.mark.xdist_group("cli_failed_runs")
 @pytest.mark.parametrize("name", list(_cases(Path("/t"))))
 def test_every_command_fails_in_one_line_with_status_2(name, failed_runs):
     runs, cases = failed_runs

@@ -17,22 +17,17 @@ import cv2
 import jax
 import numpy as np
 import pytest
+from conftest import SMOKE_OVERRIDES, copy_of_smoke_run
 
 from experiments.cross_season import apply_overrides, get_config, run
 from placejax.classify import run_layout
 from placejax.data import PlaceGrid, open_array_cache
 
 REPO = Path(__file__).resolve().parents[1]
-# Under pytest-xdist's --dist loadgroup (the README's test command) the smoke run (module fixture, ~90 s)
-# is built once, on one worker, instead of once per worker that runs a test of this module.
+# Under pytest-xdist's --dist loadgroup (the README's test command) the module's copy of the smoke run is made
+# once, on one worker, instead of once per worker that runs a test of this module.
 pytestmark = pytest.mark.xdist_group("cross_season")
 SEASONS = ("WI", "SP", "SU", "AU")
-
-
-# The smoke runs of this module train on one device, as the default run does on a machine with one CPU device:
-# under the test suite's two forced host devices a step costs about twice as much on 2 devices as on 1, and
-# the smoke runs' training is the suite's largest part. The 2-device path (and 2 processes) has its own test.
-SMOKE_OVERRIDES = ("devices=1", "progress=False")
 
 
 def _smoke_config(*overrides: str):
@@ -42,9 +37,10 @@ def _smoke_config(*overrides: str):
 
 
 @pytest.fixture(scope="module")
-def smoke(tmp_path_factory):
-    workdir = tmp_path_factory.mktemp("smoke")
-    return workdir, run(_smoke_config(), workdir)
+def smoke(shared_smoke_run, tmp_path_factory):
+    """This module's own copy of the suite's smoke run (``conftest.shared_smoke_run``): its tests lock it and add
+    to it."""
+    return copy_of_smoke_run(shared_smoke_run, tmp_path_factory, "smoke")
 
 
 def test_a_smoke_run_feeds_the_classifier_and_the_tracker(smoke, tmp_path):

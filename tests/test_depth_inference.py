@@ -117,18 +117,22 @@ def test_predict_bad_input(small):
 @pytest.mark.slow
 def test_apply_matches_the_host_path_and_jit_equals_eager(small):
     """``depth.apply`` (the MiDaS transform in JAX) against ``depth.predict`` (OpenCV resize on the host): the
-    same numbers to float rounding, resized (45×70 → 64×…) and at the network size; jitted == eager."""
+    same numbers to float rounding, resized (45×70 → 64×…) and at the network size; jitted == eager (on the first
+    shape only: op-by-op, the network takes most of this test's time, and the shapes share every op)."""
     model, variables = small
     rng = np.random.default_rng(2)
-    for hw, square in (((45, 70), False), ((64, 64), True), ((40, 52), True)):
+    for i, (hw, square) in enumerate((((45, 70), False), ((64, 64), True), ((40, 52), True))):
         images = rng.integers(0, 256, (2, *hw, 3), dtype=np.uint8)
         host = predict(variables, images, model=model, size=64, square=square)
         fn = functools.partial(depth.apply, model=model, size=64, square=square)
-        eager = fn(variables, images)
         jitted = jax.jit(fn)(variables, jnp.asarray(images))
-        assert isinstance(eager, jax.Array) and eager.shape == (2, *hw) and eager.dtype == jnp.float32
-        np.testing.assert_allclose(np.asarray(eager), host, rtol=0, atol=2e-5 * float(np.ptp(host)))
-        np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=0, atol=1e-5 * float(np.ptp(host)))
+        assert isinstance(jitted, jax.Array) and jitted.shape == (2, *hw) and jitted.dtype == jnp.float32
+        np.testing.assert_allclose(np.asarray(jitted), host, rtol=0, atol=2e-5 * float(np.ptp(host)))
+        if i == 0:
+            eager = fn(variables, images)
+            assert isinstance(eager, jax.Array) and eager.shape == (2, *hw) and eager.dtype == jnp.float32
+            np.testing.assert_allclose(np.asarray(eager), host, rtol=0, atol=2e-5 * float(np.ptp(host)))
+            np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=0, atol=1e-5 * float(np.ptp(host)))
 
 
 def test_apply_bad_input(small):

@@ -6,22 +6,22 @@ from __future__ import annotations
 
 import hashlib
 import json
-import shutil
 import zipfile
 from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
+from conftest import SMOKE_OVERRIDES, copy_of_smoke_run
 from test_classify_hostile import tiny_meta, tiny_params
 
 from placejax import route
 from placejax.classify import ArtefactError, PlaceClassifier, Tracker
 
 TRAIN = "WI"
-SESSIONS = ("WI", "SP", "SU")
+SESSIONS = ("WI", "SP", "SU", "AU")
 
-# The smoke run is built once, on one worker, for the tests of this module that need it.
+# The copy of the smoke run is made once, on one worker, for the tests of this module that need it.
 pytestmark = pytest.mark.xdist_group("tracker")
 
 
@@ -169,30 +169,15 @@ def test_a_classifier_output_that_is_not_finite_is_an_unknown_step(tiny_file):
 
 
 @pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory, smoke_depth_run):
-    """The experiment's smoke preset with a (4-step) trained depth network on three seasons: one run, whose
-    ``results.json`` holds the ``Ours + route`` column per seed."""
-    from experiments.cross_season import apply_overrides, get_config, run
-    from placejax import depth
+def smoke_run(shared_smoke_run, tmp_path_factory):
+    """The suite's smoke run (``conftest.shared_smoke_run``: four seasons, the shipped depth network), a copy:
+    ``(config, workdir, results)``, whose ``results.json`` holds the ``Ours + route`` column per seed."""
+    from experiments.cross_season import apply_overrides, get_config
 
-    root = tmp_path_factory.mktemp("tracker_run")
-    shutil.copytree(smoke_depth_run, depth.run_dir(depth.PRESETS["smoke"], "smoke", root / "depth"))
     cfg = get_config("smoke")
-    apply_overrides(
-        cfg,
-        [
-            "depth.source=trained",
-            "depth.trained_preset=smoke",
-            f"depth.trained_cache={root / 'depth'}",
-            "data.sessions=(" + ",".join(f"'{s}'" for s in SESSIONS) + ")",
-            "ablations.depth1=False",
-            "figures=False",
-            "progress=False",
-            "devices=1",
-        ],
-    )
-    workdir = root / "run"
-    return cfg, workdir, run(cfg, workdir)
+    apply_overrides(cfg, list(SMOKE_OVERRIDES))
+    workdir, results = copy_of_smoke_run(shared_smoke_run, tmp_path_factory, "tracker_run")
+    return cfg, workdir, results
 
 
 @pytest.mark.slow
