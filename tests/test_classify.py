@@ -34,9 +34,9 @@ pytestmark = pytest.mark.xdist_group("classify")
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory, smoke_depth_run):
-    """A smoke run with a (4-step) trained depth network, two seasons, one device: a classifier can be built from
-    it. Its depth cache is seeded with the session's smoke depth network (the experiment reuses it, as it would
-    its own from an earlier run, and writes its report)."""
+    """A smoke run with a (4-step) trained depth network, two seasons, one seed, one device: a classifier can be
+    built from it. Its depth cache is seeded with the session's smoke depth network (the experiment reuses it, as
+    it would its own from an earlier run, and writes its report)."""
     from placejax import depth
 
     root = tmp_path_factory.mktemp("classify")
@@ -49,6 +49,7 @@ def smoke_run(tmp_path_factory, smoke_depth_run):
             "depth.trained_preset=smoke",
             f"depth.trained_cache={root / 'depth'}",
             f"data.sessions=('{TRAIN}','{TEST}')",
+            "n_seeds=1",  # the classifier is the first seed's
             "ablations.depth1=False",
             "figures=False",
             "progress=False",

@@ -24,9 +24,8 @@ from placejax.classify import run_layout
 from placejax.data import PlaceGrid, open_array_cache
 
 REPO = Path(__file__).resolve().parents[1]
-# Under pytest-xdist's --dist loadgroup (the README's test command) the module's copy of the smoke run is made
-# once, on one worker, instead of once per worker that runs a test of this module.
-pytestmark = pytest.mark.xdist_group("cross_season")
+# No xdist group: the module's long tests (two processes, the resumed run, shuffled labels, the paper path) are
+# independent runs that both workers can take; each worker makes its own copy of the smoke run (seconds).
 SEASONS = ("WI", "SP", "SU", "AU")
 
 

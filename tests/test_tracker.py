@@ -21,9 +21,6 @@ from placejax.classify import ArtefactError, PlaceClassifier, Tracker
 TRAIN = "WI"
 SESSIONS = ("WI", "SP", "SU", "AU")
 
-# The copy of the smoke run is made once, on one worker, for the tests of this module that need it.
-pytestmark = pytest.mark.xdist_group("tracker")
-
 
 def _rewrite_manifest(src: Path, dst: Path, edit) -> Path:
     """A copy of a classifier file whose manifest went through ``edit(manifest)`` (its checksum kept valid)."""
