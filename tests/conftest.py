@@ -111,7 +111,9 @@ def copy_of_smoke_run(shared_smoke_run, tmp_path_factory, name: str) -> tuple[Pa
 # Fixtures that train a network or run the experiment end to end (a minute or more each, built once per module or
 # session). Every test that uses one, directly or through another fixture, is marked `slow`, so that the fast inner
 # loop (`pytest -m "not slow"`) leaves it out; CI runs everything.
-SLOW_FIXTURES = frozenset({"smoke", "smoke_run", "smoke_depth_run", "shared_smoke_run"})
+# So is every test that starts Python processes through a module fixture (test_cli's failing commands,
+# test_folder_hostile's cases, each read in a child whose memory and CPU are measured).
+SLOW_FIXTURES = frozenset({"smoke", "smoke_run", "smoke_depth_run", "shared_smoke_run", "failed_runs", "outcomes"})
 
 
 def pytest_collection_modifyitems(config, items):

@@ -17,6 +17,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+# Each test starts fresh Python processes (seconds each): the slow tier.
+pytestmark = pytest.mark.slow
 
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:

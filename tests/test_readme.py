@@ -106,6 +106,7 @@ def test_readme_has_python_blocks():
         assert f"docs/{page}" in (Path(__file__).parent / test).read_text() or not (REPO / "docs" / page).exists()
 
 
+@pytest.mark.slow  # the README's tour end to end: the shipped networks on real frames, compiled
 @pytest.mark.parametrize("code", PYTHON_BLOCKS, ids=[_first_line(c)[:40] for c in PYTHON_BLOCKS])
 def test_python_block_runs(code, readme_env, tmp_path):
     _run(code, readme_env, tmp_path)
