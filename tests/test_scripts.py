@@ -242,8 +242,12 @@ def test_benchmark_simcampus_speed(bench):
 @pytest.mark.slow
 def test_benchmark_training_step(bench):
     out, r = _bench(bench, "training_step", "--repeats", "1", "--steps", "1")
-    assert {"vgg_step_1dev", "mlp_step", "train_dataset_batch"} <= {row["case"] for row in r["rows"]}
+    assert {"vgg_step_1dev", "head_step_1dev (default)", "mlp_step", "train_dataset_batch"} <= {
+        row["case"] for row in r["rows"]
+    }
     assert all(row["ms"] > 0 for row in r["rows"]) and "median ms" in out
+    steps = [row for row in r["rows"] if "step" in row["case"]]
+    assert all(row["gflops"] > 0 for row in steps), steps  # XLA's flop count over the step's time
 
 
 @pytest.mark.slow
