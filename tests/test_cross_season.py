@@ -237,8 +237,11 @@ def test_shuffled_labels_score_at_chance(smoke, tmp_path):
     """Control: the same run with every training label permuted across its session's frames (histogram kept,
     image–label link broken) is scored against the true labels: it must fall to chance where the real run has
     learnt its training sessions, so the accuracies come from what the networks learnt from the images."""
-    _, real = smoke
+    smoke_dir, real = smoke
     cfg = _smoke_config("train.shuffle_labels=True", "ablations.depth1=False", "figures=False")
+    # The smoke run's caches (frames, depth, HHA, conv features: none depends on the labels; net outputs are keyed
+    # by the nets' weights, so the real nets' outputs cannot stand in for the shuffled nets').
+    shutil.copytree(smoke_dir / "cache", tmp_path / "shuffled" / "cache")
     shuffled = run(cfg, tmp_path / "shuffled")
     grid = PlaceGrid.load(tmp_path / "shuffled" / "grid.json")
     # Measured (same-session top-1, mean over the 4 seasons): real 0.86 / 0.46 / 0.77, shuffled 0.18 / 0.19 / 0.19.
