@@ -179,12 +179,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for size in [args.only] if args.only else list(_SIZES):
         clf = synthetic_classifier(size)
+        base = None
+        if args.baseline_shift_px and size == "builtin":
+            base = synthetic_classifier(size, shifts=tuple(args.baseline_shift_px))
         hw = clf.image_size[0]
         for batch in (1, args.batch):
             rgb = rng.integers(0, 256, (batch, hw, hw, 3), dtype=np.uint8)
             fns = {"predict": lambda rgb=rgb, clf=clf: clf.predict(rgb)}
-            if args.baseline_shift_px and size == "builtin":
-                base = synthetic_classifier(size, shifts=tuple(args.baseline_shift_px))
+            if base is not None:
                 fns["baseline"] = lambda rgb=rgb, base=base: base.predict(rgb)
             fns.update(_stage_fns(clf, rgb))
             if size == "paper" and not args.no_torch:

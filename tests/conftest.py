@@ -63,6 +63,15 @@ def smoke_depth_run(tmp_path_factory) -> Path:
 SMOKE_OVERRIDES = ("devices=1", "progress=False")
 
 
+def smoke_config(*overrides: str):
+    """The smoke preset with ``SMOKE_OVERRIDES`` and then ``overrides`` (``key=value``) applied."""
+    from experiments.cross_season import apply_overrides, get_config
+
+    cfg = get_config("smoke")
+    apply_overrides(cfg, [*SMOKE_OVERRIDES, *overrides])
+    return cfg
+
+
 def _built_once(tmp_path_factory, name: str, build) -> Path:
     """``build(folder)`` run once for the whole test run, its folder shared by every pytest-xdist worker: the first
     worker to ask builds it under a lock, the others wait and read the finished folder (a build that failed half
@@ -90,11 +99,9 @@ def shared_smoke_run(tmp_path_factory) -> tuple[Path, dict]:
     run (the experiment's caches, a lock) works on a copy (:func:`copy_of_smoke_run`)."""
 
     def build(folder: Path) -> None:
-        from experiments.cross_season import apply_overrides, get_config, run
+        from experiments.cross_season import run
 
-        cfg = get_config("smoke")
-        apply_overrides(cfg, list(SMOKE_OVERRIDES))
-        run(cfg, folder)
+        run(smoke_config(), folder)
 
     folder = _built_once(tmp_path_factory, "shared_smoke_run", build)
     return folder, json.loads((folder / "results.json").read_text())

@@ -17,7 +17,7 @@ import cv2
 import jax
 import numpy as np
 import pytest
-from conftest import SMOKE_OVERRIDES, copy_of_smoke_run
+from conftest import SMOKE_OVERRIDES, copy_of_smoke_run, smoke_config
 
 from experiments.cross_season import apply_overrides, get_config, run
 from placejax.classify import run_layout
@@ -27,12 +27,6 @@ REPO = Path(__file__).resolve().parents[1]
 # No xdist group: the module's long tests (two processes, the resumed run, shuffled labels, the paper path) are
 # independent runs that both workers can take; each worker makes its own copy of the smoke run (seconds).
 SEASONS = ("WI", "SP", "SU", "AU")
-
-
-def _smoke_config(*overrides: str):
-    cfg = get_config("smoke")
-    apply_overrides(cfg, [*SMOKE_OVERRIDES, *overrides])
-    return cfg
 
 
 @pytest.fixture(scope="module")
@@ -188,7 +182,7 @@ def test_frozen_trunk_features_are_cached_once_and_reused(smoke, monkeypatch):
 
     feats = [f for s in SEASONS for m in stages.MODALITIES for f in run_layout.cache_folders(workdir, s, "features", m)]
     assert len(feats) == len(SEASONS) * 3  # sessions × (rgb, hha, depth1), not × seeds
-    c = sections(_smoke_config())
+    c = sections(smoke_config())
     ws = stages.Workspace(workdir, data_mesh(None), progress=False)
     sessions = stages.open_sessions(ws, c["data"])
     stages.fit_grid(ws, sessions, c["grid"])
@@ -238,7 +232,7 @@ def test_shuffled_labels_score_at_chance(smoke, tmp_path):
     image–label link broken) is scored against the true labels: it must fall to chance where the real run has
     learnt its training sessions, so the accuracies come from what the networks learnt from the images."""
     smoke_dir, real = smoke
-    cfg = _smoke_config("train.shuffle_labels=True", "ablations.depth1=False", "figures=False")
+    cfg = smoke_config("train.shuffle_labels=True", "ablations.depth1=False", "figures=False")
     # The smoke run's caches (frames, depth, HHA, conv features: none depends on the labels; net outputs are keyed
     # by the nets' weights, so the real nets' outputs cannot stand in for the shuffled nets').
     shutil.copytree(smoke_dir / "cache", tmp_path / "shuffled" / "cache")
@@ -461,7 +455,7 @@ def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smok
     from placejax import io
 
     workdir, _ = smoke
-    cfg = _smoke_config()
+    cfg = smoke_config()
     with io.run_lock(workdir):
         with pytest.raises(RuntimeError, match=r"in use by another run \(pid \d+"):
             run(cfg, workdir)
@@ -471,7 +465,7 @@ def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smok
     monkeypatch.setattr(driver.os, "access", lambda p, mode: False if mode == os.W_OK else real_access(p, mode))
     monkeypatch.setattr(driver, "_run", lambda *a: pytest.fail("a read-only finished run must not be rerun"))
     assert run(cfg, workdir) == json.loads((workdir / "results.json").read_text())
-    other = _smoke_config()
+    other = smoke_config()
     other.seed = 1
     with pytest.raises(PermissionError, match="read-only"):
         run(other, workdir)

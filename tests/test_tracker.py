@@ -12,7 +12,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from conftest import SMOKE_OVERRIDES, copy_of_smoke_run
+from conftest import copy_of_smoke_run, smoke_config
 from test_classify_hostile import tiny_meta, tiny_params
 
 from placejax import route
@@ -169,12 +169,8 @@ def test_a_classifier_output_that_is_not_finite_is_an_unknown_step(tiny_file):
 def smoke_run(shared_smoke_run, tmp_path_factory):
     """The suite's smoke run (``conftest.shared_smoke_run``: four seasons, the shipped depth network), a copy:
     ``(config, workdir, results)``, whose ``results.json`` holds the ``Ours + route`` column per seed."""
-    from experiments.cross_season import apply_overrides, get_config
-
-    cfg = get_config("smoke")
-    apply_overrides(cfg, list(SMOKE_OVERRIDES))
     workdir, results = copy_of_smoke_run(shared_smoke_run, tmp_path_factory, "tracker_run")
-    return cfg, workdir, results
+    return smoke_config(), workdir, results
 
 
 @pytest.mark.slow
