@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import textwrap
 
 from experiments.cross_season import config as _config
 from placejax import cli
@@ -63,10 +64,12 @@ def main(argv: list[str] | None = None) -> int:
         head, *problems = [line.strip() for line in str(e).splitlines() if line.strip()]
         message = f"{head} {'; '.join(problems)}" if problems else head
         raise SystemExit(f"{message} (python -m experiments.cross_season --help lists every key)") from None
-    from experiments.cross_season.driver import run
-    from experiments.cross_season.report.table import table_markdown
+    from pathlib import Path
 
-    workdir = args.workdir or f"runs/cross_season-{args.preset}"
+    from experiments.cross_season.driver import duration, run
+    from experiments.cross_season.report.table import table_text
+
+    workdir = Path(args.workdir or f"runs/cross_season-{args.preset}")
     try:
         results = run(cfg, workdir)
     except KeyboardInterrupt:
@@ -76,11 +79,14 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 130
-    print(table_markdown(results))
-    print(
-        f"results in {workdir}/results.json; stage times (s): {results['timings_s']}; "
-        f"peak memory so far after each stage (MiB): {results.get('peak_rss_mib')}"
-    )
+    print(table_text(results))
+    t = results["timings_s"]
+    peak = results.get("peak_rss_mib", {}).get("total")
+    stages_line = ", ".join(f"{k} {duration(v)}" for k, v in t.items() if k != "total" and v >= 0.5)
+    summary = f"stage times: {stages_line}" + (f"; peak memory {peak / 1024:.2f} GiB" if peak else "")
+    print("\n" + "\n".join(textwrap.wrap(summary, 100, subsequent_indent="  ")))
+    figures = " and figures/" if (workdir / "figures").is_dir() else ""
+    print(f"done in {duration(t.get('total', 0.0))}: {workdir}/ holds table.md, results.json{figures}")
     return 0
 
 

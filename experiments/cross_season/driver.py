@@ -23,10 +23,11 @@ rerun ends with the same accuracies as an uninterrupted run.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import jax
@@ -34,7 +35,7 @@ import ml_collections
 import numpy as np
 
 from experiments.cross_season import config as _config
-from placejax import io, stages
+from placejax import io, progress, stages
 from placejax.data import release_mapped_pages
 from placejax.depth import depth_source
 from placejax.training import data_mesh, release_free_memory, sync_processes
@@ -110,6 +111,47 @@ def run(
     return results
 
 
+def duration(seconds: float) -> str:
+    """``"8.4 s"``, ``"2 min 05 s"`` or ``"1 h 02 min"``: a stage's or a run's wall time for a person."""
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    minutes, sec = divmod(round(seconds), 60)
+    if minutes < 60:
+        return f"{minutes} min {sec:02d} s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours} h {minutes:02d} min"
+
+
+class _Story:
+    """What a run tells while it works: one timestamped line when it starts (preset, work directory, seeds,
+    devices) and one per stage as it ends, with its wall time and, for a stage made of several timers (a seed's
+    nets), the time of each (process 0 only; the live bars are the stages' own)."""
+
+    def __init__(self, ws: stages.Workspace):
+        self.ws = ws
+        self.quiet = jax.process_index() != 0
+
+    def say(self, message: str) -> None:
+        if not self.quiet:
+            progress.say(message)
+
+    @contextlib.contextmanager
+    def step(self, label: str, detail: Callable[[], str] | None = None) -> Iterator[None]:
+        before = dict(self.ws.timings)
+        t0 = time.perf_counter()
+        yield
+        spent = {
+            k: v - before.get(k, 0.0)
+            for k, v in self.ws.timings.items()
+            if v - before.get(k, 0.0) >= 0.05 and k != label
+        }
+        parts = [f"{k} {duration(v)}" for k, v in spent.items()]
+        if detail is not None:
+            parts.append(detail())
+        extra = f"  ({'; '.join(parts)})" if parts else ""
+        self.say(f"{label:<22} {duration(time.perf_counter() - t0):>11}{extra}")
+
+
 def _release_memory() -> None:
     """Between stages: the C heap's free memory back to the OS (what the depth network's inference and the HHA
     encoder freed; train() releases its own) and the pages of the caches read so far out of the resident set (they
@@ -124,44 +166,61 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
 
     c = _config.sections(config)
     workdir = ws.workdir
+    story = _Story(ws)
+    seeds = [config.seed + k for k in range(config.n_seeds)]
+    devices = list(ws.mesh.devices.flat)  # the devices the run trains on (devices=N may use fewer than there are)
+    story.say(
+        f"cross_season: preset {config.preset}, work directory {workdir}, "
+        f"{len(seeds)} seed{'s' if len(seeds) > 1 else ''} ({', '.join(map(str, seeds))}), "
+        f"{len(devices)} {devices[0].platform} device{'s' if len(devices) > 1 else ''}"
+        + (f" in {jax.process_count()} processes" if jax.process_count() > 1 else "")
+        + ("; bars off (progress=False)" if not ws.progress else "")
+    )
     if jax.process_index() == 0:
         io.write_json(workdir / "config.json", config.to_dict())
 
-    with ws.timed("sessions"):
-        sessions = stages.open_sessions(ws, c["data"])
-    with ws.timed("grid"):
-        grid = stages.fit_grid(ws, sessions, c["grid"])
+    with story.step("sessions", lambda: f"{len(sessions)} sessions, {sum(len(s) for s in sessions)} frames"):
+        with ws.timed("sessions"):
+            sessions = stages.open_sessions(ws, c["data"])
+    with story.step("grid", lambda: f"{grid.num_classes} place classes"):
+        with ws.timed("grid"):
+            grid = stages.fit_grid(ws, sessions, c["grid"])
     num_classes = grid.num_classes
-    with ws.timed("depth"):
-        source = depth_source(c["depth"], progress=ws.progress)
-    stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, source, c["depth"].batch_size))
+    with story.step("depth and HHA", lambda: f"depth source {source.name}"):
+        with ws.timed("depth"):
+            source = depth_source(c["depth"], progress=ws.progress)
+        stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, source, c["depth"].batch_size))
     _release_memory()
     # Every net and MLP is trained once per seed (seed, seed + 1, ...); the table reports the mean over seeds.
     modalities = ("rgb", "hha", "depth1") if c["ablations"].depth1 else ("rgb", "hha")
     runs = []
-    for k in range(config.n_seeds):
-        runs.append(
-            stages.train_seed(
-                ws,
-                sessions,
-                num_classes,
-                vgg=c["vgg"],
-                train_cfg=c["train"],
-                mlp=c["mlp"],
-                eval_cfg=c["eval"],
-                seed=config.seed + k,
-                modalities=modalities,
+    for k, seed in enumerate(seeds):
+        with story.step(f"seed {seed} ({k + 1} of {len(seeds)}): nets"):
+            runs.append(
+                stages.train_seed(
+                    ws,
+                    sessions,
+                    num_classes,
+                    vgg=c["vgg"],
+                    train_cfg=c["train"],
+                    mlp=c["mlp"],
+                    eval_cfg=c["eval"],
+                    seed=seed,
+                    modalities=modalities,
+                )
             )
-        )
         _release_memory()
     first = runs[0]  # the first seed's models: figures and PlaceClassifier
 
-    with ws.timed("baselines"):
-        thumbs = stages.baseline_features(ws, sessions, c["depth"].batch_size)
+    with story.step("baselines"):
+        with ws.timed("baselines"):
+            thumbs = stages.baseline_features(ws, sessions, c["depth"].batch_size)
     _release_memory()
 
-    scores = report.evaluate(ws, config, sessions, runs, thumbs)
-    scores["route"], route_traces = report.route_columns(ws, config, sessions, runs, grid, scores["pairs"])
+    with story.step("evaluate", lambda: f"{len(scores['pairs'])} train → test pairs"):
+        scores = report.evaluate(ws, config, sessions, runs, thumbs)
+    with story.step("route"):
+        scores["route"], route_traces = report.route_columns(ws, config, sessions, runs, grid, scores["pairs"])
     ws.timings["total"] = time.perf_counter() - t_start
     results = {
         "preset": config.preset,
@@ -189,7 +248,7 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
         io.write_json(workdir / "results.json", results)
         report.write_table(results, workdir / "table.md")
         if config.figures:
-            with ws.timed("figures"):
+            with story.step("figures"), ws.timed("figures"):
                 report.write_figures(results, sessions, grid, first.fused, first.outputs, workdir / "figures")
                 report.write_route_figures(route_traces, sessions, workdir / "figures")
     return results

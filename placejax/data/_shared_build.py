@@ -11,8 +11,8 @@ import os
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from placejax import progress as _progress
 from placejax.data.cache import (
     _DATA,
     _PROGRESS,
@@ -52,7 +52,7 @@ def build_shared(
         with _locked(root / f".{part}.lock"):
             mm, rows_done = _open_partial(root / f"{part}.partial", digest, hi - lo, shape, dtype)
             label = f"{desc} [{shard.index + 1}/{shard.count}]"
-            with tqdm(total=hi - lo, initial=rows_done, desc=label, unit="frame", disable=not progress) as bar:
+            with _progress.bar(total=hi - lo, initial=rows_done, desc=label, unit="frame", disable=not progress) as bar:
                 _fill(mm, root / f"{part}.partial", digest, lo, rows_done, fn, chunk=chunk, name=stem, bar=bar)
             mm.flush()
             del mm

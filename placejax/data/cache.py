@@ -53,9 +53,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from placejax import io
+from placejax import progress as _progress
 from placejax.data import camera as _camera
 from placejax.data.session import Session, session_identity
 
@@ -401,7 +401,7 @@ def build_array_cache(
             Different keys live in different folders.
         extras: small arrays stored beside the data (e.g. utimes); part of the cache, not of the key.
         chunk: frames per write; progress is committed after each chunk.
-        progress: show a tqdm bar.
+        progress: show progress (``placejax.progress``).
         desc: bar label, default ``name``.
         shard: with ``count > 1``, this process's part in a build by several processes that all make this call
             (see the module docstring): ``fn`` is called only on this process's rows, and the call returns once
@@ -439,7 +439,7 @@ def build_array_cache(
             except CacheError:
                 _discard(final)  # never trust a folder without a matching complete manifest
         mm, rows_done = _open_partial(partial, digest, n, shape, dtype)
-        bar = tqdm(total=n, initial=rows_done, desc=desc or name, unit="frame", disable=not progress)
+        bar = _progress.bar(total=n, initial=rows_done, desc=desc or name, unit="frame", disable=not progress)
         with bar:
             _fill(mm, partial, digest, 0, rows_done, fn, chunk=chunk, name=name, bar=bar)
         mm.flush()
@@ -504,7 +504,7 @@ def cache_session(
         chunk: frames per committed write.
         workers: threads decoding frames in parallel (OpenCV releases the GIL); default ``os.cpu_count()``
             up to 8. Frame order and the result do not depend on it.
-        progress: show a tqdm bar.
+        progress: show progress (``placejax.progress``).
         shard: this process's part in a build shared by several processes (:func:`build_array_cache`): it
             decodes only its share of the frames.
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from placejax import io
+from placejax import progress as _progress
 from placejax.data import folder as _folder
 from placejax.data import poses
 from placejax.data.sources import SIMCAMPUS_RENDERS, simcampus_render
@@ -150,8 +151,6 @@ def export_nclt(
     Returns:
         The session folders written.
     """
-    from tqdm import tqdm
-
     from placejax.data import nclt
 
     written = []
@@ -162,7 +161,9 @@ def export_nclt(
         positions, rot = _nclt_camera_to_world(truth.xyzrpy[index])
         h, w = s.image_shape
         cam = _folder.CameraSpec(width=w, height=h, intrinsics=s.intrinsics, camera_height_m=None)
-        frames = (s.image(i) for i in tqdm(range(len(s)), desc=f"export {date}", disable=not progress))
+        frames = (
+            s.image(i) for i in _progress.bar(range(len(s)), desc=f"export {date}", unit="frame", disable=not progress)
+        )
         path = _folder.write_session(
             Path(out) / date,
             cam,

@@ -32,8 +32,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
+from placejax import progress as _progress
 from placejax.data import camera as _camera
 from placejax.data._nclt_files import (
     GroundTruth,
@@ -426,7 +426,7 @@ def load_session(
     # The stored size comes from the first decodable kept image; every other image must match it.
     raw_shape = None
     if verify_images:
-        candidates = tqdm(np.flatnonzero(keep), desc=f"verify NCLT {date}", unit="img", disable=not progress)
+        candidates = _progress.bar(np.flatnonzero(keep), desc=f"verify NCLT {date}", unit="img", disable=not progress)
     else:
         candidates = np.flatnonzero(keep)
     for k in candidates:

@@ -22,9 +22,9 @@ import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
-import tqdm
 
 from placejax import hha
+from placejax import progress as _progress
 from placejax.data import simcampus
 
 # Place-pretraining world seeds: far from the evaluation campuses (small seeds) and from the depth network's
@@ -253,7 +253,7 @@ def place_frames(
     depth_fn = network_depth(hha_depth, progress) if modality == "hha" else None
     parts = []
     per_world = grid * grid * headings
-    for w, ws in enumerate(tqdm.tqdm(seeds, desc="pretraining worlds", disable=not progress)):
+    for w, ws in enumerate(_progress.bar(seeds, desc="pretraining worlds", unit="world", disable=not progress)):
         world = simcampus.make_world(ws)
         rng = np.random.default_rng([seed, 0x91ACE, w])
         poses = simcampus.random_poses(world, rng, frames_per_world)

@@ -48,6 +48,8 @@ def depth_and_hha(ws: Workspace, sessions: list[SessionData], source: DepthSourc
     """
     depths: list[Any] = []
     hhas: list[Any] = []
+    # Progress labels say which depth: the run's own, or the rendered depth that a baseline or ablation reads.
+    what = "rendered depth" if source.needs_true_depth else "depth"
     with ws.timed("depth"):
         for s in sessions:
             if source.needs_true_depth:
@@ -65,7 +67,7 @@ def depth_and_hha(ws: Workspace, sessions: list[SessionData], source: DepthSourc
                     key={"kind": "depth", "images": s.cached.key, **source.key},
                     chunk=batch_size,
                     progress=ws.progress,
-                    desc=f"depth {s.name}",
+                    desc=f"{what} {s.name}",
                     shard=ws.cache_shard,
                 )
             )
@@ -92,7 +94,7 @@ def depth_and_hha(ws: Workspace, sessions: list[SessionData], source: DepthSourc
                     },
                     chunk=batch_size,
                     progress=ws.progress,
-                    desc=f"HHA {s.name}",
+                    desc=f"HHA of {what} {s.name}",
                     shard=ws.cache_shard,
                 )
             )

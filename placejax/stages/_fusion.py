@@ -84,7 +84,7 @@ def train_mlp(
     folder = ws.workdir / MLP_DIR / f"{s.name}-{cache_digest(mlp_key)}"
     state = train_classifier(
         ws,
-        f"MLP {s.name}",
+        f"MLP {s.name} (seed {seed})",
         apply_fn(model),
         params,
         embeddings,

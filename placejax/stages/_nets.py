@@ -349,7 +349,7 @@ def train_nets(
                     frame_labels = np.tile(labels, train_cfg.jitter_copies + 1)
                 state = train_classifier(
                     ws,
-                    name,
+                    f"{name} (seed {seed})",
                     fn,
                     params,
                     frames,
@@ -425,7 +425,7 @@ def net_outputs(
         },
         chunk=max(eval_cfg.batch_size * 4, 256),
         progress=ws.progress,
-        desc=f"{net.name} on {s.name}",
+        desc=f"outputs of {net.name} on {s.name}",
         shard=ws.cache_shard,
     )
     data = np.asarray(cache.data)

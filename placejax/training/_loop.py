@@ -14,8 +14,8 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh
-from tqdm import tqdm
 
+from placejax import progress as _progress
 from placejax.training._checkpoint import Checkpointer
 from placejax.training._memory import release_free_memory
 from placejax.training._sharding import replicate, shard_batch, spans_processes, sync_processes
@@ -60,7 +60,7 @@ def fit(
         objective: the loss (``placejax.training.train_step``).
         stop_after: stop (after a checkpoint) once this many steps are done, as an interruption would.
         desc: progress bar label.
-        progress: show a tqdm bar.
+        progress: show progress (``placejax.progress``).
         resume: restore ``state`` from ``checkpointer`` first (``Checkpointer.resume``: a step that fails
             verification is discarded); False when the caller restored it.
 
@@ -77,7 +77,7 @@ def fit(
         raise ValueError(f"{desc}: {len(batches)} batches for {num_steps} steps")
     history: list[dict[str, float]] = []
     pending: list[dict[str, jax.Array]] = []
-    with tqdm(total=num_steps, initial=start, desc=desc, unit="step", disable=not progress) as bar:
+    with _progress.bar(total=num_steps, initial=start, desc=desc, unit="step", disable=not progress) as bar:
         for k in range(start, last):
             batch = shard_batch(prepare(batches[k]), mesh)
             state, metrics = train_step(state, batch, key, objective)
@@ -222,7 +222,7 @@ def predict(
         sync_processes(desc)  # each batch is a collective: start together
     out: dict[str, np.ndarray] = {}
     seen = np.zeros(n, bool)
-    for k in tqdm(range(len(batches)), desc=desc, unit="batch", disable=not progress):
+    for k in _progress.bar(range(len(batches)), desc=desc, unit="batch", disable=not progress):
         raw = batches[k]
         batch = shard_batch({**prepare(raw), "index": raw["index"]}, mesh)
         logits, feats = predict_step(state, batch["x"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import textwrap
 
 import numpy as np
 
@@ -153,6 +154,56 @@ def table_markdown(results: dict) -> str:
         + unknown_markdown(results)
         + route_markdown(results)
     )
+
+
+def table_text(results: dict, width: int = 100) -> str:
+    """The main columns of :func:`table_markdown` as plain text for a terminal or a log, ``width`` columns at most:
+    per pair Ours, RGB-Net, HHA-Net (mean ± sd over seeds), the two gains with their intervals and the softmax
+    average; then the mean and a note naming the rest (``table.md``)."""
+    n_seeds = len(results.get("seeds", {}).get("seeds", [0]))
+
+    def acc(value: float, sd: float | None) -> str:
+        return _pct(value) if n_seeds < 2 or sd is None else f"{_pct(value)} ± {_pct(sd)}"
+
+    def gain(r: dict, base: str, interval: dict | None) -> str:
+        text = f"{100 * (r['ours'] - r[base]):+.1f}"
+        if interval is None:
+            return text
+        mark = "*" if interval["excludes_zero"] else ""
+        return f"{text} [{100 * interval['lo']:+.1f}, {100 * interval['hi']:+.1f}]{mark}"
+
+    has_avg = "average" in results["mean"]
+    head = ["pair", "Ours", "RGB-Net", "Ours − RGB", "HHA-Net", "Ours − HHA"] + (["Avg"] if has_avg else [])
+    rows = []
+    for p in results["pairs"]:
+        iv = {b: p.get(f"gain_vs_{b}") for b in ("rgb_net", "hha_net")}
+        cells = [f"{p['train']}→{p['test']}"]
+        cells += [acc(p["ours"], p.get("ours_sd")), acc(p["rgb_net"], p.get("rgb_net_sd"))]
+        cells += [gain(p, "rgb_net", iv["rgb_net"]), acc(p["hha_net"], p.get("hha_net_sd"))]
+        cells += [gain(p, "hha_net", iv["hha_net"])] + ([_pct(p["average"])] if has_avg else [])
+        rows.append(cells)
+    m, sd, gains = results["mean"], results.get("mean_sd_over_seeds", {}), results.get("gains", {})
+    mean = ["mean", acc(m["ours"], sd.get("ours")), acc(m["rgb_net"], sd.get("rgb_net"))]
+    mean += [gain(m, "rgb_net", gains.get("ours_vs_rgb_net")), acc(m["hha_net"], sd.get("hha_net"))]
+    mean += [gain(m, "hha_net", gains.get("ours_vs_hha_net"))] + ([_pct(m["average"])] if has_avg else [])
+    widths = [max(len(r[i]) for r in [head, *rows, mean]) for i in range(len(head))]
+
+    def line(cells: list[str]) -> str:
+        return "  ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)).rstrip()
+
+    rule = "-" * len(line(head))
+    out = [line(head), rule, *map(line, rows), rule, line(mean)]
+    spread = f"mean ± sd over {n_seeds} seeds" if n_seeds > 1 else "one seed"
+    note = (
+        f"Top-1 % on every other session, {results['num_classes']} place classes, {spread}. Ours − X: points, with "
+        "the paired bootstrap 95 % interval; * when it excludes zero. Avg: the two nets' softmax averaged. "
+        "table.md has every column (ceilings, baselines, unseen places, the route filter)."
+    )
+    if results["num_classes"] < 20:
+        note += (
+            f" With {results['num_classes']} classes (a smoke run) the differences are noise, not the paper's effect."
+        )
+    return "\n".join([*out, "", *textwrap.wrap(note, width)])
 
 
 def unknown_markdown(results: dict) -> str:

@@ -12,8 +12,8 @@ from collections.abc import Iterator
 import jax
 import jax.numpy as jnp
 import numpy as np
-import tqdm
 
+from placejax import progress as _progress
 from placejax.data.simcampus import _render, _seasons, _session, _trajectory
 from placejax.data.simcampus import _world as W
 
@@ -366,7 +366,7 @@ def depth_training_frames(
         paired_looks=paired_looks,
     )
     parts = []
-    with tqdm.tqdm(total=n, desc="depth-training frames", unit="frame", disable=not progress) as bar:
+    with _progress.bar(total=n, desc="depth-training frames", unit="frame", disable=not progress) as bar:
         while sum(len(p["rgb"]) for p in parts) < n:
             parts.append(next(it))
             bar.update(len(parts[-1]["rgb"]))
