@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import resource
@@ -14,6 +15,18 @@ from pathlib import Path
 from placejax import io
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """The module docstring as written, and every option's default after its help."""
+
+
+def argument_parser(module_file: str, doc: str | None) -> argparse.ArgumentParser:
+    """A benchmark's command line: usage as ``python -m benchmarks.<name>`` (how every benchmark is run, from any
+    folder once placejax is installed), the module docstring as its description, each option's default shown."""
+    return argparse.ArgumentParser(
+        prog=f"python -m benchmarks.{Path(module_file).stem}", description=doc, formatter_class=_HelpFormatter
+    )
 
 
 def median_seconds(fn: Callable[[], object], repeats: int) -> tuple[float, list[float]]:

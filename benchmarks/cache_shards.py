@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._report import print_table, write_json
+from benchmarks._report import argument_parser, print_table, write_json
 from placejax import cli
 
 REPO = Path(__file__).resolve().parents[1]
@@ -136,7 +136,7 @@ def _run(processes: int, args, nclt_root: Path, base: Path) -> dict:
 
 @cli.command
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__file__, __doc__)
     parser.add_argument("--processes", type=int, nargs="+", default=[1, 2], help="process counts (1 first: baseline)")
     parser.add_argument("--frames", type=int, default=128, help="frames per cache (NCLT frames written + 2 dropped)")
     parser.add_argument("--repeats", type=int, default=3, help="builds per stage and process count (median)")

@@ -18,7 +18,6 @@ Prints a table and writes ``benchmarks/results/data_pipeline.json``.
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import statistics
@@ -29,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from benchmarks._report import argument_parser
 from placejax import cli, io
 from placejax.data import Augment, cache_session, nclt, train_dataset
 
@@ -72,11 +72,13 @@ class _MemmapFrames:
 
 @cli.command
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", type=int, default=24)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/data_pipeline.json"))
+    parser = argument_parser(__file__, __doc__)
+    parser.add_argument("--frames", type=int, default=24, help="frames per session")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs (median reported)")
+    parser.add_argument("--batch", type=int, default=32, help="frames per batch")
+    parser.add_argument(
+        "--out", type=Path, default=Path("benchmarks/results/data_pipeline.json"), help="the JSON record"
+    )
     parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     n, reps = args.frames, args.repeats

@@ -12,7 +12,6 @@ are the numbers docs/workdir.md, docs/classify.md and docs/experiment.md quote. 
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import resource
@@ -25,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from benchmarks._report import print_table, write_json
+from benchmarks._report import argument_parser, print_table, write_json
 from placejax import cli, io
 
 REPO = Path(__file__).resolve().parents[1]
@@ -88,7 +87,7 @@ def _classifier_and_command(workdir: Path, scratch: Path) -> dict:
 
 @cli.command
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.first_run", description=__doc__.split("\n\n")[0])
+    parser = argument_parser(__file__, __doc__.split("\n\n")[0])
     parser.add_argument("--preset", default="smoke", help="the experiment's preset (default: smoke)")
     parser.add_argument("--workdir", help="where the run goes (default: a temporary folder, removed afterwards)")
     parser.add_argument("--out", help="JSON record (default: benchmarks/results/first_run.json)")

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks._report import argument_parser
 from placejax import cli
 
 STAGES = ("prepare", "window_sums", "plane_fits", "gravity_rows", "gravity_iterations", "finish", "channels_last")
@@ -284,8 +285,8 @@ def stage_costs(batch: int, h: int, w: int) -> tuple[dict, dict]:
 
 @cli.command
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--batch", type=int, default=32)
+    parser = argument_parser(__file__, __doc__)
+    parser.add_argument("--batch", type=int, default=32, help="images per encoder call")
     parser.add_argument("--size", type=_parse_size, default=(256, 256), help="HxW, default 256x256")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs (median reported)")
     parser.add_argument("--cores", type=int, default=None, help="pin to this many cores before JAX starts")

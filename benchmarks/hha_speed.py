@@ -18,7 +18,6 @@ under ``taskset -c 0`` (XLA sizes its thread pool to the cores it may use).
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import inspect
 import os
@@ -30,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._report import current_rss_mb, median_seconds, peak_rss_mb, print_table, write_json
+from benchmarks._report import argument_parser, current_rss_mb, median_seconds, peak_rss_mb, print_table, write_json
 from placejax import cli, hha
 from placejax.hha import _encode
 from placejax.hha.scenes import ground_and_wall
@@ -80,16 +79,18 @@ def alternating(fns: dict, repeats: int) -> tuple[dict[str, list[float]], dict[s
 
 @cli.command
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__file__, __doc__)
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per configuration (median reported)")
     parser.add_argument("--stream", type=int, default=256, help="images streamed in the bounded-memory check")
     parser.add_argument("--baseline-encoder", type=Path, default=None, help="checkout whose encoder to compare")
     parser.add_argument(
-        "--quick", action="store_true", help="256x256, batches 1 and 2, 1 repeat: checks the script runs"
+        "--quick",
+        action="store_true",
+        help="256x256, batches 1 and 32 (the README's row), 1 repeat: checks the script runs",
     )
     parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
-    sizes, batches = (SIZES[:1], (1, 2)) if args.quick else (SIZES, BATCHES)
+    sizes, batches = (SIZES[:1], (1, 32)) if args.quick else (SIZES, BATCHES)
     repeats, n_stream = (1, 64) if args.quick else (args.repeats, args.stream)
     baseline = None if args.baseline_encoder is None else load_encoder(args.baseline_encoder)
     load_before = os.getloadavg()

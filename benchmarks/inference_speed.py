@@ -23,7 +23,6 @@ Writes ``benchmarks/results/inference_speed.json``.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import os
 import statistics
@@ -161,11 +160,11 @@ def _torch_fns(batch: int, hw: int, rng: np.random.Generator) -> dict:
 
 @cli.command
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=3)
+    parser = _report.argument_parser(__file__, __doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3, help="timed rounds (median reported)")
     parser.add_argument("--batch", type=int, default=8, help="the larger batch (besides 1)")
-    parser.add_argument("--no-torch", action="store_true")
-    parser.add_argument("--only", choices=tuple(_SIZES))
+    parser.add_argument("--no-torch", action="store_true", help="skip the PyTorch reference rows")
+    parser.add_argument("--only", choices=tuple(_SIZES), help="time one classifier size only")
     parser.add_argument(
         "--baseline-shift-px",
         type=int,

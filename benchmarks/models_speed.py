@@ -30,7 +30,6 @@ full width at 256²) and at 64² and 224² at full width.
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import statistics
@@ -42,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from benchmarks._report import argument_parser
 from placejax import cli, io
 from placejax.models import (
     VGG16,
@@ -203,10 +203,10 @@ def _cpu_model() -> str:
 
 @cli.command
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser = argument_parser(__file__, __doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs (median reported)")
     parser.add_argument("--no-torch", action="store_true", help="skip the PyTorch baseline")
-    parser.add_argument("--only", choices=("midas", "dav2", "vgg"), default=None)
+    parser.add_argument("--only", choices=("midas", "dav2", "vgg"), default=None, help="time one network only")
     parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     torch = None if args.no_torch else _torch()

@@ -62,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._report import print_table, write_json
+from benchmarks._report import argument_parser, print_table, write_json
 from placejax import cli
 
 REPO = Path(__file__).resolve().parents[1]
@@ -466,7 +466,7 @@ def _measure(n_frames: int, args, weights: tuple[Path, Path], base: Path) -> dic
 
 @cli.command
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__file__, __doc__)
     parser.add_argument("--frames", type=int, nargs="+", default=None, help="images per session, per size (60 120)")
     parser.add_argument("--sessions", type=int, default=None, help="the first N sessions of the paper preset (4)")
     parser.add_argument("--target", type=int, default=26_000, help="frames per session of the projected run")

@@ -23,13 +23,12 @@ alone, for the share of the step it takes, its runs alternated with the Tracker'
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import jax
 import numpy as np
 
-from benchmarks._report import peak_rss_mb, print_table, write_json
+from benchmarks._report import argument_parser, peak_rss_mb, print_table, write_json
 from placejax import cli, route
 from placejax.data import PlaceGrid
 
@@ -174,7 +173,7 @@ def tracker_rows(repeats: int, steps: int, first_repeats: int) -> list[dict]:
 
 @cli.command
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__file__, __doc__)
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per case (median reported)")
     parser.add_argument("--frames", type=int, default=2000, help="frames of the batch session")
     parser.add_argument("--stream-frames", type=int, default=500, help="frames per timed streaming run")

@@ -10,7 +10,6 @@ second (less sensitive to other processes sharing the cores). Prints a table and
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import statistics
@@ -21,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from benchmarks._report import argument_parser
 from placejax import cli, io
 from placejax.data import simcampus
 from placejax.data.simcampus import render_batch, season_scene
@@ -46,9 +46,11 @@ def _time(fn, runs: int, calls: int = 1) -> tuple[list[float], list[float]]:
 
 @cli.command
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=7)
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "simcampus_speed.json")
+    ap = argument_parser(__file__, __doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=7, help="timed runs (median reported)")
+    ap.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "simcampus_speed.json", help="the JSON record"
+    )
     ap.add_argument("--quick", action="store_true", help="64x64 only, 1 run: checks the script (figures mean nothing)")
     ap.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = ap.parse_args(argv)

@@ -22,7 +22,6 @@ unset). Prints a table and writes ``benchmarks/results/training_step.json``.
 
 from __future__ import annotations
 
-import argparse
 import os
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
@@ -31,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._report import median_seconds, print_table, write_json
+from benchmarks._report import argument_parser, median_seconds, print_table, write_json
 from placejax import cli
 from placejax.data import train_dataset
 from placejax.models import VGG16, FusionMLP
@@ -85,9 +84,9 @@ def _steps(model, x_shape, mesh, steps: int, repeats: int, *, method: str | None
 
 @cli.command
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--steps", type=int, default=10)
+    parser = argument_parser(__file__, __doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs (median reported)")
+    parser.add_argument("--steps", type=int, default=10, help="optimizer steps per timed run")
     parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
     rows = []

@@ -97,3 +97,27 @@ def test_check_explains_names_that_are_not_timestamps(tmp_path):
     assert done.returncode == 1, done.stderr[-2000:]
     assert len(lines) == 1 and "images.csv" in lines[0] and "timestamp" in lines[0], done.stderr[-2000:]
     assert not (tmp_path / "sessions_map.png").exists()  # no map without --map
+
+
+def _installed(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """``python ARGS`` as an installed user runs it: no PYTHONPATH, only what ``pip install -e .`` put in place."""
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PLACEJAX_TRACEBACK")}
+    return subprocess.run([sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+
+
+def test_the_folder_that_holds_the_clone_is_no_namespace_package(tmp_path):
+    """From a folder holding a folder named ``placejax`` (the clone, seen from its parent), ``import placejax`` is the
+    installed package, not that folder as a namespace package (the editable install is a path entry, which wins)."""
+    (tmp_path / "placejax" / "docs").mkdir(parents=True)  # a clone's root: no __init__.py
+    done = _installed(
+        "-c", "import placejax; from placejax import PlaceClassifier; print(placejax.__version__)", cwd=tmp_path
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() and "unknown location" not in done.stderr
+
+
+def test_benchmarks_run_from_any_folder_with_their_defaults_shown(tmp_path):
+    done = _installed("-m", "benchmarks.hha_speed", "--help", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    text = " ".join(done.stdout.split())
+    assert text.startswith("usage: python -m benchmarks.hha_speed ") and "(default: 5)" in text

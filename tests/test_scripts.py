@@ -228,7 +228,7 @@ def test_simcampus_picture(tmp_path):
 @pytest.mark.slow
 def test_benchmark_hha_speed(bench):
     out, r = _bench(bench, "hha_speed", "--quick")
-    assert [row["batch"] for row in r["rows"]] == [1, 1, 2]  # the NumPy baseline, then placejax at 1 and 2
+    assert [row["batch"] for row in r["rows"]] == [1, 1, 32]  # the NumPy baseline, then placejax at 1 and 32
     assert r["stream"]["images"] == 64 and "implementation" in out
 
 
