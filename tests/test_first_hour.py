@@ -76,6 +76,51 @@ def test_a_misspelt_key_gets_its_spelling(tmp_path):
     assert "unknown config key 'train.epoch'" in line and "did you mean train.epochs?" in line
 
 
+def _frames(tmp_path: Path, utimes, positions, name: str = "session") -> Path:
+    import numpy as np
+
+    from placejax.data import folder
+
+    n = len(utimes)
+    camera = folder.CameraSpec(64, 48, np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]))
+    images = np.random.default_rng(0).integers(0, 256, (n, 48, 64, 3), dtype=np.uint8)
+    quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    return folder.write_session(tmp_path / name, camera, utimes, positions, quaternions, images)
+
+
+def test_frame_numbers_with_pose_times_from_the_start_of_the_log_are_refused(tmp_path):
+    """Images named 000000.png, ... and poses timed from 0 s: read as µs, every image falls within the first pose
+    interval and would get the first pose (0 s, 0 m). ``check`` refuses the names in one line (exit status 1)."""
+    import numpy as np
+
+    from placejax.data import folder
+
+    n = 6
+    positions = np.stack([np.arange(n, dtype=float), np.zeros(n), np.full(n, 1.3)], axis=1)
+    session = _frames(tmp_path, np.arange(n, dtype=np.int64) * 500_000, positions)  # 0, 0.5, 1.0 ... s
+    (session / folder.IMAGE_TABLE).unlink()
+    done = _run("-m", "placejax.data", "check", str(session), cwd=tmp_path)
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 1, (done.stdout, done.stderr[-2000:])
+    assert len(lines) == 1 and "frame numbers" in lines[0] and "images.csv" in lines[0], lines
+    assert "000000.png, 000001.png" in lines[0] and "1 µs apart" in lines[0]
+
+
+def test_check_flags_a_session_that_never_moves(tmp_path):
+    """Beside a session that drives, one whose frames all have one pose (0 m): ``check`` warns, with its numbers."""
+    import numpy as np
+
+    n = 5
+    t = 1_700_000_000_000_000 + np.arange(n, dtype=np.int64) * 500_000
+    square = np.array([[0, 0, 1.3], [20, 0, 1.3], [20, 20, 1.3], [0, 20, 1.3], [0, 1, 1.3]], float)
+    _frames(tmp_path, t, square, "drive")
+    _frames(tmp_path, t, np.tile([2.0, 3.0, 1.3], (n, 1)), "still")
+    done = _run("-m", "placejax.data", "check", str(tmp_path / "drive"), str(tmp_path / "still"), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "warning: still: all 5 frames are at one place (moved less than 1 cm over 2 s)" in done.stdout
+    assert not any(line.startswith("warning: drive: all") for line in done.stdout.splitlines())
+
+
 def test_check_explains_names_that_are_not_timestamps(tmp_path):
     """Images named by frame number without images.csv: ``check`` says names are read as timestamps and points
     at images.csv, in one line (exit status 1: a defect of the folder, docs/own-data.md)."""

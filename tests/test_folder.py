@@ -506,18 +506,37 @@ def test_trajectory_warnings_speed_and_vertical_axis():
 
 
 def test_image_names_that_are_not_timestamps_say_so(tmp_path):
-    """``000000.png`` … without images.csv are read as 0 µs, 1 µs, …: the error says how names are read and points
-    at images.csv, in one line."""
+    """``000000.png`` … without images.csv are read as 0 µs, 1 µs, …: refused as frame numbers, in one line that
+    says how names are read and points at images.csv."""
     d, *_ = _session(tmp_path / "s")
     (d / folder.IMAGE_TABLE).unlink()
+    with pytest.raises(folder.FolderFormatError) as e:
+        folder.load_session(d)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{d / folder.IMAGES_DIR}: image names look like frame numbers")
+    assert re.search(
+        r"read as timestamps \(000000\.png, 000001\.png, \.\.\. in name_time_unit 'us'\) they are 1 µs apart, a "
+        r"camera at 1,000,000 frames/s; list 'file,timestamp' per image in images\.csv, with the times of the pose "
+        r"file's clock \(docs/own-data\.md\)$",
+        msg,
+    ), msg
+
+
+def test_image_names_on_another_clock_say_so(tmp_path):
+    """Names that are times, but not on the pose file's clock (seconds since the log started, poses in Unix time):
+    no frame is left, and the error says how names are read, both spans and what to do."""
+    d, *_ = _session(tmp_path / "s")
+    (d / folder.IMAGE_TABLE).unlink()
+    for k, f in enumerate(sorted((d / folder.IMAGES_DIR).iterdir())):
+        f.rename(f.with_name(f"{k}.5{f.suffix}"))  # 0.5 s, 1.5 s, ...: seconds since the start of a log
     with pytest.raises(folder.FolderFormatError) as e:
         folder.load_session(d)
     msg = str(e.value)
     assert "\n" not in msg and msg.startswith(f"{d}: no frame left")
     assert "kept 0/6 frames, dropped 6 outside the trajectory" in msg
     assert re.search(
-        r"image names are read as timestamps in seconds or in name_time_unit 'us' \(000000\.png is 0 s\), the images "
-        r"span 0–0\.000005 s, the poses 1700000000–1700000002\.5 s: name each image by its time or list "
+        r"image names are read as timestamps in seconds or in name_time_unit 'us' \(0\.5\.png is 0\.5 s\), the images "
+        r"span 0\.5–5\.5 s, the poses 1700000000–1700000002\.5 s: name each image by its time or list "
         r"'file,timestamp' per image in images\.csv \(docs/own-data\.md, 'The format'\)$",
         msg,
     ), msg

@@ -93,6 +93,7 @@ def run(
     t_start = time.perf_counter()
     mesh = data_mesh(config.devices or None)
     _config.validate(config, mesh.size)  # every key checked before the first stage
+    stages.require_data(_config.sections(config)["data"])  # the session folders or NCLT root, before any write
     if workdir.is_dir() and not os.access(workdir, os.W_OK):
         finished = finished_results(workdir, config)
         if finished is not None:

@@ -6,6 +6,7 @@ directory, so rerunning it resumes or reads back. ``experiments.cross_season`` c
 to swap one stage calls the others directly.
 
 Stages, in order:
+    require_data: the data a run reads is there (before any work)
     open_sessions, fit_grid: the RGB frames of every session cached at the run's image size
         (`placejax.data.DataConfig`); the place grid (`placejax.data.GridConfig`) and every frame's label.
     depth_and_hha: metric depth from a depth source (`placejax.depth.depth_source` of a
@@ -57,7 +58,7 @@ from placejax.stages._nets import (
     train_nets,
     training_labels,
 )
-from placejax.stages._sessions import fit_grid, open_sessions
+from placejax.stages._sessions import fit_grid, open_sessions, require_data
 from placejax.stages._workspace import SessionData, Workspace, peak_rss_mib
 
 __all__ = [
@@ -94,6 +95,7 @@ __all__ = [
     "params_digest",
     "peak_rss_mib",
     "pretrained_vgg",
+    "require_data",
     "results_only",
     "rgb_baseline_features",
     "thumbnails",

@@ -4,6 +4,7 @@ image size, and the ``n × n`` place grid over all sessions' viewpoints (``grid.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -12,9 +13,29 @@ from placejax.data import PlaceGrid, cache_session
 from placejax.data.sources import DataConfig, GridConfig, open_session
 from placejax.stages._workspace import SessionData, Workspace
 
-__all__ = ["fit_grid", "open_sessions"]
+__all__ = ["fit_grid", "open_sessions", "require_data"]
 
 log = logging.getLogger(__name__)
+
+
+def require_data(data: DataConfig) -> None:
+    """Checks, before any work, that the data a run reads is where ``data`` says: every session folder of
+    ``data.sessions`` under ``data.root`` (all missing names in one error, with the folders that are there), or the
+    NCLT root. SimCampus is rendered: nothing to check.
+
+    Raises:
+        placejax.data.folder.MissingSessionError: a session folder missing (``source='folder'``).
+        FileNotFoundError: no NCLT root (``source='nclt'``).
+    """
+    if data.source == "folder":
+        from placejax.data import folder
+
+        folder.require_sessions(data.root, data.sessions)
+    elif data.source == "nclt" and (not data.nclt_root or not Path(data.nclt_root).is_dir()):
+        raise FileNotFoundError(
+            f"data.nclt_root={data.nclt_root!r} is not a folder; pass data.nclt_root=/path/to/nclt holding "
+            "images/, ground_truth/ and ladybug3_calib/ (layout: docs/nclt.md)"
+        )
 
 
 def open_sessions(ws: Workspace, data: DataConfig) -> list[SessionData]:
@@ -24,10 +45,7 @@ def open_sessions(ws: Workspace, data: DataConfig) -> list[SessionData]:
         placejax.data.folder.MissingSessionError: with ``source='folder'``, every session folder missing from
             ``data.root``, named in one error with the session folders that are there.
     """
-    if data.source == "folder":
-        from placejax.data import folder
-
-        folder.require_sessions(data.root, data.sessions)  # all missing names at once, before any work
+    require_data(data)
     out = []
     for name in data.sessions:
         src = open_session(data, name, progress=ws.progress)

@@ -62,6 +62,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".p
 """Suffixes taken as images in ``images/`` when there is no ``images.csv`` (formats whose header is checked)."""
 TIME_UNITS = {"s": 0, "ms": 3, "us": 6, "ns": 9}  # decimal places below the second
 QUATERNION_NORM_TOLERANCE = 1e-3
+MIN_NAME_STEP_US = 1000
+"""Image names read as times less than this far apart (median, µs: a camera above 1,000 frames/s) are frame numbers
+(``000000.png``, ``000001.png``), refused rather than all matched to the trajectory's first pose."""
 """A quaternion whose norm is farther than this from 1 is an error, not rounding (TUM files carry 4–7 digits)."""
 # Plain ASCII decimals (Decimal() alone would also take "1_000", "NaN" and non-ASCII digits).
 _DECIMAL = re.compile(r"\+?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
@@ -443,6 +446,16 @@ def images_from_names(
     for (t0, f0), (t1, f1) in itertools.pairwise(entries):
         if t0 == t1:
             raise _err(folder / f1, None, f"same timestamp as {f0} (duplicate timestamp)")
+    step_us = float(np.median(np.diff([t for t, _ in entries]))) if len(entries) > 1 else math.inf
+    if step_us < MIN_NAME_STEP_US:
+        first, second = (f.rsplit("/", 1)[-1] for _, f in entries[:2])
+        raise _err(
+            images,
+            None,
+            f"image names look like frame numbers, not times: read as timestamps ({first}, {second}, ... in "
+            f"name_time_unit {unit!r}) they are {step_us:g} µs apart, a camera at {1e6 / step_us:,.0f} frames/s; "
+            f"list 'file,timestamp' per image in {IMAGE_TABLE}, with the times of the pose file's clock ({_DOCS})",
+        )
     return [f for _, f in entries], np.array([t for t, _ in entries], np.int64), np.full(len(entries), -1)
 
 

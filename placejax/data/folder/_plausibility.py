@@ -12,10 +12,13 @@ __all__ = [
     "MAX_VERTICAL_SHARE",
     "MIN_EXTENT_M",
     "MIN_EXTENT_RATIO",
+    "MIN_MOTION_M",
     "PLAUSIBLE_SPEED_MPS",
     "trajectory_warnings",
 ]
 
+MIN_MOTION_M = 0.01
+"""A session whose frames all lie within this (metres, both horizontal axes) has not moved: one place for all."""
 PLAUSIBLE_SPEED_MPS = 10.0
 """A ground robot's top speed, m/s: a 95th-percentile speed between frames above it is worth a warning."""
 MIN_EXTENT_M = 10.0
@@ -56,6 +59,13 @@ def trajectory_warnings(
     a, b = VERTICAL_AXES[vertical_axis]
     v = 3 - a - b
     positions = np.asarray(positions, np.float64)
+    if len(positions) >= 2 and np.ptp(positions[:, [a, b]], axis=0).max() < MIN_MOTION_M:
+        out.append(
+            f"{name}: all {len(positions)} frames are at one place (moved less than {100 * MIN_MOTION_M:g} cm over "
+            f"{(utimes[-1] - utimes[0]) / 1e6:.3g} s), so every frame gets one place class: do the image times fall "
+            "within one pose interval (images named by frame number, times on another clock), or did the robot "
+            "stand still?"
+        )
     if len(positions) >= 2:
         speed = np.linalg.norm(np.diff(positions, axis=0), axis=1) / (np.diff(utimes) / 1e6)
         p50, p95, top = np.percentile(speed, [50, 95, 100])
