@@ -40,7 +40,24 @@ def get(c: ml_collections.ConfigDict, key: str) -> Any:
     return node
 
 
-def _parse(text: str, old):
+def _tuple_hint(key: str, text: str) -> str:
+    """How a tuple override is written, from what was typed (``WI,SU`` → ``"data.sessions=('WI','SU')"``)."""
+    items = [x.strip().strip("'\"") for x in text.strip("()[] ").split(",") if x.strip()]
+    if not items or any(not x.replace("-", "").replace("_", "").replace(".", "").isalnum() for x in items):
+        return ""
+    literal = "(" + ",".join(x if _is_number(x) else repr(x) for x in items) + ("," if len(items) == 1 else "") + ")"
+    return f'; a tuple is a Python literal: write "{key}={literal}" (the double quotes keep the shell off it)'
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _parse(text: str, old, key: str = "key"):
     if isinstance(old, str):
         return text
     if isinstance(old, bool) and text.strip().lower() in ("true", "false"):
@@ -48,7 +65,8 @@ def _parse(text: str, old):
     try:
         value = ast.literal_eval(text)
     except (ValueError, SyntaxError, MemoryError, RecursionError):
-        raise ValueError(f"cannot parse {text!r} as a Python literal") from None
+        hint = _tuple_hint(key, text) if isinstance(old, tuple) and len(text) <= 4096 else ""
+        raise ValueError(f"cannot parse {text!r} as a Python literal{hint}") from None
     if isinstance(old, bool):
         if not isinstance(value, bool):
             raise ValueError(f"expected True or False, got {text!r}")
@@ -96,7 +114,7 @@ def apply_overrides(c: ml_collections.ConfigDict, overrides: list[str]) -> ml_co
         for p in parents:
             node = node[p]
         try:
-            node[leaf] = _parse(text, node[leaf])
+            node[leaf] = _parse(text, node[leaf], key)
         except ValueError as e:
             raise ValueError(f"override {key}: {e}") from None
     return c

@@ -425,7 +425,8 @@ def test_command_from_a_run_directory(smoke_run, experiment_outputs, tmp_path, c
     assert classify_main([str(workdir), "--session", TRAIN, str(a), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["model"]["train_session"] == TRAIN
     assert classify_main([str(workdir), str(a)]) == 2
-    assert "--session" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"pass --session NAME ({min(TRAIN, TEST)} or {max(TRAIN, TEST)})" in err, err
 
 
 def test_command_errors_name_the_file(saved, tmp_path, capsys):

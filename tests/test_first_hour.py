@@ -69,6 +69,41 @@ def test_default_session_names_on_own_folders_list_the_folders_there(tmp_path, t
     )
     assert "no session folder 'WI', 'SP', 'SU', 'AU'" in line
     assert "'friday', 'monday'" in line and "data.sessions=('friday','monday')" in line
+    assert not (tmp_path / "run").exists()  # refused before the work directory is made
+
+
+def test_errors_say_how_to_write_it(tmp_path):
+    """A tuple typed without its Python spelling, and the folder source without its root: each one line that shows
+    the spelling that works."""
+    line = _one_error_line(_run("-m", "experiments.cross_season", "data.sessions=WI,SU", cwd=tmp_path))
+    assert """write "data.sessions=('WI','SU')\"""" in line
+    line = _one_error_line(_run("-m", "experiments.cross_season", "data.source=folder", cwd=tmp_path))
+    assert "needs data.root=/path" in line
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_misspelt_camera_field_is_named_with_the_field_meant(tmp_path):
+    import numpy as np
+
+    n = 4
+    positions = np.stack([np.arange(n, dtype=float), np.arange(n, dtype=float), np.full(n, 1.3)], axis=1)
+    session = _frames(tmp_path, 1_700_000_000_000_000 + np.arange(n, dtype=np.int64) * 500_000, positions)
+    camera = json.loads((session / "camera.json").read_text())
+    camera["f_x"] = camera.pop("fx")
+    (session / "camera.json").write_text(json.dumps(camera))
+    done = _run("-m", "placejax.data", "check", str(session), cwd=tmp_path)
+    assert done.returncode == 1 and "unknown camera field(s) ['f_x']" in done.stderr
+    assert "did you mean 'f_x' for 'fx'?" in done.stderr
+
+
+def test_poses_in_millimetres_get_a_hint_at_units(tmp_path):
+    import numpy as np
+
+    n = 4
+    positions = np.stack([np.arange(n) * 1000.0, np.arange(n) * 1000.0, np.full(n, 1300.0)], axis=1)  # mm
+    session = _frames(tmp_path, 1_700_000_000_000_000 + np.arange(n, dtype=np.int64) * 500_000, positions)
+    done = _run("-m", "placejax.data", "check", str(session), cwd=tmp_path)
+    assert done.returncode == 1 and "millimetres" in done.stderr, done.stderr
 
 
 def test_a_misspelt_key_gets_its_spelling(tmp_path):

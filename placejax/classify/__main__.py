@@ -44,7 +44,13 @@ def _load_model(model: str, session: str | None):
     try:
         if p.is_dir():
             if not session:
-                raise UsageError(f"MODEL {model} is a run's work directory: pass --session NAME (a training session)")
+                from placejax.classify.run_layout import run_sessions
+
+                names = " or ".join(run_sessions(p))  # a folder that is no finished run fails here, saying so
+                raise UsageError(
+                    f"MODEL {model} is a run's work directory, with a classifier per training session: pass "
+                    f"--session NAME ({names})"
+                )
             return PlaceClassifier.from_run(p, session)
         return PlaceClassifier.load(p)
     except UsageError:

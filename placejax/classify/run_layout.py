@@ -55,6 +55,7 @@ __all__ = [
     "cache_folders",
     "cache_name",
     "locate_run",
+    "run_sessions",
     "write_run_index",
 ]
 
@@ -154,16 +155,8 @@ def write_run_index(workdir: str | os.PathLike, index: dict[str, Any]) -> Path:
     return path
 
 
-def locate_run(workdir: str | os.PathLike, train_session: str) -> RunFiles:
-    """The files of ``train_session``'s classifier in a finished run.
-
-    Raises:
-        FileNotFoundError: no ``classifiers.json`` (the run is unfinished or older than this index) or a
-            checkpoint folder it names is missing.
-        KeyError: ``train_session`` is not one of the run's sessions (the message lists them).
-        ValueError: the index is not one this code reads.
-    """
-    workdir = Path(workdir).absolute()
+def _read_index(workdir: Path) -> dict[str, Any]:
+    """The run's ``classifiers.json``, checked for its format (errors as :func:`locate_run`'s)."""
     path = workdir / INDEX_NAME
     if not path.is_file():
         raise FileNotFoundError(
@@ -179,6 +172,30 @@ def locate_run(workdir: str | os.PathLike, train_session: str) -> RunFiles:
             f"{path}: format {index.get('format')!r} version {index.get('version')!r}, expected {_FORMAT!r} "
             f"version {_VERSION}"
         )
+    return index
+
+
+def run_sessions(workdir: str | os.PathLike) -> list[str]:
+    """The training sessions of a finished run, each with a classifier (``locate_run``'s ``train_session``).
+
+    Raises:
+        FileNotFoundError, ValueError: as :func:`locate_run`.
+    """
+    return sorted(_read_index(Path(workdir).absolute())["sessions"])
+
+
+def locate_run(workdir: str | os.PathLike, train_session: str) -> RunFiles:
+    """The files of ``train_session``'s classifier in a finished run.
+
+    Raises:
+        FileNotFoundError: no ``classifiers.json`` (the run is unfinished or older than this index) or a
+            checkpoint folder it names is missing.
+        KeyError: ``train_session`` is not one of the run's sessions (the message lists them).
+        ValueError: the index is not one this code reads.
+    """
+    workdir = Path(workdir).absolute()
+    path = workdir / INDEX_NAME
+    index = _read_index(workdir)
     sessions = index["sessions"]
     if train_session not in sessions:
         raise KeyError(f"training session {train_session!r} is not in the run {workdir}; it has {sorted(sessions)}")

@@ -79,9 +79,9 @@ class DataConfig:
             if unknown:
                 errors.append(f"sessions: {unknown} are not SimCampus seasons {tuple(SEASONS)}")
         if self.source == "nclt" and not self.nclt_root:
-            errors.append("source='nclt' needs nclt_root=/path/to/nclt (layout: docs/nclt.md)")
+            errors.append("source='nclt' needs data.nclt_root=/path/to/nclt (layout: docs/nclt.md)")
         if self.source == "folder" and not self.root:
-            errors.append("source='folder' needs root=/path/holding/the/session/folders (docs/own-data.md)")
+            errors.append("source='folder' needs data.root=/path/holding/the/session/folders (docs/own-data.md)")
         # Keys that only mean something with one source: set with another, they would be ignored silently.
         if self.root and self.source != "folder":
             errors.append(f"root={self.root!r} is read only with source='folder' (add data.source=folder)")

@@ -7,6 +7,7 @@ longer than 18 digits), and every field is checked against its physical range be
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import math
 import os
@@ -186,12 +187,23 @@ def read_camera(path: str | os.PathLike, limits: FolderLimits | None = None) -> 
     if not isinstance(d, dict):
         raise _err(path, None, f"expected a mapping of camera fields, got {type(d).__name__}")
     missing = [f for f in _CAMERA_FIELDS if f not in d]
-    if missing:
-        raise _err(path, None, f"missing camera field(s) {missing} (required: {list(_CAMERA_FIELDS)})")
-    unknown = sorted(_quote(k, 40) for k in d if k not in _CAMERA_FIELDS + _CAMERA_OPTIONAL)
-    if unknown:
+    unknown_keys = sorted((k for k in d if k not in _CAMERA_FIELDS + _CAMERA_OPTIONAL), key=str)[:20]
+    unknown = [_quote(k, 40) for k in unknown_keys]
+    if missing or unknown:
         allowed = list(_CAMERA_FIELDS + _CAMERA_OPTIONAL)
-        raise _err(path, None, f"unknown camera field(s) [{', '.join(unknown)}] (allowed: {allowed})")
+        parts = []
+        if missing:
+            parts.append(f"missing camera field(s) {missing} (required: {list(_CAMERA_FIELDS)})")
+        if unknown:
+            parts.append(f"unknown camera field(s) [{', '.join(unknown)}] (allowed: {allowed})")
+        # A misspelt field is both missing and unknown: say which spelling was meant.
+        meant = [
+            f"{_quote(k, 40)} for {close[0]!r}"
+            for k in unknown_keys
+            if isinstance(k, str) and (close := difflib.get_close_matches(k, missing or allowed, n=1, cutoff=0.6))
+        ]
+        hint = f"; did you mean {', '.join(meant)}?" if meant else ""
+        raise _err(path, None, "; ".join(parts) + hint)
     for f in ("width", "height"):
         if isinstance(d[f], bool) or not isinstance(d[f], int) or d[f] < 1:
             raise _err(path, None, f"{f} must be a positive int (pixels), got {_quote(d[f])}")

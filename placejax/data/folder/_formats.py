@@ -188,7 +188,8 @@ def _check_position(path: Path, n: int, v: Sequence[float], limits: FolderLimits
             path,
             n,
             f"{what} = {_quote(list(v))} m is farther than {bound:g} m from the origin on an axis "
-            "(FolderLimits.max_coordinate_m): not a position a robot drives to",
+            "(FolderLimits.max_coordinate_m): not a position a robot drives to (positions are in metres: "
+            "millimetres or centimetres need dividing by 1000 or 100)",
         )
 
 
@@ -216,7 +217,8 @@ def _check_speed(
             path,
             int(lines[k + 1]),
             f"{what} moves {dist[k]:.4g} m in {dt[k]:.6g} s since line {int(lines[k])} ({dist[k] / dt[k]:.4g} m/s, "
-            f"faster than {max_speed_mps:g} m/s, FolderLimits.max_speed_mps): a wrong timestamp or position? "
+            f"faster than {max_speed_mps:g} m/s, FolderLimits.max_speed_mps): a wrong timestamp, or positions in "
+            "another unit than metres (millimetres: divide by 1000), or times in another unit than seconds? "
             "(for a faster vehicle: FolderLimits(max_speed_mps=None), check --max-speed-mps 0)",
         )
 
