@@ -158,6 +158,23 @@ def test_every_seed_is_kept_and_the_table_is_their_mean_and_sd(smoke):
     assert "mean ± sd over 2 seeds" in table
 
 
+def test_the_paper_columns_only_beside_its_own_sessions_and_a_smoke_table_says_it_is_noise(smoke):
+    """SimCampus seasons stand in for the paper's NCLT dates; an own recording's sessions named WI, SP, ... do not,
+    and get no paper column nor a caption with SimCampus's dates. Nine classes: the table says it shows noise."""
+    import copy
+
+    from experiments.cross_season.report.table import table_markdown
+
+    _, results = smoke
+    text = table_markdown(results)
+    assert "paper: Ours" in text and "WI = 2012-01-22" in text
+    assert "With 9 place classes (a smoke run" in text and "are noise" in text
+    own = copy.deepcopy(results)
+    own["config"]["data"]["source"] = "folder"
+    text = table_markdown(own)
+    assert "paper: Ours" not in text and "2012-01-22" not in text
+
+
 @pytest.mark.parametrize("preset", ["smoke", "default", "paper"])
 def test_no_builtin_preset_collapses_the_map_before_fc6(preset):
     """fc6 must see spatial cells: the trunk's last max-pooled map is at least 2 × 2 at every preset's size."""

@@ -182,7 +182,8 @@ def _write_figures(plt, results, sessions, grid, fused, folder: Path) -> list[Pa
             axes[r, c].set_axis_off()
     fig.suptitle(
         f"Depth from the {_DEPTH_SOURCES.get(source, source)} and its HHA image, one frame per session\n"
-        "(HHA shown as R = disparity, G = height above ground, B = angle with gravity)"
+        "(HHA shown as R = disparity, G = height above ground, B = angle with gravity; black near the horizon: sky "
+        "at 1000 m that a\nfraction of a degree of gravity error puts below the floor, so height 0 and disparity 0)"
     )
     written.append(folder / "depth_hha.png")
     _save(fig, written[-1])
@@ -250,7 +251,7 @@ def _write_figures(plt, results, sessions, grid, fused, folder: Path) -> list[Pa
     ax.set(
         ylabel="top-1 (%)",
         xlabel="train → test",
-        ylim=(0, 100),
+        ylim=(0, 105),  # a ceiling at 100 % stays visible above the frame's top edge
         title=f"Cross-season top-1 accuracy per (train → test) pair, all methods, {results['num_classes']} classes",
     )
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
