@@ -63,7 +63,7 @@ def _load_model(model: str, session: str | None):
 
 
 def _text(name: str, rec: dict, grid_n: int) -> str:
-    row, col = divmod(rec["class"], grid_n)
+    ix, iy = divmod(rec["class"], grid_n)  # class = (bin of x) · n + (bin of y), as on the --figure map
     b = rec["cell_bounds_m"]
     if not rec["rejected"]:
         verdict = "known place"
@@ -74,7 +74,8 @@ def _text(name: str, rec: dict, grid_n: int) -> str:
             f"UNKNOWN place ({rec['unknown_kind']} score {rec['unknown_score']:.3f} > threshold {rec['threshold']:.3f})"
         )
     return (
-        f"{name}: class {rec['class']} (row {row}, col {col}), confidence {rec['confidence']:.3f}, cell centre "
+        f"{name}: class {rec['class']} (x bin {ix}, y bin {iy} of {grid_n}), confidence {rec['confidence']:.3f}, "
+        "cell centre "
         f"({rec['cell_center_m'][0]:.1f}, {rec['cell_center_m'][1]:.1f}) m, x [{b['x_lo']:.1f}, {b['x_hi']:.1f}] "
         f"y [{b['y_lo']:.1f}, {b['y_hi']:.1f}] m — {verdict} [{rec['branch']}]"
     )

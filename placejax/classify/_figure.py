@@ -38,6 +38,12 @@ def draw_predictions(clf, images: list[np.ndarray], names: list[str], pred, path
             ax_map.plot([x, x], [ye[0], ye[-1]], color="0.6", lw=0.6)
         for y in ye:
             ax_map.plot([xe[0], xe[-1]], [y, y], color="0.6", lw=0.6)
+        if grid.n <= 12:  # the class numbers the text output prints (class = x bin · n + y bin)
+            for c in range(grid.num_classes):
+                cx0, cx1, cy0, cy1 = grid.cell_bounds(c)
+                ax_map.text(
+                    (cx0 + cx1) / 2, (cy0 + cy1) / 2, str(c), color="0.45", ha="center", va="center", fontsize=8
+                )
         x0, x1, y0, y1 = pred.cell_bounds[i]
         rejected = bool(pred.rejected[i])
         ax_map.add_patch(
@@ -61,7 +67,7 @@ def draw_predictions(clf, images: list[np.ndarray], names: list[str], pred, path
         ax_map.tick_params(labelsize=10)
     fig.suptitle(
         f"placejax: predicted place on the {grid.n}×{grid.n} workspace grid (model trained on "
-        f"{clf.meta['train_session']}; grey: cells it visited)",
+        f"{clf.meta['train_session']}; grey: cells it visited; class = x bin · {grid.n} + y bin)",
         fontsize=13,
     )
     fig.tight_layout()
