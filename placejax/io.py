@@ -23,6 +23,7 @@ import hashlib
 import json
 import os
 import socket
+import stat
 import sys
 import tempfile
 from collections.abc import Iterator, Mapping
@@ -36,6 +37,7 @@ __all__ = [
     "NPZ_META_KEY",
     "NpzError",
     "atomic_write",
+    "check_write_target",
     "file_sha256",
     "read_npz",
     "run_lock",
@@ -59,6 +61,41 @@ def _umask() -> int:
     return mask
 
 
+def _kind(mode: int) -> str:
+    for test, name in (
+        (stat.S_ISDIR, "folder"),
+        (stat.S_ISLNK, "symbolic link"),
+        (stat.S_ISCHR, "character device"),
+        (stat.S_ISBLK, "block device"),
+        (stat.S_ISFIFO, "FIFO"),
+        (stat.S_ISSOCK, "socket"),
+    ):
+        if test(mode):
+            return name
+    return "special file"
+
+
+def check_write_target(path: str | os.PathLike) -> None:
+    """Refuses a target that exists and is not a regular file: a rename would replace a device, a FIFO, a socket or
+    a symbolic link (not the file it points to) with the new file — as root, ``/dev/null`` itself.
+
+    Raises:
+        FileExistsError: naming the path and what it is.
+    """
+    try:
+        mode = os.lstat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return
+    except OSError:
+        return  # unreadable: the write itself will say why
+    if not stat.S_ISREG(mode):
+        raise FileExistsError(
+            errno.EEXIST,
+            f"exists and is a {_kind(mode)}, not a regular file: placejax writes only new or regular files",
+            str(path),
+        )
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
     """Opens a temporary file that replaces ``path`` when the ``with`` block ends without an exception.
@@ -71,12 +108,14 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]
         The open temporary file. On an exception it is removed and ``path`` is left as it was.
 
     Raises:
+        FileExistsError: ``path`` exists and is not a regular file (:func:`check_write_target`).
         OSError: the write failed; a full disk (``ENOSPC``, ``EDQUOT``), ``EFBIG`` or ``EIO`` with ``path`` as its
             ``filename`` and "... while writing" in its ``strerror`` (Python's own error names no file).
     """
     if mode not in ("wb", "w"):
         raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
     path = Path(path)
+    check_write_target(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:

@@ -106,3 +106,60 @@ def test_read_npz_refuses_objects_bad_headers_and_other_compressions(tmp_path):
     (tmp_path / "text.npz").write_text("hello")
     with pytest.raises(io.NpzError, match=r"text\.npz: not an \.npz archive"):
         io.read_npz(tmp_path / "text.npz")
+
+
+def _special_files(tmp_path) -> dict[str, object]:
+    """A target of every kind that is not a regular file (a character device node made here: a null device)."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    device = tmp_path / "null"
+    os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    folder = tmp_path / "folder.png"
+    folder.mkdir()
+    (tmp_path / "real.png").write_bytes(b"keep")
+    link = tmp_path / "link.png"
+    link.symlink_to(tmp_path / "real.png")
+    return {"FIFO": fifo, "character device": device, "folder": folder, "symbolic link": link}
+
+
+def test_writes_refuse_every_target_that_is_not_a_regular_file(tmp_path):
+    """A rename would replace a device, FIFO, folder or symbolic link with the new file (as root, /dev/null): each is
+    refused by name, and left as it was."""
+    for kind, target in _special_files(tmp_path).items():
+        before = os.lstat(target)
+        with pytest.raises(FileExistsError, match=f"exists and is a {kind}, not a regular file"):
+            io.write_text(target, "x")
+        after = os.lstat(target)
+        assert (after.st_mode, after.st_ino) == (before.st_mode, before.st_ino), kind
+        assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+    assert (tmp_path / "real.png").read_bytes() == b"keep"
+    io.write_text(tmp_path / "new.txt", "x")  # new and regular files as before
+    io.write_text(tmp_path / "new.txt", "y")
+    assert (tmp_path / "new.txt").read_text() == "y"
+
+
+@pytest.mark.slow  # starts Python processes
+@pytest.mark.parametrize("command", ["classify", "check"])
+def test_commands_refuse_a_special_file_as_output_before_any_work(tmp_path, command):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    (tmp_path / command).mkdir()
+    for kind, target in _special_files(tmp_path / command).items():
+        if command == "classify":
+            args = ["-m", "placejax.classify", str(tmp_path / "no-model"), str(tmp_path / "no.png"), "--figure"]
+        else:
+            args = ["-m", "placejax.data", "check", str(tmp_path / "no-session"), "--map"]
+        done = subprocess.run(
+            [sys.executable, *args, str(target)],
+            cwd=tmp_path,
+            env={**os.environ, "PYTHONPATH": str(repo)},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2 and len(lines) == 1, (kind, done.stderr)
+        assert lines[0].startswith("error: EEXIST: exists and is a") and str(target) in lines[0], lines

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -240,3 +241,144 @@ def test_two_processes_build_every_per_frame_cache_as_one_process_does(tmp_path)
     assert {f: b for f, b in files.items() if not f.startswith(".")} == {
         f: b for f, b in _cache_files(one).items() if not f.startswith(".")
     }
+
+
+_SLEEPER = textwrap.dedent(
+    """
+    import os, sys, time
+    from pathlib import Path
+    Path(sys.argv[1], f"pid{os.environ['JAX_PROCESS_ID']}").write_text(str(os.getpid()))
+    time.sleep(120)
+    """
+)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie is gone for every purpose but its entry: read its state.
+    state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    return state != "Z"
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_and_sighup_stop_every_child(tmp_path, signum):
+    """The launcher's children live in their own sessions: a SIGTERM or SIGHUP to the launcher alone (as a job
+    scheduler or a closed terminal sends) must stop them too, and the launcher exits 128 + the signal."""
+    script = tmp_path / "child.py"
+    script.write_text(_SLEEPER)
+    cmd = [
+        sys.executable,
+        "-m",
+        "placejax.training.launch",
+        "-n",
+        "2",
+        "--",
+        sys.executable,
+        str(script),
+        str(tmp_path),
+    ]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not all((tmp_path / f"pid{k}").exists() for k in range(2)):
+        assert time.monotonic() < deadline and proc.poll() is None, proc.stderr.read() if proc.poll() else ""
+        time.sleep(0.1)
+    pids = [int((tmp_path / f"pid{k}").read_text()) for k in range(2)]
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signum, err
+    assert f"launch: {signal.Signals(signum).name}: stopping every process" in err
+    assert not any(_alive(pid) for pid in pids), pids
+
+
+def test_a_child_killed_by_a_signal_exits_128_plus_it(tmp_path):
+    script = tmp_path / "child.py"
+    script.write_text("import os, signal\nos.kill(os.getpid(), signal.SIGKILL)\n")
+    done = subprocess.run(
+        [sys.executable, "-m", "placejax.training.launch", "-n", "1", "--", sys.executable, str(script)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 137, done.stderr  # 128 + SIGKILL, as a shell reports it (not 256 - 9)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["-n", "100000"], "--processes must be an int in [1, 64], got 100000"),
+        (["-n", "0"], "--processes must be an int in [1, 64], got 0"),
+        (["-n", "2", "--devices-per-process", "0"], "--devices-per-process must be an int in [1, 256]"),
+        (["-n", "2", "--port", "70000"], "--port must be an int in [1, 65535]"),
+    ],
+)
+def test_out_of_range_options_start_nothing(tmp_path, args, message):
+    marker = tmp_path / "started"
+    done = subprocess.run(
+        [sys.executable, "-m", "placejax.training.launch", *args, "--", "touch", str(marker)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 2 and message in done.stderr, done.stderr
+    assert not marker.exists()
+
+
+def test_a_failed_start_stops_the_children_already_started(tmp_path, monkeypatch):
+    """The second process cannot start (its program vanished between the two forks): the first is stopped, not
+    left running, and the error reaches the caller."""
+    from placejax.training import launch as launch_module
+
+    script = tmp_path / "child.py"
+    script.write_text(_SLEEPER)
+    real = subprocess.Popen
+    started = []
+
+    def popen(*args, **kwargs):
+        if started:
+            raise OSError(12, "Cannot allocate memory (fork)")
+        started.append(real(*args, **kwargs))
+        return started[-1]
+
+    monkeypatch.setattr(launch_module.subprocess, "Popen", popen)
+    with pytest.raises(OSError, match="Cannot allocate memory"):
+        launch_module.launch([sys.executable, str(script), str(tmp_path)], 2)
+    assert started and started[0].poll() is not None  # stopped and reaped
+
+
+def test_a_child_line_without_newline_is_forwarded_in_bounded_pieces(tmp_path):
+    """200 MB without a newline: forwarded in pieces of MAX_LINE_BYTES, and the launcher's peak memory grows by far
+    less than the line's size over a launch whose child prints one byte (it held the whole line before)."""
+    from placejax.training.launch import MAX_LINE_BYTES
+
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "import resource, sys\n"
+        "from placejax.training.launch import main\n"
+        "code = main(sys.argv[1:])\n"
+        "sys.stderr.write(f'peak {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}\\n')\n"
+        "sys.exit(code)\n"
+    )
+
+    def launch(megabytes: int) -> tuple[bytes, float]:
+        script = tmp_path / f"child{megabytes}.py"
+        script.write_text(f"import sys\nfor _ in range({megabytes}):\n    sys.stdout.buffer.write(b'x' * (1 << 20))\n")
+        done = subprocess.run(
+            [sys.executable, str(probe), "-n", "1", "--", sys.executable, str(script)],
+            cwd=REPO,
+            capture_output=True,
+            timeout=300,
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+        return done.stdout, int(done.stderr.decode().rsplit("peak ", 1)[1]) / 1024
+
+    _, small_mib = launch(1)
+    out, big_mib = launch(200)
+    pieces = out.split(b"\n")[:-1]
+    assert len(pieces) == 200 * (1 << 20) // MAX_LINE_BYTES
+    assert all(p.startswith(b"[process 0] ") and len(p) == len(b"[process 0] ") + MAX_LINE_BYTES for p in pieces)
+    assert big_mib - small_mib < 64, (small_mib, big_mib)

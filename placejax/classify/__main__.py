@@ -104,6 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
+    if args.figure:
+        from placejax.io import check_write_target
+
+        check_write_target(args.figure)  # before any work: a device or folder there is refused, never replaced
     try:
         images = [read_image(p, args.max_pixels) for p in args.images]
         clf = _load_model(args.model, args.session)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from placejax import cli
+from placejax import cli, io
 from placejax.data import folder, nclt
 from placejax.data.cache import cache_session
 from placejax.data.grid import PlaceGrid
@@ -99,6 +99,12 @@ def check(args: argparse.Namespace) -> int:
     if not args.max_speed_mps >= 0:
         print(f"error: --max-speed-mps must be >= 0 (0: no check), got {args.max_speed_mps}", file=sys.stderr)
         return 2
+    if args.map is not None:
+        try:
+            io.check_write_target(args.map)  # before reading anything: a device or folder there is never replaced
+        except OSError as e:
+            print(f"error: {cli.describe(e)}", file=sys.stderr)
+            return 2
     speed = args.max_speed_mps
     limits = folder.FolderLimits(max_speed_mps=speed if 0 < speed < float("inf") else None)
     sessions = []
