@@ -71,8 +71,15 @@ _LINE_FORMAT = (
 
 
 class _LineBar(tqdm):
-    """A tqdm whose every display is one whole timestamped line: written at the start, at most every ``mininterval``
-    seconds, and once at the end."""
+    """A tqdm whose every display is one whole timestamped line: the first once the loop has run ``delay`` seconds,
+    then at most one every ``line_interval`` seconds, and a last one when it ends (tqdm itself asks about once a
+    second; the lines in between are skipped)."""
+
+    def __init__(self, *args, line_interval: float = LOG_INTERVAL_S, **kwargs):
+        self._line_interval = line_interval
+        self._last_wall: float | None = None
+        self._last_meter: str | None = None
+        super().__init__(*args, **kwargs)
 
     def set_postfix(self, ordered_dict=None, refresh=True, **kwargs):
         # The values show on the next timed line; a line per update would flood the log.
@@ -83,9 +90,15 @@ class _LineBar(tqdm):
 
     def display(self, msg: str | None = None, pos: int | None = None) -> bool:
         # tqdm asks for msg="" to erase the bar when it closes without `leave`: that is the moment for the last line.
+        now = time.monotonic()
+        closing = msg == ""
+        if not closing and self._last_wall is not None and now - self._last_wall < self._line_interval:
+            return False
         meter = self.format_meter(**self.format_dict)
-        self.fp.write(f"{stamp()}  {meter}\n")
-        self.fp.flush()
+        if meter != self._last_meter:  # the closing line may repeat the last timed one
+            self._last_meter, self._last_wall = meter, now
+            self.fp.write(f"{stamp()}  {meter}\n")
+            self.fp.flush()
         return False  # nothing for tqdm to erase
 
 
@@ -130,12 +143,15 @@ def bar(
             leave=False,
             **kwargs,
         )
-    kwargs.setdefault("mininterval", _interval())
-    kwargs.setdefault("maxinterval", kwargs["mininterval"])
+    interval = kwargs.pop("mininterval", None)
+    interval = _interval() if interval is None else interval
     # A loop shorter than a third of the interval writes nothing: the stage line that follows says it was done.
-    kwargs.setdefault("delay", kwargs["mininterval"] / 3)
+    kwargs.setdefault("delay", interval / 3)
+    kwargs.setdefault("mininterval", min(1.0, interval))  # how often tqdm asks; _LineBar keeps one line an interval
+    kwargs.setdefault("maxinterval", max(1.0, interval))
     return _LineBar(
         iterable,
+        line_interval=interval,
         total=total,
         desc=desc,
         unit=unit,
