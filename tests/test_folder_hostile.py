@@ -14,6 +14,7 @@ import io
 import json
 import os
 import shutil
+import stat
 import struct
 import subprocess
 import sys
@@ -406,6 +407,29 @@ def _cases() -> dict[str, tuple]:
             r"declares 20000 × 20000 pixels",
         ),
     }
+
+    # Optional entries that exist but are not what they must be: named, never read as absent.
+    def special(rel: str, kind: str):
+        def edit(d: Path):
+            p = d / rel
+            if p.is_dir():
+                shutil.rmtree(p)
+            else:
+                p.unlink(missing_ok=True)
+            if kind == "fifo":
+                os.mkfifo(p)
+            elif kind == "device":
+                os.mknod(p, 0o666 | stat.S_IFCHR, os.makedev(1, 3))  # a null device node
+            else:
+                p.mkdir()
+
+        return edit
+
+    for rel, kinds in ((odo, ("fifo", "device", "dir")), (table, ("fifo", "dir")), (tum, ("fifo",))):
+        for kind in kinds:
+            what = {"fifo": "FIFO", "device": "character device", "dir": "folder"}[kind]
+            cases[f"{rel.split('.')[0]}_is_a_{kind}"] = (special(rel, kind), rel, None, rf"is a {what}, not a regular")
+    cases["depth_is_a_fifo"] = (special("depth", "fifo"), "depth", None, r"is a FIFO, not a folder")
     return cases
 
 

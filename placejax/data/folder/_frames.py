@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -20,6 +21,40 @@ DEPTH_DIR = "depth"
 DEPTH_SUFFIXES = (".png", ".npy", ".tif", ".tiff")
 """Suffixes of depth files: uint16 millimetre PNGs, float metre ``.npy`` and TIFF files."""
 _FLOATS = (np.float16, np.float32, np.float64)
+
+
+def present(path: Path, kind: str = "file") -> bool:
+    """Whether an optional entry of a session folder is there: ``False`` when nothing is at ``path``, ``True`` for a
+    regular file (``kind="file"``) or a folder (``kind="folder"``), symbolic links followed.
+
+    Raises:
+        FolderFormatError: something else is there (a FIFO, a device, a socket, a folder where a file belongs or a
+            file where a folder does): it is named, never read as absent (which would change silently what is
+            trained or tested).
+    """
+    try:
+        mode = path.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return False
+    except OSError as e:
+        raise _err(path, None, f"cannot be read ({e.strerror or e})") from None
+    if (stat.S_ISREG(mode) and kind == "file") or (stat.S_ISDIR(mode) and kind == "folder"):
+        return True
+    what = next(
+        (name for test, name in _KINDS if test(mode)),
+        "special file",
+    )
+    raise _err(path, None, f"is a {what}, not a {'regular file' if kind == 'file' else 'folder'}: remove or replace it")
+
+
+_KINDS = (
+    (stat.S_ISDIR, "folder"),
+    (stat.S_ISREG, "regular file"),
+    (stat.S_ISCHR, "character device"),
+    (stat.S_ISBLK, "block device"),
+    (stat.S_ISFIFO, "FIFO"),
+    (stat.S_ISSOCK, "socket"),
+)
 
 
 def _is_file(path: Path) -> bool:
@@ -140,7 +175,7 @@ def _depth_files(folder: Path, files: Sequence[Path], limits: FolderLimits) -> t
     """The depth file of every image (``depth/<image stem>.png``, ``.npy`` or ``.tif(f)``), or None without
     ``depth/``."""
     d = folder / DEPTH_DIR
-    if not d.is_dir():
+    if not present(d, "folder"):
         return None
     names = []
     try:

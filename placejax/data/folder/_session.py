@@ -29,7 +29,7 @@ from placejax.data.folder._formats import (
     read_odometry,
     read_tum,
 )
-from placejax.data.folder._frames import DEPTH_DIR, _decode_depth, _decode_image, _depth_files, _is_file
+from placejax.data.folder._frames import DEPTH_DIR, _decode_depth, _decode_image, _depth_files, _is_file, present
 from placejax.data.folder._limits import FolderLimits
 from placejax.data.poses import interp_exact, interpolate_poses, planar_poses, quaternion_to_matrix
 
@@ -218,16 +218,16 @@ class FolderSession:
 
 
 def _pose_file(folder: Path) -> Path:
-    present = [folder / f for f in (TUM_FILE, KITTI_FILE) if (folder / f).is_file()]
-    if len(present) != 1:
-        found = "both" if present else "neither"
-        raise _err(folder, None, f"expected exactly one pose file, {TUM_FILE} or {KITTI_FILE}; found {found}")
-    return present[0]
+    found = [folder / f for f in (TUM_FILE, KITTI_FILE) if present(folder / f)]
+    if len(found) != 1:
+        which = "both" if found else "neither"
+        raise _err(folder, None, f"expected exactly one pose file, {TUM_FILE} or {KITTI_FILE}; found {which}")
+    return found[0]
 
 
 def _camera_file(folder: Path) -> Path:
     for name in CAMERA_FILES:
-        if (folder / name).is_file():
+        if present(folder / name):
             return folder / name
     raise _err(folder, None, f"no {CAMERA_FILE} (image size, fx fy cx cy, camera_height_m; see {_DOCS})")
 
@@ -316,7 +316,7 @@ def load_session(
         raise _err(folder, None, "session folder not found", MissingSessionError)
     cam = read_camera(_camera_file(folder), limits)
     table = folder / IMAGE_TABLE
-    from_names = not table.is_file()
+    from_names = not present(table)
     if from_names:
         names, utimes, lines = images_from_names(folder, cam.name_time_unit, limits)
     else:
@@ -371,7 +371,7 @@ def load_session(
         for f in depth:
             _decode_depth(f, raw_shape, limits)
     odo = travelled = None
-    if (folder / ODOMETRY_FILE).is_file():
+    if present(folder / ODOMETRY_FILE):
         odo, travelled, n_out = _odometry(folder / ODOMETRY_FILE, utimes[keep], limits)
         report = dataclasses.replace(report, n_no_odometry=n_out)
     return FolderSession(
