@@ -14,7 +14,15 @@ from typing import Any
 
 import ml_collections
 
-__all__ = ["apply_overrides", "dataclass_overrides", "get", "leaf_keys", "presets_epilog"]
+__all__ = ["MAX_OVERRIDE_CHARS", "apply_overrides", "dataclass_overrides", "get", "leaf_keys", "presets_epilog"]
+
+
+MAX_OVERRIDE_CHARS = 64 * 1024
+"""Longest ``key=value`` override: a value is parsed whole (a 10 MB one took over 1 GiB)."""
+
+
+def _head(item) -> str:
+    return str(item)[:40]
 
 
 def _leaf_keys(c: ml_collections.ConfigDict, prefix: str = "") -> list[str]:
@@ -103,6 +111,9 @@ def apply_overrides(c: ml_collections.ConfigDict, overrides: list[str]) -> ml_co
     """
     known = leaf_keys(c)
     for item in overrides:
+        if not isinstance(item, str) or len(item) > MAX_OVERRIDE_CHARS:
+            size = f"{len(item):,} characters" if isinstance(item, str) else type(item).__name__
+            raise ValueError(f"override {_head(item)!r}... is {size}, more than {MAX_OVERRIDE_CHARS:,} (a typo?)")
         if "=" not in item:
             raise ValueError(f"override {item!r} is not key=value")
         key, text = item.split("=", 1)

@@ -18,7 +18,7 @@ Example:
     >>> Demo(epochs=0)
     Traceback (most recent call last):
     ...
-    placejax.config.ConfigError: epochs=0: expected a positive int
+    placejax.config.ConfigError: epochs=0: expected an int in [1, 2,147,483,647]
     >>> config.help_text(Demo, "epochs")
     'passes over the data'
 """
@@ -30,14 +30,14 @@ import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-__all__ = ["ConfigError", "build", "check", "help_text", "section", "setting"]
+__all__ = ["MAX_INT", "MAX_NUMBER", "ConfigError", "build", "check", "help_text", "section", "setting"]
 
 
 class ConfigError(ValueError):
     """Configuration values outside their range or of the wrong type; each message names its field.
 
     Attributes:
-        errors: one message per offending field (``"epochs=0: expected a positive int"``).
+        errors: one message per offending field (``"epochs=0: expected an int in [1, 10,000]"``).
     """
 
     def __init__(self, *errors: str):
@@ -78,12 +78,27 @@ def build(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:
         raise ConfigError(f"{prefix}: {e}" if prefix else str(e)) from None
 
 
+MAX_INT = 2**31 - 1
+"""Largest int any checked field takes (seeds, counts, sizes): a value a later stage can hold in an int32 or a PRNG
+seed; a field with a smaller range states it (``at_most``)."""
+MAX_NUMBER = 1e12
+"""Largest magnitude of any checked number field."""
+
+
 def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
+    return isinstance(v, int) and not isinstance(v, bool) and -MAX_INT <= v <= MAX_INT
 
 
 def _is_number(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and abs(v) <= MAX_NUMBER
+
+
+def _shown(v: Any) -> str:
+    """A value for an error message, never a screenful (an int of 10**100 digits is shown by its size)."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) > 10**15:
+        return f"<an int of {len(str(abs(v)))} digits>" if abs(v) < 10**4000 else "<an int of over 4000 digits>"
+    text = repr(v)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def check(
@@ -98,8 +113,12 @@ def check(
     boolean: Iterable[str] = (),
     string: Iterable[str] = (),
     choices: Mapping[str, Iterable[Any]] | None = None,
+    at_most: Mapping[str, float] | None = None,
 ) -> None:
     """Checks the named fields of ``obj``; raises ``ConfigError`` listing every field out of range.
+
+    Every int is at most :data:`MAX_INT` and every number at most :data:`MAX_NUMBER` in magnitude, so that no value
+    a later stage cannot hold passes the check (a run refuses it before its first stage, not hours in).
 
     Args:
         positive_int: ints ≥ 1 (never bools).
@@ -111,28 +130,38 @@ def check(
         boolean: ``True`` or ``False`` only.
         string: str values.
         choices: field → its allowed values.
+        at_most: field → the largest value it takes (a number field of one of the kinds above).
     """
     errors = []
+    caps = dict(at_most or {})
 
     def bad(name: str, what: str) -> None:
-        errors.append(f"{name}={getattr(obj, name)!r}: expected {what}")
+        errors.append(f"{name}={_shown(getattr(obj, name))}: expected {what}")
+
+    def cap(name: str, default: float) -> tuple[float, str]:
+        hi = caps.get(name, default)
+        return hi, f"{hi:,g}" if isinstance(hi, float) else f"{hi:,}"
 
     for name in positive_int:
         v = getattr(obj, name)
-        if not (_is_int(v) and v >= 1):
-            bad(name, "a positive int")
+        hi, shown = cap(name, MAX_INT)
+        if not (_is_int(v) and 1 <= v <= hi):
+            bad(name, f"an int in [1, {shown}]")
     for name in nonnegative_int:
         v = getattr(obj, name)
-        if not (_is_int(v) and v >= 0):
-            bad(name, "an int >= 0")
+        hi, shown = cap(name, MAX_INT)
+        if not (_is_int(v) and 0 <= v <= hi):
+            bad(name, f"an int in [0, {shown}]")
     for name in positive:
         v = getattr(obj, name)
-        if not (_is_number(v) and v > 0):
-            bad(name, "a finite positive number")
+        hi, shown = cap(name, MAX_NUMBER)
+        if not (_is_number(v) and 0 < v <= hi):
+            bad(name, f"a finite number in (0, {shown}]")
     for name in nonnegative:
         v = getattr(obj, name)
-        if not (_is_number(v) and v >= 0):
-            bad(name, "a finite number >= 0")
+        hi, shown = cap(name, MAX_NUMBER)
+        if not (_is_number(v) and 0 <= v <= hi):
+            bad(name, f"a finite number in [0, {shown}]")
     for name in unit_interval:
         v = getattr(obj, name)
         if not (_is_number(v) and 0 <= v < 1):

@@ -421,6 +421,41 @@ def test_the_command_prints_one_line_and_exits_2(tiny, tmp_path):
         assert run.stderr.count("\n") == 1 and run.stderr.startswith(f"error: {where}"), run.stderr
 
 
+@pytest.mark.slow
+def test_the_command_holds_one_large_photograph_at_a_time(tiny, tmp_path):
+    """Six 25-megapixel photographs (75 MB each decoded): the command resizes each to the model's input as it reads
+    it, so its peak memory grows by about one photograph over a run on one small image (it kept all six)."""
+    y, x = np.mgrid[0:5000, 0:5000]
+    big = np.stack([(x // 20) % 256, (y // 20) % 256, ((x + y) // 40) % 256], -1).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "big.jpg"), big)
+    del big, x, y
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((8, 8, 3), np.uint8))
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "import resource, sys\n"
+        "from placejax.classify.__main__ import main\n"
+        "code = main(sys.argv[1:])\n"
+        "sys.stderr.write(f'peak {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}\\n')\n"
+        "sys.exit(code)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+
+    def peak_mib(*images: str) -> float:
+        done = subprocess.run(
+            [sys.executable, str(probe), str(tiny), *images, "--figure", str(tmp_path / "f.png")],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=600,
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+        return int(done.stderr.rsplit("peak ", 1)[1]) / 1024
+
+    small = peak_mib(str(tmp_path / "small.png"))
+    large = peak_mib(*[str(tmp_path / "big.jpg")] * 6)
+    assert large - small < 300, (small, large)  # six kept whole: over 450 MiB more
+
+
 # ---------------------------------------------------------------------------------------------------- contract
 
 

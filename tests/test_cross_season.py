@@ -446,6 +446,49 @@ def test_whole_config_is_validated_before_any_stage(tmp_path):
         validate(get_config(preset), 2)
 
 
+def test_every_number_key_refuses_an_absurd_value_before_any_stage(tmp_path):
+    """Each int key set to 10**30 and each float key to 1e300 (and the image size to 100000², no frame spacing)
+    is refused by the config's own check, naming the key, before the work directory exists: a value no later stage
+    can hold never reaches one (it used to hang the renderer or overflow 38 s in)."""
+    from experiments.cross_season import validate
+    from experiments.overrides import leaf_keys
+
+    base = get_config("smoke")
+    tried = 0
+    for key in leaf_keys(base):
+        *parents, leaf = key.split(".")
+        node = base
+        for p in parents:
+            node = node[p]
+        old = node[leaf]
+        if isinstance(old, bool) or not isinstance(old, int | float):
+            continue
+        cfg = get_config("smoke")
+        target = cfg
+        for p in parents:
+            target = target[p]
+        target[leaf] = 10**30 if isinstance(old, int) else 1e300
+        with pytest.raises(ValueError) as err:
+            validate(cfg)
+        msg = str(err.value)
+        assert key in msg or (leaf in msg and parents[0] in msg), (key, msg[:300])  # route: "route: ….leaf"
+        assert len(str(err.value)) < 2000  # the value is shown by its size, not printed whole
+        tried += 1
+    assert tried >= 30
+    for override, key in (
+        ("data.image_size=(100000, 100000)", "data.image_size"),
+        ("data.frame_spacing=0", "data.frame_spacing"),
+        ("grid.n=50000", "grid.n"),
+        ("train.epochs=100000", "train.epochs"),
+        ("seed=" + "1" + "0" * 30, "seed"),
+    ):
+        cfg = get_config("smoke")
+        apply_overrides(cfg, [override])
+        with pytest.raises(ValueError, match=key.replace(".", r"\.")):
+            run(cfg, tmp_path / "never")
+        assert not (tmp_path / "never").exists(), override
+
+
 @pytest.mark.slow
 def test_bad_overrides_are_explained():
     cfg = get_config("smoke")

@@ -34,19 +34,19 @@ def test_every_section_checks_its_ranges_and_names_the_field():
         (DataConfig, {"image_size": (8, 8)}, r"image_size=\(8, 8\): expected \(H, W\), ints >= 16"),
         (DataConfig, {"sessions": ("WI",)}, r"two or more distinct session names"),
         (DataConfig, {"root": "/x"}, r"read only with source='folder'"),
-        (GridConfig, {"n": 0}, r"n=0: expected a positive int"),
+        (GridConfig, {"n": 0}, r"n=0: expected an int in \[1, "),
         (depth.DepthSourceConfig, {"source": "lidar"}, r"source='lidar': expected one of"),
         (depth.DepthSourceConfig, {"near_m": 60.0}, r"near_m=60.0 must be below far_m=50.0"),
         (stages.VGGConfig, {"dropout": 1.0}, r"dropout=1.0: expected a number in \[0, 1\)"),
         (stages.TrainConfig, {"optimizer": "lbfgs"}, r"optimizer='lbfgs': expected one of \('sgd', 'adamw'\)"),
-        (stages.TrainConfig, {"epochs": True}, r"epochs=True: expected a positive int"),
+        (stages.TrainConfig, {"epochs": True}, r"epochs=True: expected an int in \[1, "),
         (stages.MLPConfig, {"modality_dropout": 0.6}, r"modality_dropout=0.6: expected a number in \[0, 0.5\]"),
         (stages.EvalConfig, {"batch_size": 0}, r"batch_size=0"),
     ):
         with pytest.raises(config.ConfigError, match=match):
             cls(**bad)
     # build() names the section, as the experiment's keys read.
-    with pytest.raises(config.ConfigError, match=r"train\.epochs=0: expected a positive int"):
+    with pytest.raises(config.ConfigError, match=r"train\.epochs=0: expected an int in \[1, "):
         config.build(stages.TrainConfig, {"epochs": 0}, "train")
     with pytest.raises(config.ConfigError, match=r"unknown train key\(s\) \['epoch'\]"):
         config.build(stages.TrainConfig, {"epoch": 3}, "train")

@@ -100,11 +100,17 @@ class RunConfig:
     )
     devices: int = _config.setting(0, "devices of the data mesh (0: all)")
     figures: bool = _config.setting(True, "write the figures")
-    progress: bool = _config.setting(True, "show progress bars")
+    progress: bool = _config.setting(
+        True, "show progress: live bars in a terminal, timestamped lines in a log (stage lines always)"
+    )
 
     def __post_init__(self):
         _config.check(
-            self, nonnegative_int=("seed", "devices"), positive_int=("n_seeds",), boolean=("figures", "progress")
+            self,
+            nonnegative_int=("seed", "devices"),
+            positive_int=("n_seeds",),
+            boolean=("figures", "progress"),
+            at_most={"seed": 2**30, "devices": 4096, "n_seeds": 100},  # seed + k + offsets stay within int32
         )
 
 

@@ -37,6 +37,21 @@ def read_image(path: str, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
         raise UsageError(f"IMAGE {e}") from None
 
 
+FIGURE_SIDE = 640
+"""Longest side of a photograph as the --figure draws it (the classifier reads its own resized copy)."""
+
+
+def _thumbnail(image: np.ndarray) -> np.ndarray:
+    """The photograph at most :data:`FIGURE_SIDE` pixels on its longer side, for the figure."""
+    import cv2
+
+    h, w = image.shape[:2]
+    scale = FIGURE_SIDE / max(h, w)
+    if scale >= 1:
+        return image
+    return cv2.resize(image, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+
+
 def _load_model(model: str, session: str | None):
     from placejax.classify import ArtefactError, PlaceClassifier
 
@@ -109,11 +124,18 @@ def main(argv: list[str] | None = None) -> int:
 
         check_write_target(args.figure)  # before any work: a device or folder there is refused, never replaced
     try:
-        images = [read_image(p, args.max_pixels) for p in args.images]
         clf = _load_model(args.model, args.session)
-        # Images may differ in size; each is resized to the model's input size, then all run as one batch.
-        pairs = zip(args.images, images, strict=True)
-        batch = np.stack([clf.prepare(im[None], name=f"IMAGE {p}")[0] for p, im in pairs])
+        # Images may differ in size; each is resized to the model's input size as soon as it is read (one decoded
+        # photograph in memory at a time, whatever its size), then all run as one batch.
+        inputs, shown, shapes = [], [], []
+        for p in args.images:
+            im = read_image(p, args.max_pixels)
+            inputs.append(clf.prepare(im[None], name=f"IMAGE {p}")[0])
+            shapes.append(im.shape[:2])
+            if args.figure:
+                shown.append(_thumbnail(im))
+            del im
+        batch = np.stack(inputs)
     except UsageError as e:
         # One line, whatever the input: messages may quote file content.
         print(f"error: {' '.join(str(e).split())}"[:2000], file=sys.stderr)
@@ -138,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.figure:
         from placejax.classify._figure import draw_predictions
 
-        draw_predictions(clf, images, [Path(p).name for p in args.images], pred, args.figure)
+        draw_predictions(clf, shown, [Path(p).name for p in args.images], pred, args.figure, shapes=shapes)
         if not args.json:
             print(f"figure: {args.figure}")
     return 0

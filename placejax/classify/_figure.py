@@ -10,9 +10,12 @@ import numpy as np
 from placejax.io import save_figure
 
 
-def draw_predictions(clf, images: list[np.ndarray], names: list[str], pred, path: str | os.PathLike) -> Path:
+def draw_predictions(
+    clf, images: list[np.ndarray], names: list[str], pred, path: str | os.PathLike, *, shapes=None
+) -> Path:
     """One row per image: the photograph, then the place grid with the training session's visited cells shaded
     and the predicted cell outlined (green: accepted, red dashed: rejected as an unknown place). Written atomically.
+    ``shapes``: each photograph's original ``(H, W)`` for its title, when ``images`` are smaller copies.
     """
     import matplotlib
 
@@ -29,7 +32,8 @@ def draw_predictions(clf, images: list[np.ndarray], names: list[str], pred, path
         ax_img, ax_map = axes[i]
         ax_img.imshow(img)
         ax_img.set_axis_off()
-        ax_img.set_title(f"{name} ({img.shape[0]}×{img.shape[1]})", fontsize=12)
+        h, w = img.shape[:2] if shapes is None else shapes[i]
+        ax_img.set_title(f"{name} ({h}×{w})", fontsize=12)
         for k in visited:
             x0, x1, y0, y1 = grid.cell_bounds(k)
             # Rows run along x (first coordinate), columns along y; the map draws x horizontally.

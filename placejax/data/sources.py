@@ -26,6 +26,14 @@ SOURCES = ("simcampus", "nclt", "folder")
 """The data sources :class:`DataConfig` names."""
 
 
+MAX_IMAGE_SIDE = 2048
+"""Largest side of the run's image size (``data.image_size``), pixels."""
+MAX_IMAGE_PIXELS = 1024 * 1024
+"""Most pixels of the run's image size: every frame of every session is cached at it."""
+MAX_SESSION_FRAMES = 10_000_000
+"""Most frames ``data.max_frames`` may ask for."""
+
+
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
     """The sessions of a run and the images the networks see (the ``data`` section of an experiment)."""
@@ -64,14 +72,29 @@ class DataConfig:
             nonnegative=("frame_spacing",),
             string=("nclt_root", "root"),
             boolean=("undistort",),
+            at_most={"max_frames": MAX_SESSION_FRAMES, "camera": 5, "stride": 10_000, "frame_spacing": 1000.0},
         )
         errors = []
         s = self.sessions
         if len(s) < 2 or len(set(s)) != len(s) or not all(isinstance(x, str) and x for x in s):
             errors.append(f"sessions={s!r}: need two or more distinct session names (train on one, test on others)")
         size = self.image_size
-        if len(size) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 16 for v in size):
-            errors.append(f"image_size={size!r}: expected (H, W), ints >= 16")
+        if (
+            len(size) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and 16 <= v <= MAX_IMAGE_SIDE for v in size)
+            or size[0] * size[1] > MAX_IMAGE_PIXELS
+        ):
+            errors.append(
+                f"image_size={_config._shown(size)}: expected (H, W), ints in [16, {MAX_IMAGE_SIDE}] with H·W at most "
+                f"{MAX_IMAGE_PIXELS:,} (the network inputs and every cache are at this size)"
+            )
+        if self.source == "simcampus" and not (
+            isinstance(self.frame_spacing, int | float) and self.frame_spacing >= 0.05
+        ):
+            errors.append(
+                f"frame_spacing={_config._shown(self.frame_spacing)}: SimCampus needs at least 0.05 m of travel "
+                "between frames (0 would render without end)"
+            )
         if self.source == "simcampus":
             from placejax.data.simcampus import SEASONS
 
@@ -100,7 +123,7 @@ class GridConfig:
     n: int = _config.setting(10, "cells per axis of the place grid (n × n classes)")
 
     def __post_init__(self):
-        _config.check(self, positive_int=("n",))
+        _config.check(self, positive_int=("n",), at_most={"n": 100})
 
 
 SIMCAMPUS_RENDERS: dict[str, dict] = {

@@ -79,6 +79,14 @@ class DepthSourceConfig:
             nonnegative=("far_as_sky_m",),
             boolean=("flip_average",),
             string=("midas_weights", "dav2_weights", "trained_preset", "trained_cache"),
+            at_most={
+                "midas_features": 1024,
+                "batch_size": 4096,
+                "midas_encoder_width": 4.0,
+                "near_m": 1e4,
+                "far_m": 1e4,
+                "far_as_sky_m": 1e4,
+            },
         )
         from placejax.depth._config import PRESETS
         from placejax.depth.views import validate_shifts
@@ -90,8 +98,10 @@ class DepthSourceConfig:
             errors.append(f"shift_px={self.shift_px!r}: {e}")
         if not self.near_m < self.far_m:
             errors.append(f"near_m={self.near_m!r} must be below far_m={self.far_m!r}")
-        if not (isinstance(self.dav2_short_side, int) and self.dav2_short_side >= 14):
-            errors.append(f"dav2_short_side={self.dav2_short_side!r}: expected an int >= 14 (pixels)")
+        if not (isinstance(self.dav2_short_side, int) and 14 <= self.dav2_short_side <= 2048):
+            errors.append(
+                f"dav2_short_side={_config._shown(self.dav2_short_side)}: expected an int in [14, 2048] (pixels)"
+            )
         if self.source == "trained" and self.trained_preset not in PRESETS:
             errors.append(f"trained_preset={self.trained_preset!r}: expected one of {sorted(PRESETS)}")
         if errors:

@@ -11,6 +11,12 @@ __all__ = ["EvalConfig", "MLPConfig", "TrainConfig", "VGGConfig"]
 OPTIMIZERS = ("sgd", "adamw")
 
 
+MAX_EPOCHS = 10_000
+"""Most epochs a net or the fusion MLP trains (the default: 10)."""
+MAX_BATCH = 65_536
+"""Largest batch of any training or inference stage."""
+
+
 @dataclasses.dataclass(frozen=True)
 class VGGConfig:
     """The VGG16 of both place classifiers (the ``vgg`` section)."""
@@ -39,6 +45,7 @@ class VGGConfig:
             unit_interval=("dropout",),
             boolean=("pretrained",),
             string=("weights", "hha_weights"),
+            at_most={"width": 4.0},
         )
         errors = []
         if self.pretrained and not self.weights and self.width != 1.0:
@@ -84,17 +91,32 @@ class TrainConfig:
             positive_int=("epochs", "batch_size", "save_every"),
             nonnegative_int=("warmup_steps", "jitter_copies"),
             positive=("learning_rate",),
-            nonnegative=("weight_decay",),
+            nonnegative=("weight_decay", "jitter_shift", "jitter_zoom", "jitter_colour"),
             boolean=("shuffle_labels",),
             choices={"optimizer": OPTIMIZERS},
+            at_most={
+                "epochs": MAX_EPOCHS,
+                "batch_size": MAX_BATCH,
+                "warmup_steps": 10**8,
+                "jitter_copies": 100,
+                "learning_rate": 10.0,
+                "weight_decay": 10.0,
+                "jitter_shift": 1.0,
+                "jitter_zoom": 10.0,
+                "jitter_colour": 0.99,  # a contrast or saturation factor U(1 - c, 1 + c) stays above 0
+            },
         )
         from placejax.data import ViewJitter
 
-        try:
-            ViewJitter(shift=self.jitter_shift, zoom=self.jitter_zoom, brightness=self.jitter_colour)
-            ViewJitter(contrast=self.jitter_colour, saturation=self.jitter_colour)
-        except (TypeError, ValueError) as e:
-            raise _config.ConfigError(f"jitter_*: {e}") from None
+        for name, build in (
+            ("jitter_shift", lambda: ViewJitter(shift=self.jitter_shift)),
+            ("jitter_zoom", lambda: ViewJitter(zoom=self.jitter_zoom)),
+            ("jitter_colour", lambda: ViewJitter(brightness=self.jitter_colour, contrast=self.jitter_colour)),
+        ):
+            try:
+                build()
+            except (TypeError, ValueError) as e:
+                raise _config.ConfigError(f"{name}={_config._shown(getattr(self, name))}: {e}") from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +154,14 @@ class MLPConfig:
             unit_interval=("dropout", "input_dropout"),
             boolean=("jittered",),
             choices={"optimizer": OPTIMIZERS},
+            at_most={
+                "hidden": 65_536,
+                "epochs": MAX_EPOCHS,
+                "batch_size": MAX_BATCH,
+                "warmup_steps": 10**8,
+                "learning_rate": 10.0,
+                "weight_decay": 10.0,
+            },
         )
         md = self.modality_dropout
         if not (isinstance(md, int | float) and not isinstance(md, bool) and 0 <= md <= 0.5):
@@ -148,4 +178,4 @@ class EvalConfig:
     batch_size: int = _config.setting(128, "inference batch (divisible by the device count)")
 
     def __post_init__(self):
-        _config.check(self, positive_int=("batch_size",))
+        _config.check(self, positive_int=("batch_size",), at_most={"batch_size": MAX_BATCH})
