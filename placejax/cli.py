@@ -41,7 +41,15 @@ import threading
 import traceback
 from collections.abc import Callable, Sequence
 
-__all__ = ["EXIT_FAILURE", "EXIT_INTERRUPTED", "TRACEBACK_ENV", "TRACEBACK_FLAG", "command", "describe"]
+__all__ = [
+    "EXIT_FAILURE",
+    "EXIT_INTERRUPTED",
+    "TRACEBACK_ENV",
+    "TRACEBACK_FLAG",
+    "check_jax_platforms",
+    "command",
+    "describe",
+]
 
 EXIT_FAILURE = 2
 """Exit status of a command that failed."""
@@ -110,6 +118,8 @@ def command(main: Main | None = None, *, interrupted: str | None = None) -> Call
             args = list(sys.argv[1:] if entry else argv)
             show = _take_flag(args) or os.environ.get(TRACEBACK_ENV, "") not in ("", "0")
             try:
+                if "-h" not in args and "--help" not in args:
+                    check_jax_platforms()
                 return fn(args)
             except KeyboardInterrupt:
                 _flush()
@@ -127,6 +137,28 @@ def command(main: Main | None = None, *, interrupted: str | None = None) -> Call
         return run
 
     return wrap if main is None else wrap(main)
+
+
+def check_jax_platforms() -> None:
+    """With ``JAX_PLATFORMS`` naming another platform than the CPU (``cuda``, ``tpu``), checks that JAX finds it
+    before any work, since JAX itself then fails with a bare ``AssertionError`` at its first array.
+
+    Raises:
+        RuntimeError: naming the variable, its value, and the two ways out.
+    """
+    wanted = os.environ.get("JAX_PLATFORMS", "").strip()
+    if not wanted or wanted.lower() == "cpu":
+        return
+    import jax
+
+    try:
+        jax.devices()
+    except Exception as e:  # JAX's own: AssertionError, or RuntimeError naming the plugin
+        detail = f" ({type(e).__name__}: {e})" if str(e) else ""
+        raise RuntimeError(
+            f"JAX_PLATFORMS={wanted!r}: JAX found no such platform on this machine{detail}; for an NVIDIA GPU "
+            "install placejax with the cuda12 extra (docs/gpu.md), or unset JAX_PLATFORMS to run on the CPU"
+        ) from None
 
 
 def _take_flag(args: list[str]) -> bool:

@@ -508,3 +508,38 @@ def test_a_full_disk_is_an_oserror_naming_the_cache_file(tmp_path, monkeypatch):
         tmp_path, "big", 4, lambda a, b: np.ones((b - a, 8), np.float32), (8,), np.float32, key={"x": 1}
     )
     assert np.asarray(done.data).sum() == 32  # the failed build left nothing that is trusted
+
+
+def test_every_single_byte_change_of_a_manifest_is_a_cache_error_or_harmless(tmp_path):
+    """Each byte of a cache's manifest.json replaced by another: opening it either works (a byte JSON ignores, such
+    as spacing) or raises CacheError, never another exception (a renamed field used to end in KeyError)."""
+    from placejax.data.cache import _VERIFIED, CacheError
+
+    data = np.arange(12, dtype=np.float32).reshape(4, 3)
+    c = build_array_cache(
+        tmp_path,
+        "m",
+        4,
+        lambda a, b: data[a:b],
+        (3,),
+        np.float32,
+        key={"v": 1},
+        extras={"t": np.arange(4)},
+        progress=False,
+    )
+    mpath = c.path / "manifest.json"
+    original = mpath.read_bytes()
+    outcomes = {"opened": 0, "CacheError": 0}
+    for i in range(len(original)):
+        for new in {ord("x"), original[i] ^ 0x01}:
+            raw = bytearray(original)
+            raw[i] = new
+            mpath.write_bytes(bytes(raw))
+            _VERIFIED.clear()
+            try:
+                open_array_cache(c.path)
+                outcomes["opened"] += 1
+            except CacheError:
+                outcomes["CacheError"] += 1
+    mpath.write_bytes(original)
+    assert outcomes["CacheError"] > len(original)  # most changes break it, and all of those say so

@@ -741,3 +741,46 @@ def test_manifest_depth_scan_is_exact_and_linear():
         "assert _json_depth(b'[{\"' + b'\\\\\\\\\\\\x' * 100_000) == 2\n",
         cpu_s=30,
     )
+
+
+def test_a_sparse_multi_gigabyte_run_index_is_refused_unread(tmp_path):
+    """A classifiers.json of 4 GB (sparse: no disk used) is refused by its size, not read into memory."""
+    from placejax.classify.run_layout import INDEX_NAME, MAX_INDEX_BYTES, locate_run, run_sessions
+
+    with open(tmp_path / INDEX_NAME, "wb") as f:
+        f.truncate(4 << 30)
+    for read in (lambda: run_sessions(tmp_path), lambda: locate_run(tmp_path, "WI")):
+        with pytest.raises(ValueError, match=f"more than {MAX_INDEX_BYTES:,} for a run's index"):
+            read()
+
+
+def test_tracker_step_names_its_argument(tiny_clf):
+    from placejax.classify import Tracker
+
+    tracker = Tracker(tiny_clf)
+    ragged = [np.zeros((8, 8, 3), np.uint8), np.zeros((4, 4, 3), np.uint8)]
+    with pytest.raises(ValueError, match=r"Tracker.step: rgb_uint8 must be one uint8 RGB image .* a list of 2 items"):
+        tracker.step(ragged, 0.0)
+    with pytest.raises(ValueError, match=r"Tracker.step: rgb_uint8 must be one uint8 RGB image \(H, W, 3\), got shape"):
+        tracker.step(np.zeros((2, 8, 8, 3), np.uint8), 0.0)
+
+
+@pytest.mark.slow
+def test_a_missing_jax_platform_is_one_line_naming_the_variable(tiny, tmp_path):
+    ok = tmp_path / "ok.png"
+    cv2.imwrite(str(ok), np.zeros((8, 8, 3), np.uint8))
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+        "JAX_PLATFORMS": "cuda",
+    }
+    env.pop("PLACEJAX_TRACEBACK", None)
+    for argv in (
+        ["-m", "placejax.classify", str(tiny), str(ok)],
+        ["-m", "experiments.cross_season", "--preset", "smoke", "--workdir", str(tmp_path / "run")],
+    ):
+        done = subprocess.run([sys.executable, *argv], capture_output=True, text=True, env=env, timeout=120)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2 and len(lines) == 1, done.stderr[-2000:]
+        assert lines[0].startswith("error: JAX_PLATFORMS='cuda': JAX found no such platform") and "cuda12" in lines[0]
+    assert not (tmp_path / "run").exists()

@@ -454,6 +454,8 @@ def test_every_number_key_refuses_an_absurd_value_before_any_stage(tmp_path):
     from experiments.overrides import leaf_keys
 
     base = get_config("smoke")
+    with pytest.raises(ValueError, match="more than 65,536"):  # parsed whole, a 10 MB value took over 1 GiB
+        apply_overrides(get_config("smoke"), ["data.sessions=(" + "'x'," * 2_500_000 + ")"])
     tried = 0
     for key in leaf_keys(base):
         *parents, leaf = key.split(".")

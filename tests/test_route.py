@@ -651,3 +651,10 @@ def test_doctest_examples():
     for module in (route, _filter, _calibration, _odometry):
         globs = {"np": np, "PlaceGrid": PlaceGrid, "FilterConfig": route.FilterConfig}
         assert doctest.testmod(module, extraglobs=globs).failed == 0, module.__name__
+
+
+def test_an_odometer_beyond_a_million_kilometres_is_refused():
+    """[-1e308, 1e308] is finite, but its difference overflows to inf: refused as no odometer reading."""
+    with pytest.raises(ValueError, match="not an odometer reading"):
+        route.moved_from_travelled([-1e308, 1e308])
+    assert route.moved_from_travelled([0.0, 5e8]).tolist() == [0.0, 5e8]

@@ -142,9 +142,17 @@ class Tracker:
         Raises:
             ValueError: the image's logits are not finite (`step` reports such an image as unknown instead).
         """
-        x = np.asarray(rgb_uint8)
+        if isinstance(rgb_uint8, list | tuple):
+            raise ValueError(
+                f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got a {type(rgb_uint8).__name__} of "
+                f"{len(rgb_uint8)} items (step takes one image at a time: call it once per frame)"
+            )
+        try:
+            x = np.asarray(rgb_uint8)
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"Tracker.step: rgb_uint8 is not an image array ({e})") from None
         if x.ndim != 3:
-            raise ValueError(f"Tracker takes one uint8 RGB image (H, W, 3) at a time, got shape {x.shape}")
+            raise ValueError(f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got shape {x.shape}")
         return route.calibrated_probabilities(self.classifier.logits(x[None])[self.branch][0], self.temperature)
 
     def step(self, rgb_uint8, moved_m: float) -> TrackStep:
@@ -158,9 +166,17 @@ class Tracker:
             A :class:`TrackStep`; ``rejected`` (label ``-1``, ``unknown`` 1.0) when the image's logits are not
             finite.
         """
-        x = np.asarray(rgb_uint8)
+        if isinstance(rgb_uint8, list | tuple):
+            raise ValueError(
+                f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got a {type(rgb_uint8).__name__} of "
+                f"{len(rgb_uint8)} items (step takes one image at a time: call it once per frame)"
+            )
+        try:
+            x = np.asarray(rgb_uint8)
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"Tracker.step: rgb_uint8 is not an image array ({e})") from None
         if x.ndim != 3:
-            raise ValueError(f"Tracker takes one uint8 RGB image (H, W, 3) at a time, got shape {x.shape}")
+            raise ValueError(f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got shape {x.shape}")
         outputs = self.classifier.logits(x[None])
         frame = self.classifier.prediction_from_outputs(outputs, self.branch)
         logits = np.asarray(outputs[self.branch][0], np.float64)

@@ -48,6 +48,7 @@ __all__ = [
     "CACHE_DIR",
     "CACHE_STAGES",
     "INDEX_NAME",
+    "MAX_INDEX_BYTES",
     "MLP_DIR",
     "NETS_DIR",
     "UNKNOWN_DIR",
@@ -155,6 +156,10 @@ def write_run_index(workdir: str | os.PathLike, index: dict[str, Any]) -> Path:
     return path
 
 
+MAX_INDEX_BYTES = 64 * 1024 * 1024
+"""Largest ``classifiers.json`` read (a run's index is kilobytes)."""
+
+
 def _read_index(workdir: Path) -> dict[str, Any]:
     """The run's ``classifiers.json``, checked for its format (errors as :func:`locate_run`'s)."""
     path = workdir / INDEX_NAME
@@ -163,10 +168,16 @@ def _read_index(workdir: Path) -> dict[str, Any]:
             f"{path} not found: {workdir} is not a finished experiments.cross_season run (rerun the same "
             "command there; it resumes from its caches and writes the index at the end)"
         )
+    size = path.stat().st_size
+    if size > MAX_INDEX_BYTES:  # a run's index is kilobytes; a sparse file of gigabytes is not read into memory
+        raise ValueError(f"{path}: {size:,} bytes, more than {MAX_INDEX_BYTES:,} for a run's index (MAX_INDEX_BYTES)")
     try:
-        index = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
+        with path.open("rb") as f:
+            index = json.loads(f.read(MAX_INDEX_BYTES + 1))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: invalid JSON ({e})") from None
+    if not isinstance(index, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(index).__name__}")
     if index.get("format") != _FORMAT or index.get("version") != _VERSION:
         raise ValueError(
             f"{path}: format {index.get('format')!r} version {index.get('version')!r}, expected {_FORMAT!r} "

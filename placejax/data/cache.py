@@ -197,6 +197,11 @@ def open_array_cache(path: str | os.PathLike, key: Mapping | None = None, *, ver
         raise CacheError(f"{mpath}: corrupt manifest ({e})") from None
     if not isinstance(manifest, dict) or not isinstance(manifest.get("extras", []), list):
         raise CacheError(f"{mpath}: corrupt manifest (not a JSON object)")
+    # Every field read below, of its type: a flipped byte in a field's name must be this error, not a KeyError.
+    kinds = {"shape": list, "dtype": str, "key": dict, "extras": list}
+    wrong = [f for f, t in kinds.items() if not isinstance(manifest.get(f), t)]
+    if wrong or not all(isinstance(n, str) for n in manifest["extras"]):
+        raise CacheError(f"{mpath}: corrupt manifest (field(s) {wrong or ['extras']} missing or of another type)")
     if manifest.get("format_version") != FORMAT_VERSION or manifest.get("complete") is not True:
         raise CacheError(f"{mpath}: incomplete or format {manifest.get('format_version')} != {FORMAT_VERSION}")
     if key is not None and manifest.get("key") != json.loads(_canonical(key)):

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+MAX_TRAVELLED_M = 1e9
+"""Largest odometer reading (metres, a million kilometres): anything beyond is not a robot's distance travelled."""
+
 
 def moved_from_travelled(travelled_m) -> np.ndarray:
     """Per-frame distances from an odometer reading, float64 ``(T,)`` with ``moved[0] = 0``.
@@ -22,6 +25,11 @@ def moved_from_travelled(travelled_m) -> np.ndarray:
         raise ValueError(f"travelled_m must have shape (T,) with T >= 1, got {t.shape}")
     if not np.isfinite(t).all():
         raise ValueError("travelled_m contains NaN or inf")
+    if np.abs(t).max() > MAX_TRAVELLED_M:
+        raise ValueError(
+            f"travelled_m reaches {np.abs(t).max():.3g} m, beyond {MAX_TRAVELLED_M:g} m: not an odometer reading "
+            "(metres? the differences would overflow)"
+        )
     d = np.diff(t, prepend=t[0])
     if (d < 0).any():
         first = int(np.argmax(d < 0))

@@ -141,8 +141,18 @@ def _parse(path: Path, text: str) -> object:
             raise _err(path, None, f"malformed JSON ({e})") from None
     import yaml  # PyYAML ships with ml-collections, a placejax dependency
 
+    class NoAliasLoader(yaml.SafeLoader):
+        # Aliases are refused as the parser meets them, before anything is built: an alias "bomb" of a few hundred
+        # bytes expands into gigabytes, and a camera file has no use for one.
+        def compose_node(self, parent, index):
+            if self.check_event(yaml.AliasEvent):
+                raise _AliasRefused(self.peek_event().start_mark.line + 1)
+            return super().compose_node(parent, index)
+
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=NoAliasLoader)  # SafeLoader's constructors: no arbitrary objects
+    except _AliasRefused as e:
+        line = e.args[0]
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         problem = getattr(e, "problem", None) or type(e).__name__
@@ -152,6 +162,11 @@ def _parse(path: Path, text: str) -> object:
         raise _err(path, None, msg) from None
     except ValueError as e:  # an integer beyond Python's digit limit for int()
         raise _err(path, None, f"malformed YAML ({_quote(str(e))})") from None
+    raise _err(path, line, "YAML aliases (*name) are not read in a camera file: write the values")
+
+
+class _AliasRefused(Exception):
+    """A YAML alias in a camera file (its line)."""
 
 
 def read_camera(path: str | os.PathLike, limits: FolderLimits | None = None) -> CameraSpec:
