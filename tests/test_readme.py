@@ -15,6 +15,7 @@ Bash blocks run the full experiment, so they are only checked: every ``python -m
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import re
 import shlex
@@ -229,3 +230,71 @@ def test_the_test_command_keeps_a_group_on_one_worker(tmp_path):
     assert out.returncode == 0, out.stdout + out.stderr
     workers = re.findall(r"^WORKER (gw\d+)$", out.stdout, re.MULTILINE)
     assert len(workers) == 6 and len(set(workers)) == 1, out.stdout
+
+
+RECORD = REPO / "docs" / "cross_season" / "results.json"
+
+
+def test_the_readme_quotes_the_committed_record_of_its_default_run():
+    """Every row of the README's table, its headline time and memory, its ceilings and baselines, and its route and
+    unseen-place figures equal the committed record of the run (docs/cross_season/results.json), rounded as
+    printed: a number there changes only with the record that backs it."""
+    from experiments.cross_season.driver import duration
+
+    rec = json.loads(RECORD.read_text())
+    text = README.read_text()
+    assert rec["preset"] == "default" and rec["record"]["command"] and rec["record"]["commit"]
+    pct = lambda x: f"{100 * x:.1f}"
+    acc = lambda r, m, sd: f"{pct(r[m])} ± {pct(sd)}"
+
+    def gain(delta: float, iv: dict) -> str:
+        return f"{100 * delta:+.1f} [{100 * iv['lo']:+.1f}, {100 * iv['hi']:+.1f}]" + (
+            "*" if iv["excludes_zero"] else ""
+        )
+
+    rows = [line for line in text.splitlines() if re.match(r"^\| (WI|SP|SU|AU|\*\*mean\*\*) \|", line)]
+    assert len(rows) == 13
+    for p, row in zip(rec["pairs"], rows[:12], strict=True):
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[:8] == [
+            p["train"],
+            p["test"],
+            acc(p, "ours", p["ours_sd"]),
+            acc(p, "rgb_net", p["rgb_net_sd"]),
+            gain(p["ours"] - p["rgb_net"], p["gain_vs_rgb_net"]),
+            acc(p, "hha_net", p["hha_net_sd"]),
+            gain(p["ours"] - p["hha_net"], p["gain_vs_hha_net"]),
+            acc(p, "average", p["average_sd"]),
+        ], (p["train"], p["test"])
+    m, sd, g = rec["mean"], rec["mean_sd_over_seeds"], rec["gains"]
+    cells = [c.strip() for c in rows[12].strip("|").split("|")]
+    assert cells[2:8] == [
+        acc(m, "ours", sd["ours"]),
+        acc(m, "rgb_net", sd["rgb_net"]),
+        gain(m["ours"] - m["rgb_net"], g["ours_vs_rgb_net"]),
+        acc(m, "hha_net", sd["hha_net"]),
+        gain(m["ours"] - m["hha_net"], g["ours_vs_hha_net"]),
+        acc(m, "average", sd["average"]),
+    ]
+    flat = " ".join(text.split())
+    assert f"**{duration(rec['timings_s']['total'])}, peak RSS {rec['peak_rss_mib']['total'] / 1024:.2f} GiB**" in flat
+    c = rec["ceilings_and_baselines"]
+    assert (
+        f"seen classes {pct(c['seen_class_fraction'])}, seen class with a heading within ±45° "
+        f"{pct(c['heading_ceiling'])}, 1-NN on 12 × 12 RGB thumbnails {pct(c['nn_rgb'])}, on gradient thumbnails "
+        f"{pct(c['nn_gradient'])}, on 16 × 16 HHA thumbnails of this run's depth {pct(c['nn_hha'])}, of rendered "
+        f"depth {pct(c['nn_hha_true'])}"
+    ) in flat
+    r, rg = rec["route"]["mean"], rec["route"]["gains"]
+    ours_route = rg["ours_route_vs_ours"]
+    rgb_route = rg["rgb_net_route_vs_rgb_net"]
+    assert (
+        f"Ours {pct(m['ours'])} → {pct(r['ours_route'])} % ({gain(ours_route['gain'], ours_route).rstrip('*')}), "
+        f"RGB-Net {pct(m['rgb_net'])} → {pct(r['rgb_net_route'])} % ({gain(rgb_route['gain'], rgb_route).rstrip('*')})"
+    ) in flat
+    u, k = rec["route"]["unknown_mean"], rec["unknown"]["mean"]
+    assert (
+        f"{u['unknown_route_auroc']:.2f} for the route's unknown state ({100 * u['unknown_route_rejected_seen']:.0f} % "
+        f"of seen, {100 * u['unknown_route_rejected_unseen']:.0f} % of unseen frames rejected), "
+        f"{k['unknown_knn1_auroc']:.2f} for the distance"
+    ) in flat

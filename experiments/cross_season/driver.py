@@ -58,6 +58,28 @@ def versions() -> dict[str, str]:
     return out
 
 
+def code_commit() -> str | None:
+    """The git commit of the code that runs (``None`` outside a git checkout): recorded in ``results.json``, with
+    ``+dirty`` when tracked files differ from it."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return f"{head}+dirty" if dirty else head
+
+
 def finished_results(workdir: str | Path, config: ml_collections.ConfigDict) -> dict | None:
     """The ``results.json`` of a finished run of ``config`` in ``workdir`` (read only), or ``None``."""
     path = Path(workdir) / "results.json"
@@ -233,6 +255,7 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
         "seeds": {"seed": config.seed, "seeds": [config.seed + k for k in range(config.n_seeds)]},
         "devices": {"count": ws.mesh.size, "platform": jax.devices()[0].platform, "processes": jax.process_count()},
         "versions": versions(),
+        "commit": code_commit(),
         "timings_s": {k: round(v, 3) for k, v in ws.timings.items()},
         "peak_rss_mib": {**ws.peak_rss_mib, "total": stages.peak_rss_mib()},
     }
