@@ -233,6 +233,11 @@ def _cases(t: Path) -> dict[str, tuple[list[str], dict[str, str], str]]:
         ),
         "simcampus_sanity": (["-m", "experiments.simcampus_sanity", "--out", str(t / "s.json")], bogus, no_backend),
         "unseen_diagnose": (["-m", "experiments.unseen_diagnose", str(nope)], {}, f"{nope}/results.json not found"),
+        "record": (
+            ["-m", "experiments.cross_season.record", str(nope), "--command", "x", "--out", str(t / "rec")],
+            {},
+            f"{nope / 'results.json'} not found",
+        ),
         "classify": (
             ["-m", "placejax.classify", str(nope / "model.placejax"), str(t / "image.png")],
             {},

@@ -192,15 +192,15 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
     story = _Story(ws)
     seeds = [config.seed + k for k in range(config.n_seeds)]
     devices = list(ws.mesh.devices.flat)  # the devices the run trains on (devices=N may use fewer than there are)
-    story.say(
+    if jax.process_index() == 0:
+        io.write_json(workdir / "config.json", config.to_dict())
+    story.say(  # once the run has written its first file: a run that could not start says only why
         f"cross_season: preset {config.preset}, work directory {workdir}, "
         f"{len(seeds)} seed{'s' if len(seeds) > 1 else ''} ({', '.join(map(str, seeds))}), "
         f"{len(devices)} {devices[0].platform} device{'s' if len(devices) > 1 else ''}"
         + (f" in {jax.process_count()} processes" if jax.process_count() > 1 else "")
         + ("; bars off (progress=False)" if not ws.progress else "")
     )
-    if jax.process_index() == 0:
-        io.write_json(workdir / "config.json", config.to_dict())
 
     with story.step("sessions", lambda: f"{len(sessions)} sessions, {sum(len(s) for s in sessions)} frames"):
         with ws.timed("sessions"):
