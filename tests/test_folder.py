@@ -810,7 +810,7 @@ def test_folder_source_config_checked():
 
     cfg = get_config("smoke")
     apply_overrides(cfg, ["data.source=folder"])
-    with pytest.raises(ValueError, match=r"data.source='folder' needs root="):
+    with pytest.raises(ValueError, match=r"data.source='folder' needs data.root="):
         validate(cfg)
     apply_overrides(cfg, ["data.root=/x", "data.stride=0"])
     with pytest.raises(ValueError, match=r"data.stride=0: expected an int in \[1, "):

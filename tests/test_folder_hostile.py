@@ -627,7 +627,8 @@ def test_the_command_in_a_fresh_process_prints_one_line_and_exits_1(tmp_path):
         lines
     )
     assert lines[0].endswith("m is farther than 100000 m from the origin on an axis (FolderLimits.max_coordinate_m): "
-                             "not a position a robot drives to"), lines  # fmt: skip
+                             "not a position a robot drives to (positions are in metres: millimetres or centimetres "
+                             "need dividing by 1000 or 100)"), lines  # fmt: skip
     assert not (tmp_path / "sessions_map.png").exists()
 
 

@@ -31,7 +31,7 @@ def test_true_depth_of_a_folder_is_resized_like_its_images():
 
 def test_every_section_checks_its_ranges_and_names_the_field():
     for cls, bad, match in (
-        (DataConfig, {"image_size": (8, 8)}, r"image_size=\(8, 8\): expected \(H, W\), ints >= 16"),
+        (DataConfig, {"image_size": (8, 8)}, r"image_size=\(8, 8\): expected \(H, W\), ints in \[16, 2048\]"),
         (DataConfig, {"sessions": ("WI",)}, r"two or more distinct session names"),
         (DataConfig, {"root": "/x"}, r"read only with source='folder'"),
         (GridConfig, {"n": 0}, r"n=0: expected an int in \[1, "),

@@ -62,10 +62,10 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".p
 """Suffixes taken as images in ``images/`` when there is no ``images.csv`` (formats whose header is checked)."""
 TIME_UNITS = {"s": 0, "ms": 3, "us": 6, "ns": 9}  # decimal places below the second
 QUATERNION_NORM_TOLERANCE = 1e-3
+"""A quaternion whose norm is farther than this from 1 is an error, not rounding (TUM files carry 4–7 digits)."""
 MIN_NAME_STEP_US = 1000
 """Image names read as times less than this far apart (median, µs: a camera above 1,000 frames/s) are frame numbers
 (``000000.png``, ``000001.png``), refused rather than all matched to the trajectory's first pose."""
-"""A quaternion whose norm is farther than this from 1 is an error, not rounding (TUM files carry 4–7 digits)."""
 # Plain ASCII decimals (Decimal() alone would also take "1_000", "NaN" and non-ASCII digits).
 _DECIMAL = re.compile(r"\+?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 # Exact for any decimal a line can hold; the exponent is bounded before the context is used.
