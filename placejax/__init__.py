@@ -22,6 +22,7 @@ JAX, Flax or OpenCV until a subpackage is used):
   `placejax.classify.forward` and unseen-place scores.
 - `placejax.evaluation`: top-1 accuracy, seed means and paired bootstrap intervals of a gain.
 - `placejax.io`: atomic file writes and the npz-record reader.
+- `placejax.progress`: progress as live bars in a terminal and timestamped lines in a log.
 - `PlaceClassifier`, `Prediction`: shortcuts for `placejax.classify.PlaceClassifier` and
   `placejax.classify.Prediction`.
 """
@@ -47,6 +48,7 @@ __all__ = [
     "io",
     "models",
     "pretrain",
+    "progress",
     "route",
     "stages",
     "training",
@@ -67,6 +69,7 @@ if _TYPE_CHECKING:  # what IDEs and type checkers see; at run time the same name
         io,
         models,
         pretrain,
+        progress,
         route,
         stages,
         training,

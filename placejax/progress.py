@@ -31,6 +31,7 @@ from tqdm import tqdm
 __all__ = ["LOG_INTERVAL_S", "bar", "interactive", "say", "stamp"]
 
 LOG_INTERVAL_S = 30.0
+"""Seconds between two progress lines of one loop in a log (``PLACEJAX_PROGRESS_INTERVAL`` overrides it)."""
 
 
 def _stream(file: IO[str] | None) -> IO[str]:
