@@ -175,6 +175,32 @@ def test_the_paper_columns_only_beside_its_own_sessions_and_a_smoke_table_says_i
     assert "paper: Ours" not in text and "2012-01-22" not in text
 
 
+def test_the_rendered_depth_ceiling_adds_columns_and_changes_none(smoke, tmp_path):
+    """``ablations.rendered``: HHA-Net and the fusion trained again on HHA of rendered depth, as extra columns with
+    the fusion's gains over them; every other column of the run is the run's without it, to the bit (the RGB nets
+    are reloaded, not retrained)."""
+    import shutil
+
+    workdir, base = smoke
+    copy = tmp_path / "run"
+    shutil.copytree(workdir, copy, ignore=shutil.ignore_patterns(".lock"))
+    results = run(smoke_config("ablations.rendered=True"), copy)
+    for p, q in zip(base["pairs"], results["pairs"], strict=True):
+        for m in ("ours", "rgb_net", "hha_net", "average", "depth1_net"):
+            assert p[f"{m}_per_seed"] == q[f"{m}_per_seed"], m
+        for m in ("ours_rendered", "hha_net_rendered", "average_rendered"):
+            assert len(q[f"{m}_per_seed"]) == 2 and 0.0 <= q[m] <= 1.0
+        assert "gain_ours_rendered_vs_hha_net_rendered" in q and "gain_ours_rendered_vs_average_rendered" in q
+    assert {"ours_rendered_vs_hha_net_rendered", "ours_rendered_vs_average_rendered"} <= set(results["gains"])
+    # HHA on rendered depth is another input: its nets are other nets.
+    assert any(p["hha_net_rendered_per_seed"] != p["hha_net_per_seed"] for p in results["pairs"])
+    table = (copy / "table.md").read_text()
+    assert "HHA-Net (rendered depth)" in table and "Ours (rendered depth)" in table
+    from experiments.cross_season.report.table import table_text
+
+    assert "on rendered depth (the ceiling): HHA-Net" in table_text(results)
+
+
 @pytest.mark.parametrize("preset", ["smoke", "default", "paper"])
 def test_no_builtin_preset_collapses_the_map_before_fc6(preset):
     """fc6 must see spatial cells: the trunk's last max-pooled map is at least 2 × 2 at every preset's size."""

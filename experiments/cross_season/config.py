@@ -85,9 +85,14 @@ class Ablations:
 
     depth1: bool = _config.setting(True, "also train a net on the 1-channel depth image (the HHA disparity channel ×3)")
     average: bool = _config.setting(True, "also report equal-weight averaging of RGB-Net and HHA-Net softmax outputs")
+    rendered: bool = _config.setting(
+        False,
+        "the ceiling: also train HHA-Net and the fusion on HHA of rendered depth (columns hha_net_rendered, "
+        "ours_rendered, average_rendered): how many points the pseudo depth costs",
+    )
 
     def __post_init__(self):
-        _config.check(self, boolean=("depth1", "average"))
+        _config.check(self, boolean=("depth1", "average", "rendered"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -232,6 +237,11 @@ def _cross_section_errors(c: ml_collections.ConfigDict, n_devices: int | None) -
         errors.append(
             "depth.source='true' needs true depth: data.source='simcampus' renders it, session folders may have it "
             "(depth/), NCLT has none"
+        )
+    if c.ablations.rendered and (c.data.source == "nclt" or c.depth.source == "true"):
+        errors.append(
+            "ablations.rendered needs true depth beside a depth network: data.source='simcampus' (or session "
+            "folders with depth/) and depth.source other than 'true' (whose columns already are the rendered ones)"
         )
     if c.train.jitter_copies and not c.vgg.pretrained:
         errors.append("train.jitter_copies needs vgg.pretrained=True (the copies' frozen-trunk features are cached)")

@@ -24,6 +24,7 @@ rerun ends with the same accuracies as an uninterrupted run.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import time
@@ -37,7 +38,7 @@ import numpy as np
 from experiments.cross_season import config as _config
 from placejax import io, progress, stages
 from placejax.data import release_mapped_pages
-from placejax.depth import depth_source
+from placejax.depth import DepthSourceConfig, depth_source
 from placejax.training import data_mesh, release_free_memory, sync_processes
 
 
@@ -234,6 +235,29 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
             )
         _release_memory()
     first = runs[0]  # the first seed's models: figures and PlaceClassifier
+    rendered_runs = None
+    if c["ablations"].rendered:
+        # The ceiling: the same nets and fusion on HHA of rendered depth (the RGB nets are the ones above, reloaded
+        # from their checkpoints; the HHA nets and MLPs are new).
+        with story.step("rendered depth", lambda: "HHA-Net and the fusion on HHA of rendered depth"):
+            true_source = depth_source(DepthSourceConfig(source="true"))
+            caches = stages.depth_and_hha(ws, sessions, true_source, c["depth"].batch_size)
+            rendered = [dataclasses.replace(s, depth=d, hha=h) for s, (d, h) in zip(sessions, caches, strict=True)]
+            rendered_runs = [
+                stages.train_seed(
+                    ws,
+                    rendered,
+                    num_classes,
+                    vgg=c["vgg"],
+                    train_cfg=c["train"],
+                    mlp=c["mlp"],
+                    eval_cfg=c["eval"],
+                    seed=seed,
+                    modalities=("rgb", "hha"),
+                )
+                for seed in seeds
+            ]
+        _release_memory()
 
     with story.step("baselines"):
         with ws.timed("baselines"):
@@ -241,7 +265,7 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
     _release_memory()
 
     with story.step("evaluate", lambda: f"{len(scores['pairs'])} train → test pairs"):
-        scores = report.evaluate(ws, config, sessions, runs, thumbs)
+        scores = report.evaluate(ws, config, sessions, runs, thumbs, rendered_runs=rendered_runs)
     with story.step("route"):
         scores["route"], route_traces = report.route_columns(ws, config, sessions, runs, grid, scores["pairs"])
     ws.timings["total"] = time.perf_counter() - t_start

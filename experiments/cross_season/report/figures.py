@@ -17,6 +17,9 @@ METHOD_COLOURS = {
     "hha_net": "tab:green",
     "depth1_net": "tab:purple",
     "average": "tab:gray",
+    "ours_rendered": "lightsteelblue",
+    "hha_net_rendered": "palegreen",
+    "average_rendered": "gainsboro",
 }
 
 _FONT = {

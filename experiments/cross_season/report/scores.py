@@ -13,7 +13,13 @@ from placejax.stages import SeedRun, SessionData, Workspace, fused_embedding, pa
 
 
 def evaluate(
-    ws: Workspace, config: ml_collections.ConfigDict, sessions: list[SessionData], runs: list[SeedRun], thumbs: dict
+    ws: Workspace,
+    config: ml_collections.ConfigDict,
+    sessions: list[SessionData],
+    runs: list[SeedRun],
+    thumbs: dict,
+    *,
+    rendered_runs: list[SeedRun] | None = None,
 ) -> dict[str, Any]:
     """Scores every method of every seed's ``runs`` (``placejax.stages.train_seed``) on every ordered session pair.
 
@@ -23,6 +29,8 @@ def evaluate(
         sessions: every session, labelled.
         runs: one per seed.
         thumbs: ``placejax.stages.baseline_features``.
+        rendered_runs: with ``ablations.rendered``, one run per seed on HHA of rendered depth: the columns
+            ``ours_rendered``, ``hha_net_rendered``, ``average_rendered``.
 
     Returns:
         The scoring part of ``results.json``: ``pairs`` (one row per cross-session pair: each method's mean, sd and
@@ -39,6 +47,9 @@ def evaluate(
             for t in sessions:
                 row: dict[str, Any] = {"train": s.name, "test": t.name, "n_test": len(t)}
                 per_seed = [method_logits(r, s.name, t.name, config) for r in runs]
+                if rendered_runs:
+                    for logits, rr in zip(per_seed, rendered_runs, strict=True):
+                        logits.update(rendered_logits(rr, s.name, t.name, config))
                 for m in per_seed[0]:
                     accs = [top1(logits[m], t.labels) for logits in per_seed]
                     row[m], row[f"{m}_sd"] = mean_sd(accs)
@@ -53,7 +64,7 @@ def evaluate(
                     }
                 pairs.append(row)
     cross = [p for p in pairs if p["train"] != p["test"]]
-    methods = [k for k in ("ours", "rgb_net", "hha_net", "depth1_net", "average") if k in cross[0]]
+    methods = [k for k in METHODS if k in cross[0]]
     gains = _gain_intervals(cross, config.seed)
     return {
         "pairs": cross,
@@ -76,6 +87,29 @@ def evaluate(
             },
         },
     }
+
+
+METHODS = (
+    "ours",
+    "rgb_net",
+    "hha_net",
+    "depth1_net",
+    "average",
+    "ours_rendered",
+    "hha_net_rendered",
+    "average_rendered",
+)
+"""Every method column a run may have (the last three: ``ablations.rendered``, on HHA of rendered depth)."""
+
+
+def rendered_logits(run: SeedRun, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
+    """The ceiling columns of one seed on one pair: the fusion, HHA-Net and their softmax average with HHA-Net
+    trained on HHA of rendered depth (``run``: the seed's run on those sessions; its RGB-Net is the main one)."""
+    base = method_logits(run, train, test, config)
+    out = {"ours_rendered": base["ours"], "hha_net_rendered": base["hha_net"]}
+    if "average" in base:
+        out["average_rendered"] = base["average"]
+    return out
 
 
 def method_logits(run: SeedRun, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
@@ -101,6 +135,13 @@ def _gain_intervals(cross: list[dict], seed: int) -> dict:
         for p, g in zip(cross, per_pair, strict=True):
             p[f"gain_vs_{base}"] = g
         out[f"ours_vs_{base}"] = mean
+    # The ceiling's fusion against its own HHA-Net and average (ablations.rendered).
+    for base in ("hha_net_rendered", "average_rendered"):
+        if "ours_rendered" in correct[0] and base in correct[0]:
+            per_pair, mean = gain_intervals([frame_gains(c["ours_rendered"], c[base]) for c in correct], seed=seed)
+            for p, g in zip(cross, per_pair, strict=True):
+                p[f"gain_ours_rendered_vs_{base}"] = g
+            out[f"ours_rendered_vs_{base}"] = mean
     return out
 
 
