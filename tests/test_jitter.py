@@ -89,12 +89,14 @@ def test_experiment_settings():
 
 
 def test_large_is_the_default_with_three_times_the_steps():
-    """``--preset large`` differs from the default in the heads' epochs alone (docs/lookup-gap.md, round 3)."""
+    """``--preset large`` differs from the default in the heads' epochs (docs/lookup-gap.md) and the ceiling
+    columns on rendered depth, which change no other column."""
     default, large, paper = get_config("default"), get_config("large"), get_config("paper")
     validate(default)
     validate(large)
     differ = {k for k in leaf_keys(default) if get(default, k) != get(large, k)}
-    assert differ == {"preset", "train.epochs"}
+    assert differ == {"preset", "train.epochs", "ablations.rendered"}
+    assert large.ablations.rendered and not default.ablations.rendered
     assert large.train.epochs == 3 * default.train.epochs
     assert default.train.jitter_copies == 2 and default.mlp.input_dropout == 0.5
     # The paper's recipe has neither.
