@@ -10,7 +10,7 @@ the median ms per frame over ``--repeats`` timed runs after one untimed compile 
 spread (max − min) / median of the runs. ``batch``: `placejax.route.forward` over the whole session (a jitted
 loop, 64 frames per call), timed to the result on the host; ``streaming``: `RouteFilter.step` frame by frame,
 each call returning the belief to NumPy, as a robot would use it; ``smooth lag L``: `placejax.route.smooth`.
-Target (issue 39): < 1 ms per frame for 100 cells.
+Target: < 1 ms per frame for 100 cells.
 
 ``Tracker.step``: a ``PlaceClassifier`` of the built-in size with random weights (the default preset's: 96×96
 images, the default depth network over its ten views, VGG16 at 1/8 width with float16 trunk features, the fusion

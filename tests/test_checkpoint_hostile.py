@@ -344,7 +344,7 @@ def test_tiny_files_cost_little(tmp_path):
     assert "declares 4294967280 bytes but stores 24" in got["size_lie.pt"]["message"]
 
 
-# --- round two (issue 42): cost per byte and hashing work ------------------------------------------------
+# --- cost per byte and hashing work ------------------------------------------------------------------
 
 
 def _views_of_compressed_records(n: int) -> bytes:

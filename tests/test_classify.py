@@ -481,7 +481,7 @@ def test_results_and_table_carry_the_unknown_columns(smoke_run):
 
 
 def test_from_run_uses_the_score_chosen_on_world_1(smoke_run, clf, experiment_outputs):
-    """The classifier rejects by ``unknown.DEFAULT_SCORE`` (k-NN of the fused embedding since issue 39), with the
+    """The classifier rejects by ``unknown.DEFAULT_SCORE`` (k-NN of the fused embedding), with the
     held-out threshold of the run's index and the reference of the run's saved training embeddings."""
     _, workdir, _ = smoke_run
     entry = json.loads((workdir / "classifiers.json").read_text())["sessions"][TRAIN]

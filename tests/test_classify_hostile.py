@@ -1,4 +1,4 @@
-"""Classifier files, images and HHA inputs against hostile and careless input (issue 42).
+"""Classifier files, images and HHA inputs against hostile and careless input.
 
 Every file is written here: a tiny but complete classifier (built from the modules' own parameter shapes, no
 training), then edited into each case of the issue. Files whose reading could exhaust memory under a weaker reader

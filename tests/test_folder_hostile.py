@@ -1,4 +1,4 @@
-"""Session folders against hostile and careless input (issue 49): values beyond their physical bounds, files beyond
+"""Session folders against hostile and careless input: values beyond their physical bounds, files beyond
 their budgets, images and depth files whose headers claim gigabytes, paths that leave the folder.
 
 Every case is built here from a small valid session folder, edited into the case. Each case is read twice, the way

@@ -1,6 +1,6 @@
-"""``Tracker`` with the classifier's own route settings (issue 48): a classifier file carries the run's
+"""``Tracker`` with the classifier's own route settings: a classifier file carries the run's
 ``FilterConfig``, schema-checked; a Tracker built from it reproduces the run's ``Ours + route`` column frame by
-frame; a broken frame is reported as unknown (issue 49); both have a useful ``repr`` (issue 50)."""
+frame; a broken frame is reported as unknown; both have a useful ``repr``."""
 
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ MODALITIES = ("rgb", "hha")
 
 # perturb_depth: the depth network's range (it predicts at most 80 m), the spread of its errors (objects off by a
 # median factor of 1.3-1.45 on a world it never saw, see docs/research-log.md), log-depth blur and the sky
-# step's threshold (the experiment's depth.far_as_sky_m is 50 m).
+# step's threshold (the experiment's depth.far_as_sky_m is 60 m; the shipped trunk's recipe hands over from 50 m).
 PERTURB_MAX_DEPTH_M = 80.0
 PERTURB_LOG_SCALE = 0.3  # amplitude of the smooth log-depth error field
 PERTURB_FIELD_PX = 0.125  # its correlation length, as a share of the image width
@@ -167,7 +167,8 @@ def network_depth(hha_depth: str, progress: bool = True):
     ``"perturbed"``: None (HHA views then come from :func:`perturb_depth` of rendered depth).
     ``"trained:<preset>"``: that placejax depth network (``placejax.depth.ensure_trained``: loaded from the
     cache, trained there first if missing), its prediction averaged over the mirror and ±2, ±4 px shifted views
-    and everything from 50 m on handed over as sky — the experiment's default depth stage.
+    and everything from 50 m on handed over as sky — the depth stage the shipped HHA trunk was pretrained on (the
+    experiment's default now averages the image and its mirror only and hands over from 60 m).
     """
     check_hha_depth(hha_depth)
     if hha_depth == HHA_DEPTH_PERTURBED:

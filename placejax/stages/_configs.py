@@ -126,7 +126,7 @@ class MLPConfig:
     hidden: int = _config.setting(1024, "hidden units of the fusion MLP (1024 in the paper)")
     dropout: float = _config.setting(0.0, "dropout on the MLP hidden layer")
     input_dropout: float = _config.setting(
-        0.0, "dropout on the MLP's concatenated input embeddings (docs/lookup-gap.md, round 3)"
+        0.0, "dropout on the MLP's concatenated input embeddings (docs/lookup-gap.md)"
     )
     modality_dropout: float = _config.setting(
         0.0,

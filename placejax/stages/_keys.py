@@ -20,7 +20,7 @@ _NEWER_OFF_BY_DEFAULT = ("input_dropout", "modality_dropout", "jittered")
 
 def results_only(section: Any) -> dict:
     """A config section (a config dataclass or a mapping) without the keys that change no result, for cache keys:
-    checkpoint intervals, the ``jitter_*`` magnitudes when ``jitter_copies`` is 0, and the fusion MLP's round-3
+    checkpoint intervals, the ``jitter_*`` magnitudes when ``jitter_copies`` is 0, and the fusion MLP's later
     options while off (so runs without them keep the keys they had before they existed)."""
     d = _config.section(section) if dataclasses.is_dataclass(section) else dict(section)
     out = {k: v for k, v in d.items() if k != "save_every"}

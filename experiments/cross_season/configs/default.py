@@ -5,7 +5,7 @@ The VGG16 trunk at 1/8 width pretrained on other SimCampus worlds (``placejax.pr
 trunk pretrained on HHA images of those worlds) is frozen, its conv features cached once per session, fc6–fc8
 trained (AdamW 3e-4; chosen on world 1, never on the evaluation campus); 3 seeds of every net and MLP; the
 placejax-trained depth network as depth source. Image size and spacing were chosen on world 1
-(docs/lookup-gap.md). Since round 3 of docs/lookup-gap.md the heads train on every frame plus 2 jittered copies of
+(docs/lookup-gap.md). Since docs/lookup-gap.md's third round the heads train on every frame plus 2 jittered copies of
 it for 10 epochs (the optimiser steps of 30 epochs over the originals alone), the fusion MLP reads its input
 through dropout 0.5, and the 1-channel depth ablation is off to pay for the copies within 20 minutes
 (``ablations.depth1=True`` puts it back; it changes no other column).
