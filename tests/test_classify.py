@@ -548,7 +548,7 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_r
 
 
 def test_fusion_head_options_train_on_the_copies(smoke_run, tmp_path, monkeypatch):
-    """Round 3's head options (docs/lookup-gap.md) in the experiment: with ``mlp.jittered`` the MLP trains on the
+    """The fusion head's options (docs/lookup-gap.md) in the experiment: with ``mlp.jittered`` the MLP trains on the
     originals' embeddings and then the jittered copies' (copy-major, labels tiled), the copies' fc7 being the
     nets' own on their cached jittered features; the options enter the MLP's key only when on."""
     from placejax.stages import _fusion, jittered_fc7, results_only
