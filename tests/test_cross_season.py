@@ -201,6 +201,23 @@ def test_the_rendered_depth_ceiling_adds_columns_and_changes_none(smoke, tmp_pat
     assert "on rendered depth (the ceiling): HHA-Net" in table_text(results)
 
 
+def test_log_linear_pools_end_at_the_two_nets(smoke, tmp_path):
+    """``ablations.pool_weights``: a column per weight; weight 1 is RGB-Net's top-1 and weight 0 HHA-Net's, on every
+    pair and seed; the other columns are the run's without the pools."""
+    import shutil
+
+    workdir, base = smoke
+    copy = tmp_path / "run"
+    shutil.copytree(workdir, copy, ignore=shutil.ignore_patterns(".lock"))
+    results = run(smoke_config("ablations.pool_weights=(0.0, 0.5, 1.0)", "figures=False"), copy)
+    for p, q in zip(base["pairs"], results["pairs"], strict=True):
+        assert q["pool_1_per_seed"] == q["rgb_net_per_seed"] and q["pool_0_per_seed"] == q["hha_net_per_seed"]
+        assert 0.0 <= q["pool_0.5"] <= 1.0
+        for m in ("ours", "rgb_net", "hha_net", "average"):
+            assert p[f"{m}_per_seed"] == q[f"{m}_per_seed"], m
+    assert "Pool(w=0.5)" in (copy / "table.md").read_text()
+
+
 @pytest.mark.parametrize("preset", ["smoke", "default", "paper"])
 def test_no_builtin_preset_collapses_the_map_before_fc6(preset):
     """fc6 must see spatial cells: the trunk's last max-pooled map is at least 2 × 2 at every preset's size."""

@@ -91,8 +91,24 @@ class Ablations:
         "ours_rendered, average_rendered): how many points the pseudo depth costs",
     )
 
+    pool_weights: tuple[float, ...] = _config.setting(
+        (),
+        "also report log-linear pools of the two nets, log p = w log p_RGB + (1 - w) log p_HHA, one column per "
+        "weight w in [0, 1] (docs/research-log.md: the weight is chosen on world 1)",
+    )
+
     def __post_init__(self):
+        object.__setattr__(self, "pool_weights", tuple(self.pool_weights))
         _config.check(self, boolean=("depth1", "average", "rendered"))
+        w = self.pool_weights
+        if (
+            len(w) > 9
+            or len(set(w)) != len(w)
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) and 0 <= v <= 1 for v in w)
+        ):
+            raise _config.ConfigError(
+                f"pool_weights={_config._shown(w)}: expected at most 9 distinct weights, each a number in [0, 1]"
+            )
 
 
 @dataclasses.dataclass(frozen=True)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.cross_season.report.table import METHOD_NAMES
+from experiments.cross_season.report.table import METHOD_NAMES, method_name
 from placejax import io
 
 # One colour per method in every figure, whichever methods a run has (the ablations come and go).
@@ -232,13 +232,16 @@ def _write_figures(plt, results, sessions, grid, fused, folder: Path) -> list[Pa
         plt.close(fig)
 
     # Per-pair accuracies, with chance (1 / classes) and the ceiling (share of test frames in seen classes).
-    methods = [m for m in METHOD_NAMES if m in results["mean"]]
+    methods = [m for m in METHOD_NAMES if m in results["mean"]] + sorted(
+        m for m in results["mean"] if m.startswith("pool_")
+    )
     pairs = results["pairs"]
     fig, ax = plt.subplots(figsize=(max(7, len(pairs) * 0.9), 4))
     width = 0.8 / len(methods)
     xs = np.arange(len(pairs))
     for j, m in enumerate(methods):
-        ax.bar(xs + j * width, [100 * p[m] for p in pairs], width, label=METHOD_NAMES[m], color=METHOD_COLOURS[m])
+        colour = METHOD_COLOURS.get(m, "tab:olive")
+        ax.bar(xs + j * width, [100 * p[m] for p in pairs], width, label=method_name(m), color=colour)
     chance = 100 / results["num_classes"]
     ax.axhline(chance, color="k", ls="--", lw=1, label=f"chance (1/{results['num_classes']} = {chance:.1f}%)")
     if all("seen_class_fraction" in p for p in pairs):

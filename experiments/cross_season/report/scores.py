@@ -64,7 +64,9 @@ def evaluate(
                     }
                 pairs.append(row)
     cross = [p for p in pairs if p["train"] != p["test"]]
-    methods = [k for k in METHODS if k in cross[0]]
+    methods = [k for k in METHODS if k in cross[0]] + sorted(
+        k for k in cross[0] if k.startswith("pool_") and not k.endswith(("_sd", "_per_seed"))
+    )
     gains = _gain_intervals(cross, config.seed)
     return {
         "pairs": cross,
@@ -122,7 +124,23 @@ def method_logits(run: SeedRun, train: str, test: str, config: ml_collections.Co
         out["average"] = softmax(outputs[(train, "rgb", test)]["logits"]) + softmax(
             outputs[(train, "hha", test)]["logits"]
         )
+    for w in config.ablations.get("pool_weights", ()):
+        out[pool_name(w)] = w * log_softmax(outputs[(train, "rgb", test)]["logits"]) + (1 - w) * log_softmax(
+            outputs[(train, "hha", test)]["logits"]
+        )
     return out
+
+
+def pool_name(w: float) -> str:
+    """The column of the log-linear pool with weight ``w`` on RGB-Net (``"pool_0.4"``)."""
+    return f"pool_{float(w):g}"
+
+
+def log_softmax(logits: np.ndarray) -> np.ndarray:
+    """Row-wise log softmax, float64 (stable: the row maximum subtracted first)."""
+    x = np.asarray(logits, np.float64)
+    x = x - x.max(axis=1, keepdims=True)
+    return x - np.log(np.exp(x).sum(axis=1, keepdims=True))
 
 
 def _gain_intervals(cross: list[dict], seed: int) -> dict:

@@ -33,6 +33,13 @@ _UNKNOWN_COLUMNS = {
 }
 
 
+def method_name(key: str) -> str:
+    """A method's column header (``pool_0.4``: the log-linear pool with weight 0.4 on RGB-Net)."""
+    if key.startswith("pool_"):
+        return f"Pool(w={key.removeprefix('pool_')})"
+    return METHOD_NAMES[key]
+
+
 def _unknown_cell(key: str, v: float | None) -> str:
     if v is None:
         return "–"
@@ -83,8 +90,8 @@ def table_markdown(results: dict) -> str:
         m
         for m in ("depth1_net", "average", "hha_net_rendered", "ours_rendered", "average_rendered")
         if m in results["mean"]
-    ]
-    head = ["train", "test", "Ours", "RGB-Net", "gain", "HHA-Net", "gain"] + [METHOD_NAMES[m] for m in extra]
+    ] + sorted(m for m in results["mean"] if m.startswith("pool_"))
+    head = ["train", "test", "Ours", "RGB-Net", "gain", "HHA-Net", "gain"] + [method_name(m) for m in extra]
     unknown = _UNKNOWN_COLUMNS if "unknown" in results else {}
     head += list(unknown.values())
     source = results.get("config", {}).get("data", {}).get("source", "simcampus")
