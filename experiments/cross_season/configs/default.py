@@ -20,4 +20,5 @@ def get_config():
     c.train.update(jitter_copies=2, epochs=10)
     c.mlp.input_dropout = 0.5
     c.ablations.depth1 = False
+    c.ablations.pool_weights = (0.4,)  # the log-linear pool beside the fusion; w chosen on world 1 (research log)
     return c
