@@ -212,10 +212,11 @@ def test_log_linear_pools_end_at_the_two_nets(smoke, tmp_path):
     results = run(smoke_config("ablations.pool_weights=(0.0, 0.5, 1.0)", "figures=False"), copy)
     for p, q in zip(base["pairs"], results["pairs"], strict=True):
         assert q["pool_1_per_seed"] == q["rgb_net_per_seed"] and q["pool_0_per_seed"] == q["hha_net_per_seed"]
-        assert 0.0 <= q["pool_0.5"] <= 1.0
+        assert 0.0 <= q["pool_0.5"] <= 1.0 and "gain_pool_0.5_vs_ours" in q and "gain_pool_0.5_vs_average" in q
         for m in ("ours", "rgb_net", "hha_net", "average"):
             assert p[f"{m}_per_seed"] == q[f"{m}_per_seed"], m
     assert "Pool(w=0.5)" in (copy / "table.md").read_text()
+    assert {"pool_0.5_vs_ours", "pool_0.5_vs_average"} <= set(results["gains"])
 
 
 @pytest.mark.parametrize("preset", ["smoke", "default", "paper"])

@@ -153,6 +153,14 @@ def _gain_intervals(cross: list[dict], seed: int) -> dict:
         for p, g in zip(cross, per_pair, strict=True):
             p[f"gain_vs_{base}"] = g
         out[f"ours_vs_{base}"] = mean
+    # Each log-linear pool against the learned fusion and the plain average (ablations.pool_weights).
+    for pool in sorted(k for k in correct[0] if k.startswith("pool_")):
+        for base in ("ours", "average"):
+            if base in correct[0]:
+                per_pair, mean = gain_intervals([frame_gains(c[pool], c[base]) for c in correct], seed=seed)
+                for p, g in zip(cross, per_pair, strict=True):
+                    p[f"gain_{pool}_vs_{base}"] = g
+                out[f"{pool}_vs_{base}"] = mean
     # The ceiling's fusion against its own HHA-Net and average (ablations.rendered).
     for base in ("hha_net_rendered", "average_rendered"):
         if "ours_rendered" in correct[0] and base in correct[0]:
