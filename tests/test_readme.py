@@ -298,3 +298,21 @@ def test_the_readme_quotes_the_committed_record_of_its_default_run():
         f"of seen, {100 * u['unknown_route_rejected_unseen']:.0f} % of unseen frames rejected), "
         f"{k['unknown_knn1_auroc']:.2f} for the distance"
     ) in flat
+
+
+def test_the_readmes_pool_figures_are_the_ablations_record():
+    """The pool's accuracy and its gain over the fusion, as the README prints them, are those of the committed
+    record of the run with the extra columns (docs/cross_season/ablations/results.json), whose other columns are the
+    default run's record to the bit."""
+    rec = json.loads((REPO / "docs" / "cross_season" / "ablations" / "results.json").read_text())
+    base = json.loads(RECORD.read_text())
+    flat = " ".join(README.read_text().split())
+    g = rec["gains"]["pool_0.4_vs_ours"]
+    assert g["excludes_zero"]
+    assert (
+        f"reaches {100 * rec['mean']['pool_0.4']:.1f} %, above the fusion MLP by {100 * g['gain']:+.1f} "
+        f"[{100 * g['lo']:+.1f}, {100 * g['hi']:+.1f}]"
+    ) in flat
+    for p, q in zip(base["pairs"], rec["pairs"], strict=True):
+        for m in ("ours", "rgb_net", "hha_net", "average"):
+            assert p[f"{m}_per_seed"] == q[f"{m}_per_seed"], (p["train"], p["test"], m)

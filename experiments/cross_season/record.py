@@ -33,7 +33,9 @@ def trimmed(results: dict) -> dict:
     return results
 
 
-def write_record(run: str | Path, out: str | Path, *, command: str, commit: str | None = None, note: str = "") -> Path:
+def write_record(
+    run: str | Path, out: str | Path, *, command: str, commit: str | None = None, note: str = "", figures: bool = True
+) -> Path:
     """Writes the record of the finished run in ``run`` into ``out`` (see the module docstring); returns the
     record's ``results.json``.
 
@@ -45,7 +47,7 @@ def write_record(run: str | Path, out: str | Path, *, command: str, commit: str 
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: {run} is not a finished experiments.cross_season run")
     results = json.loads(path.read_text())
-    missing = [f for f in FIGURES if not (run / "figures" / f).is_file()]
+    missing = [f for f in FIGURES if figures and not (run / "figures" / f).is_file()]
     if missing:
         raise FileNotFoundError(f"{run}/figures lacks {missing}: record a run made with figures=True")
     commit = commit or results.get("commit")
@@ -53,7 +55,7 @@ def write_record(run: str | Path, out: str | Path, *, command: str, commit: str 
     target = out / "results.json"
     io.write_json(target, record)
     io.write_text(out / "table.md", (run / "table.md").read_text())
-    for f in FIGURES:
+    for f in FIGURES if figures else ():
         with io.atomic_write(out / f) as dst, open(run / "figures" / f, "rb") as src:
             shutil.copyfileobj(src, dst)
     return target
@@ -69,9 +71,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--command", required=True, help="the command that made the run, as typed")
     parser.add_argument("--commit", default=None, help="the commit it ran (default: the one results.json records)")
     parser.add_argument("--note", default="", help="conditions worth saying (machine, load)")
+    parser.add_argument("--no-figures", action="store_true", help="the numbers only (a run of extra columns)")
     parser.add_argument(cli.TRACEBACK_FLAG, action="store_true", help=cli.TRACEBACK_HELP)
     args = parser.parse_args(argv)
-    target = write_record(args.run, args.out, command=args.command, commit=args.commit, note=args.note)
+    target = write_record(
+        args.run, args.out, command=args.command, commit=args.commit, note=args.note, figures=not args.no_figures
+    )
     print(f"record -> {target}")
     return 0
 
