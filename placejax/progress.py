@@ -132,18 +132,9 @@ def bar(
     fp = _stream(file)
     if total is None and iterable is not None and hasattr(iterable, "__len__"):
         total = len(iterable)
+    common = {"total": total, "desc": desc, "unit": unit, "initial": initial, "disable": disable, "file": fp}
     if interactive(file):
-        return tqdm(
-            iterable,
-            total=total,
-            desc=desc,
-            unit=unit,
-            initial=initial,
-            disable=disable,
-            file=fp,
-            leave=False,
-            **kwargs,
-        )
+        return tqdm(iterable, leave=False, **common, **kwargs)
     interval = kwargs.pop("mininterval", None)
     interval = _interval() if interval is None else interval
     # A loop shorter than a third of the interval writes nothing: the stage line that follows says it was done.
@@ -151,17 +142,7 @@ def bar(
     kwargs.setdefault("mininterval", min(1.0, interval))  # how often tqdm asks; _LineBar keeps one line an interval
     kwargs.setdefault("maxinterval", max(1.0, interval))
     return _LineBar(
-        iterable,
-        line_interval=interval,
-        total=total,
-        desc=desc,
-        unit=unit,
-        initial=initial,
-        disable=disable,
-        file=fp,
-        leave=False,
-        bar_format=_LINE_FORMAT if total else None,
-        **kwargs,
+        iterable, line_interval=interval, leave=False, bar_format=_LINE_FORMAT if total else None, **common, **kwargs
     )
 
 

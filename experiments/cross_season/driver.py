@@ -217,22 +217,24 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
     _release_memory()
     # Every net and MLP is trained once per seed (seed, seed + 1, ...); the table reports the mean over seeds.
     modalities = ("rgb", "hha", "depth1") if c["ablations"].depth1 else ("rgb", "hha")
+
+    def train_seed(on: list, seed: int, modalities: tuple[str, ...]) -> stages.SeedRun:
+        return stages.train_seed(
+            ws,
+            on,
+            num_classes,
+            vgg=c["vgg"],
+            train_cfg=c["train"],
+            mlp=c["mlp"],
+            eval_cfg=c["eval"],
+            seed=seed,
+            modalities=modalities,
+        )
+
     runs = []
     for k, seed in enumerate(seeds):
         with story.step(f"seed {seed} ({k + 1} of {len(seeds)}): nets"):
-            runs.append(
-                stages.train_seed(
-                    ws,
-                    sessions,
-                    num_classes,
-                    vgg=c["vgg"],
-                    train_cfg=c["train"],
-                    mlp=c["mlp"],
-                    eval_cfg=c["eval"],
-                    seed=seed,
-                    modalities=modalities,
-                )
-            )
+            runs.append(train_seed(sessions, seed, modalities))
         _release_memory()
     first = runs[0]  # the first seed's models: figures and PlaceClassifier
     rendered_runs = None
@@ -243,20 +245,7 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
             true_source = depth_source(DepthSourceConfig(source="true"))
             caches = stages.depth_and_hha(ws, sessions, true_source, c["depth"].batch_size)
             rendered = [dataclasses.replace(s, depth=d, hha=h) for s, (d, h) in zip(sessions, caches, strict=True)]
-            rendered_runs = [
-                stages.train_seed(
-                    ws,
-                    rendered,
-                    num_classes,
-                    vgg=c["vgg"],
-                    train_cfg=c["train"],
-                    mlp=c["mlp"],
-                    eval_cfg=c["eval"],
-                    seed=seed,
-                    modalities=("rgb", "hha"),
-                )
-                for seed in seeds
-            ]
+            rendered_runs = [train_seed(rendered, seed, ("rgb", "hha")) for seed in seeds]
         _release_memory()
 
     with story.step("baselines"):

@@ -22,6 +22,23 @@ from placejax import route
 from placejax.classify._classifier import BRANCHES, PlaceClassifier
 
 
+def _one_image(rgb_uint8) -> np.ndarray:
+    """``rgb_uint8`` as one ``(H, W, 3)`` array, or a ValueError naming the argument (a list of frames, a ragged
+    list, a batch)."""
+    if isinstance(rgb_uint8, list | tuple):
+        raise ValueError(
+            f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got a {type(rgb_uint8).__name__} of "
+            f"{len(rgb_uint8)} items (step takes one image at a time: call it once per frame)"
+        )
+    try:
+        x = np.asarray(rgb_uint8)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"Tracker.step: rgb_uint8 is not an image array ({e})") from None
+    if x.ndim != 3:
+        raise ValueError(f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got shape {x.shape}")
+    return x
+
+
 @dataclasses.dataclass(frozen=True)
 class TrackStep:
     """The tracker's answer after one image.
@@ -142,17 +159,7 @@ class Tracker:
         Raises:
             ValueError: the image's logits are not finite (`step` reports such an image as unknown instead).
         """
-        if isinstance(rgb_uint8, list | tuple):
-            raise ValueError(
-                f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got a {type(rgb_uint8).__name__} of "
-                f"{len(rgb_uint8)} items (step takes one image at a time: call it once per frame)"
-            )
-        try:
-            x = np.asarray(rgb_uint8)
-        except (ValueError, TypeError) as e:
-            raise ValueError(f"Tracker.step: rgb_uint8 is not an image array ({e})") from None
-        if x.ndim != 3:
-            raise ValueError(f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got shape {x.shape}")
+        x = _one_image(rgb_uint8)
         return route.calibrated_probabilities(self.classifier.logits(x[None])[self.branch][0], self.temperature)
 
     def step(self, rgb_uint8, moved_m: float) -> TrackStep:
@@ -166,17 +173,7 @@ class Tracker:
             A :class:`TrackStep`; ``rejected`` (label ``-1``, ``unknown`` 1.0) when the image's logits are not
             finite.
         """
-        if isinstance(rgb_uint8, list | tuple):
-            raise ValueError(
-                f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got a {type(rgb_uint8).__name__} of "
-                f"{len(rgb_uint8)} items (step takes one image at a time: call it once per frame)"
-            )
-        try:
-            x = np.asarray(rgb_uint8)
-        except (ValueError, TypeError) as e:
-            raise ValueError(f"Tracker.step: rgb_uint8 is not an image array ({e})") from None
-        if x.ndim != 3:
-            raise ValueError(f"Tracker.step: rgb_uint8 must be one uint8 RGB image (H, W, 3), got shape {x.shape}")
+        x = _one_image(rgb_uint8)
         outputs = self.classifier.logits(x[None])
         frame = self.classifier.prediction_from_outputs(outputs, self.branch)
         logits = np.asarray(outputs[self.branch][0], np.float64)

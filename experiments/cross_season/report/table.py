@@ -46,6 +46,15 @@ def _unknown_cell(key: str, v: float | None) -> str:
     return f"{v:.2f}" if key.endswith("_auroc") else _pct(v)
 
 
+def gain(r: dict, base: str, interval: dict | None) -> str:
+    """Ours − ``base`` in points, with its interval and ``*`` when the interval excludes zero."""
+    text = f"{100 * (r['ours'] - r[base]):+.1f}"
+    if interval is None:
+        return text
+    mark = "*" if interval["excludes_zero"] else ""
+    return f"{text} [{100 * interval['lo']:+.1f}, {100 * interval['hi']:+.1f}]{mark}"
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:.1f}"
 
@@ -105,13 +114,6 @@ def table_markdown(results: dict) -> str:
     def acc(r: dict, m: str, sd: dict | None = None) -> str:
         sd_value = (sd or r).get(f"{m}_sd" if sd is None else m)
         return _pct(r[m]) if n_seeds < 2 or sd_value is None else f"{_pct(r[m])} ± {_pct(sd_value)}"
-
-    def gain(r: dict, base: str, interval: dict | None) -> str:
-        text = f"{100 * (r['ours'] - r[base]):+.1f}"
-        if interval is None:
-            return text
-        mark = "*" if interval["excludes_zero"] else ""
-        return f"{text} [{100 * interval['lo']:+.1f}, {100 * interval['hi']:+.1f}]{mark}"
 
     def row(train: str, test: str, r: dict, intervals: dict | None = None, sd: dict | None = None) -> str:
         intervals = intervals if intervals is not None else {b: r.get(f"gain_vs_{b}") for b in ("rgb_net", "hha_net")}
@@ -196,13 +198,6 @@ def table_text(results: dict, width: int = 100) -> str:
 
     def acc(value: float, sd: float | None) -> str:
         return _pct(value) if n_seeds < 2 or sd is None else f"{_pct(value)} ± {_pct(sd)}"
-
-    def gain(r: dict, base: str, interval: dict | None) -> str:
-        text = f"{100 * (r['ours'] - r[base]):+.1f}"
-        if interval is None:
-            return text
-        mark = "*" if interval["excludes_zero"] else ""
-        return f"{text} [{100 * interval['lo']:+.1f}, {100 * interval['hi']:+.1f}]{mark}"
 
     has_avg = "average" in results["mean"]
     head = ["pair", "Ours", "RGB-Net", "Ours − RGB", "HHA-Net", "Ours − HHA"] + (["Avg"] if has_avg else [])
