@@ -30,7 +30,7 @@ import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-__all__ = ["MAX_INT", "MAX_NUMBER", "ConfigError", "build", "check", "help_text", "section", "setting"]
+__all__ = ["MAX_INT", "MAX_NUMBER", "ConfigError", "build", "check", "help_text", "section", "setting", "shown"]
 
 
 class ConfigError(ValueError):
@@ -93,7 +93,7 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and abs(v) <= MAX_NUMBER
 
 
-def _shown(v: Any) -> str:
+def shown(v: Any) -> str:
     """A value for an error message, never a screenful (an int of 10**100 digits is shown by its size)."""
     if isinstance(v, int) and not isinstance(v, bool) and abs(v) > 10**15:
         return f"<an int of {len(str(abs(v)))} digits>" if abs(v) < 10**4000 else "<an int of over 4000 digits>"
@@ -136,7 +136,7 @@ def check(
     caps = dict(at_most or {})
 
     def bad(name: str, what: str) -> None:
-        errors.append(f"{name}={_shown(getattr(obj, name))}: expected {what}")
+        errors.append(f"{name}={shown(getattr(obj, name))}: expected {what}")
 
     def cap(name: str, default: float) -> tuple[float, str]:
         hi = caps.get(name, default)
@@ -144,24 +144,24 @@ def check(
 
     for name in positive_int:
         v = getattr(obj, name)
-        hi, shown = cap(name, MAX_INT)
+        hi, limit = cap(name, MAX_INT)
         if not (_is_int(v) and 1 <= v <= hi):
-            bad(name, f"an int in [1, {shown}]")
+            bad(name, f"an int in [1, {limit}]")
     for name in nonnegative_int:
         v = getattr(obj, name)
-        hi, shown = cap(name, MAX_INT)
+        hi, limit = cap(name, MAX_INT)
         if not (_is_int(v) and 0 <= v <= hi):
-            bad(name, f"an int in [0, {shown}]")
+            bad(name, f"an int in [0, {limit}]")
     for name in positive:
         v = getattr(obj, name)
-        hi, shown = cap(name, MAX_NUMBER)
+        hi, limit = cap(name, MAX_NUMBER)
         if not (_is_number(v) and 0 < v <= hi):
-            bad(name, f"a finite number in (0, {shown}]")
+            bad(name, f"a finite number in (0, {limit}]")
     for name in nonnegative:
         v = getattr(obj, name)
-        hi, shown = cap(name, MAX_NUMBER)
+        hi, limit = cap(name, MAX_NUMBER)
         if not (_is_number(v) and 0 <= v <= hi):
-            bad(name, f"a finite number in [0, {shown}]")
+            bad(name, f"a finite number in [0, {limit}]")
     for name in unit_interval:
         v = getattr(obj, name)
         if not (_is_number(v) and 0 <= v < 1):

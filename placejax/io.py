@@ -38,6 +38,7 @@ __all__ = [
     "NpzError",
     "atomic_write",
     "check_write_target",
+    "file_kind",
     "file_sha256",
     "read_npz",
     "run_lock",
@@ -61,8 +62,10 @@ def _umask() -> int:
     return mask
 
 
-def _kind(mode: int) -> str:
+def file_kind(mode: int) -> str:
+    """What an ``st_mode`` is, for a message: ``"regular file"``, ``"folder"``, ``"FIFO"``, ``"socket"``, ..."""
     for test, name in (
+        (stat.S_ISREG, "regular file"),
         (stat.S_ISDIR, "folder"),
         (stat.S_ISLNK, "symbolic link"),
         (stat.S_ISCHR, "character device"),
@@ -91,7 +94,7 @@ def check_write_target(path: str | os.PathLike) -> None:
     if not stat.S_ISREG(mode):
         raise FileExistsError(
             errno.EEXIST,
-            f"exists and is a {_kind(mode)}, not a regular file: placejax writes only new or regular files",
+            f"exists and is a {file_kind(mode)}, not a regular file: placejax writes only new or regular files",
             str(path),
         )
 

@@ -107,7 +107,7 @@ class Ablations:
             or not all(isinstance(v, int | float) and not isinstance(v, bool) and 0 <= v <= 1 for v in w)
         ):
             raise _config.ConfigError(
-                f"pool_weights={_config._shown(w)}: expected at most 9 distinct weights, each a number in [0, 1]"
+                f"pool_weights={_config.shown(w)}: expected at most 9 distinct weights, each a number in [0, 1]"
             )
 
 

@@ -85,14 +85,14 @@ class DataConfig:
             or size[0] * size[1] > MAX_IMAGE_PIXELS
         ):
             errors.append(
-                f"image_size={_config._shown(size)}: expected (H, W), ints in [16, {MAX_IMAGE_SIDE}] with H·W at most "
+                f"image_size={_config.shown(size)}: expected (H, W), ints in [16, {MAX_IMAGE_SIDE}] with H·W at most "
                 f"{MAX_IMAGE_PIXELS:,} (the network inputs and every cache are at this size)"
             )
         if self.source == "simcampus" and not (
             isinstance(self.frame_spacing, int | float) and self.frame_spacing >= 0.05
         ):
             errors.append(
-                f"frame_spacing={_config._shown(self.frame_spacing)}: SimCampus needs at least 0.05 m of travel "
+                f"frame_spacing={_config.shown(self.frame_spacing)}: SimCampus needs at least 0.05 m of travel "
                 "between frames (0 would render without end)"
             )
         if self.source == "simcampus":

@@ -100,7 +100,7 @@ class DepthSourceConfig:
             errors.append(f"near_m={self.near_m!r} must be below far_m={self.far_m!r}")
         if not (isinstance(self.dav2_short_side, int) and 14 <= self.dav2_short_side <= 2048):
             errors.append(
-                f"dav2_short_side={_config._shown(self.dav2_short_side)}: expected an int in [14, 2048] (pixels)"
+                f"dav2_short_side={_config.shown(self.dav2_short_side)}: expected an int in [14, 2048] (pixels)"
             )
         if self.source == "trained" and self.trained_preset not in PRESETS:
             errors.append(f"trained_preset={self.trained_preset!r}: expected one of {sorted(PRESETS)}")

@@ -116,7 +116,7 @@ class TrainConfig:
             try:
                 build()
             except (TypeError, ValueError) as e:
-                raise _config.ConfigError(f"{name}={_config._shown(getattr(self, name))}: {e}") from None
+                raise _config.ConfigError(f"{name}={_config.shown(getattr(self, name))}: {e}") from None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -13,6 +13,7 @@ import numpy as np
 from placejax.data import images
 from placejax.data.folder._errors import FolderFormatError, _err, _quote
 from placejax.data.folder._limits import FolderLimits
+from placejax.io import file_kind
 
 __all__ = ["DEPTH_DIR", "DEPTH_SUFFIXES"]
 
@@ -40,21 +41,8 @@ def present(path: Path, kind: str = "file") -> bool:
         raise _err(path, None, f"cannot be read ({e.strerror or e})") from None
     if (stat.S_ISREG(mode) and kind == "file") or (stat.S_ISDIR(mode) and kind == "folder"):
         return True
-    what = next(
-        (name for test, name in _KINDS if test(mode)),
-        "special file",
-    )
+    what = file_kind(mode)
     raise _err(path, None, f"is a {what}, not a {'regular file' if kind == 'file' else 'folder'}: remove or replace it")
-
-
-_KINDS = (
-    (stat.S_ISDIR, "folder"),
-    (stat.S_ISREG, "regular file"),
-    (stat.S_ISCHR, "character device"),
-    (stat.S_ISBLK, "block device"),
-    (stat.S_ISFIFO, "FIFO"),
-    (stat.S_ISSOCK, "socket"),
-)
 
 
 def _is_file(path: Path) -> bool:
