@@ -10,8 +10,8 @@ from placejax.data.simcampus import SKY_DEPTH
 
 def test_region_errors_split_sky_ground_and_objects_and_sign_the_objects_bias():
     """Rows 0–1 sky, 2–3 level ground (angle 2°), 4–7 upright objects (angle 90°). The prediction puts the sky
-    at 80 m (the network's farthest), the ground 10 % near and the objects e^0.3 too far, except one object
-    pixel in eight e^0.1 too near: medians and the signed bias follow exactly, AbsRel leaves the sky out."""
+    at 80 m (the network's farthest), the level ground at 10 % too near and the objects e^0.3 too far, except one
+    object pixel in eight e^0.1 too near: medians and the signed bias follow exactly, AbsRel leaves the sky out."""
     rendered = np.full((1, 8, 8), 10.0, np.float32)
     rendered[:, :2] = SKY_DEPTH
     angle = np.full((1, 8, 8), 90.0, np.float32)

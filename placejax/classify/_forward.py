@@ -15,8 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import hha as _hha
-from placejax.depth import depth_from_log, far_to_sky, network_size
-from placejax.depth._inference import network_on_images
+from placejax.depth import depth_from_log, far_to_sky, network_on_images, network_size
 from placejax.depth.views import average_views
 from placejax.models import (
     VGG16,

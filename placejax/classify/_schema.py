@@ -9,6 +9,7 @@ file and the field (``depth.near_m``, ``normalise.std[1]``, ``route.temperature`
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from typing import Any
@@ -212,9 +213,9 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
 
 def _check_route(c: _Checker, r: Any) -> None:
     """``route``: every field of ``placejax.route.FilterConfig``, each checked by FilterConfig's own rules."""
-    from placejax.route._config import FIELDS, first_problem
+    from placejax.route import FilterConfig, first_problem
 
-    c.obj(r, "route", set(FIELDS))
+    c.obj(r, "route", {f.name for f in dataclasses.fields(FilterConfig)})
     bad = first_problem(r)
     if bad is not None:
         c.fail(f"route.{bad[0]}", bad[1])
@@ -229,8 +230,7 @@ def _check_near_far(c: _Checker, d: dict) -> None:
 
 def _check_dav2(c: _Checker, d: dict, image_size: tuple[int, int]) -> None:
     """``depth`` of kind ``"depth_anything_v2"``: the architecture, head, input short side and the mapping."""
-    from placejax.models import dav2_input_size
-    from placejax.models._dav2 import PATCH
+    from placejax.models import DAV2_PATCH, dav2_input_size
 
     c.obj(d, "depth", _DAV2_REQUIRED, {"source"})
     dim = c.integer(d["embed_dim"], "depth.embed_dim", 1, MAX_DAV2_EMBED)
@@ -250,7 +250,7 @@ def _check_dav2(c: _Checker, d: dict, image_size: tuple[int, int]) -> None:
     if d["head"] not in ("relative", "metric"):
         c.fail("depth.head", f"is {str(d['head'])[:40]!r}, expected 'relative' or 'metric'")
     c.number(d["max_depth"], "depth.max_depth", positive=True, hi=1e6)
-    short = c.integer(d["short_side"], "depth.short_side", 2 * PATCH, MAX_DEPTH_NET_SIDE)
+    short = c.integer(d["short_side"], "depth.short_side", 2 * DAV2_PATCH, MAX_DEPTH_NET_SIDE)
     _check_near_far(c, d)
     if "source" in d and type(d["source"]) is not dict:
         c.fail("depth.source", f"is a JSON {_json_type(d['source'])}, expected an object")

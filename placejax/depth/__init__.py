@@ -15,7 +15,7 @@ Submodules: :mod:`placejax.depth.losses` (the training objectives and log depth)
 
 from placejax.depth import evaluation, losses, metrics, views
 from placejax.depth._config import PRESETS, DepthTrainConfig
-from placejax.depth._inference import apply, network_size, predict, preprocess
+from placejax.depth._inference import apply, network_on_images, network_size, predict, preprocess
 from placejax.depth._lifecycle import (
     SHIPPED,
     ensure_trained,
@@ -50,6 +50,7 @@ __all__ = [
     "log_depth",
     "losses",
     "metrics",
+    "network_on_images",
     "network_size",
     "predict",
     "preprocess",

@@ -176,26 +176,28 @@ class DepthTrainConfig:
         return self.target == "log_metric"
 
     def fingerprint(self) -> str:
-        """Short hash of every field that changes the trained weights (not the report-only fields)."""
+        """Short hash of every field that changes the trained weights (not the report-only fields). A recipe field
+        at its neutral value (below) is left out of the hash, so adding such a field keeps every existing network's
+        folder name."""
         fields = dataclasses.asdict(self)
         if self.target == "inverse":
-            fields.pop("target")  # the field came later: inverse-depth networks keep their cache folders
+            fields.pop("target")
         if self.object_weight == 1:
-            fields.pop("object_weight")  # as for target and camera_height_m below
+            fields.pop("object_weight")
         if tuple(self.camera_height_m) == (1.0, 2.0):
-            fields.pop("camera_height_m")  # the field came later: networks of the old heights keep their folders
+            fields.pop("camera_height_m")
         if self.camera_tilt == "random":
-            fields.pop("camera_tilt")  # likewise
+            fields.pop("camera_tilt")
         if self.muted_share == 0:
-            fields.pop("muted_share")  # likewise
+            fields.pop("muted_share")
         if self.colour_augment == 0:
-            fields.pop("colour_augment")  # likewise
+            fields.pop("colour_augment")
         if self.structured_share == 0:
-            fields.pop("structured_share")  # likewise
+            fields.pop("structured_share")
         if self.look_consistency == 0:
-            fields.pop("look_consistency")  # likewise
+            fields.pop("look_consistency")
         if self.normal_weight == 0:
-            fields.pop("normal_weight")  # likewise
+            fields.pop("normal_weight")
         fields.pop("eval_frames")
         fields.pop("checkpoint_every")
         fields["recipe_version"] = _RECIPE_VERSION
@@ -221,9 +223,8 @@ PRESETS = {
     # (placejax/depth/weights); the default depth source of the experiment. Metric log depth: the inverse-depth
     # objective at 64² learnt a ground ramp under a flat sky, with no objects. Trained at the height of SimCampus's
     # robot camera (its trajectories' 1.2-1.5 m), with object pixels weighted 4x, on season-structured looks with
-    # the colour channels in shuffled orders. Chosen on world 1 by experiments.hha_diagnose (docs/research-log.md;
-    # 64² without the two look levers until 2026-12-04, then 96² until 2026-12-04's 128² run, 2400 steps until
-    # 2026-12-05).
+    # the colour channels in shuffled orders. Chosen on world 1 by experiments.hha_diagnose (the earlier recipes
+    # and why each was replaced: docs/research-log.md).
     "default": DepthTrainConfig(
         target="log_metric",
         image_size=128,

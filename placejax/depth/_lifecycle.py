@@ -17,10 +17,10 @@ import numpy as np
 from flax import traverse_util
 
 from placejax import io
+from placejax import weights as _weights
 from placejax.depth import evaluation
 from placejax.depth._config import PRESETS, DepthTrainConfig
 from placejax.depth._train import TrainedDepth, load_trained, train_network
-from placejax.weights import _shipped
 
 # Measured on an idle 2-core x86 CPU (placejax/depth/weights/README.md; docs/research-log.md, 2026-12-05): shown
 # to the user before a first training.
@@ -40,7 +40,7 @@ def run_dir(cfg: DepthTrainConfig, preset: str, root: str | Path | None = None) 
 
     ``root`` defaults to ``placejax.weights.cache_dir()`` (``$PLACEJAX_CACHE`` or ``~/.cache/placejax``).
     """
-    return _shipped.run_dir("depth", preset, cfg.fingerprint(), root)
+    return _weights.run_dir("depth", preset, cfg.fingerprint(), root)
 
 
 def save_shipped(trained: TrainedDepth, path: str | Path, meta: dict) -> None:
@@ -64,7 +64,7 @@ def _unflatten(arrays: dict[str, np.ndarray]) -> dict:
     return traverse_util.unflatten_dict({k: np.asarray(v, np.float32) for k, v in arrays.items()}, sep="/")
 
 
-def _load_shipped(preset: str = "default") -> _shipped.WeightsRecord:
+def _load_shipped(preset: str = "default") -> _weights.WeightsRecord:
     """The record of the network of ``preset`` shipped in ``placejax/depth/weights``:
     ``(variables, meta)`` (a ``placejax.weights.WeightsRecord``, as ``placejax.weights.resolve("shipped:…")`` returns),
     ``meta`` with the config and its seed, fingerprint, command, evaluation and quick check (training time and the
@@ -75,7 +75,7 @@ def _load_shipped(preset: str = "default") -> _shipped.WeightsRecord:
     """
     if preset not in SHIPPED:
         raise FileNotFoundError(f"no shipped depth network for preset {preset!r} (shipped: {sorted(SHIPPED)})")
-    return _shipped.load_shipped(SHIPPED[preset])
+    return _weights.load_shipped(SHIPPED[preset])
 
 
 def quick_check(trained: TrainedDepth, n_frames: int = QUICK_CHECK_FRAMES) -> dict[str, float]:
@@ -136,9 +136,9 @@ def ensure_trained(
         config = PRESETS[preset]
     workdir = run_dir(config, preset, cache_root)
     primary = jax.process_index() == 0  # several processes train together; one of them speaks and writes
-    with _shipped.training_lock(workdir):  # a second caller waits here, then loads what the first trained
+    with _weights.training_lock(workdir):  # a second caller waits here, then loads what the first trained
         if progress and primary and not (workdir / "depth_eval.json").exists():
-            _shipped.announce_training(
+            _weights.announce_training(
                 "the depth network",
                 preset,
                 f"{config.steps} steps at {config.image_size}²; it turns RGB into pseudo depth for the HHA images, "

@@ -62,8 +62,8 @@ class DepthSourceConfig:
     flip_average: bool = _config.setting(
         True, "metric depth nets: average the log depth of each image and of its mirror image"
     )
-    # () since 2026-12-07: the image and its mirror (2 views) replaced the ten views (mirror x shifts 0, ±2, ±4) by
-    # the rule in docs/depth-network.md, measured on worlds 1 and 2 (docs/research-log.md).
+    # (): the image and its mirror (2 views), chosen over the ten views (mirror × shifts 0, ±2, ±4) by the rule in
+    # docs/depth-network.md, measured on worlds 1 and 2 (docs/research-log.md).
     shift_px: tuple[int, ...] = _config.setting(
         (), "metric depth nets: also average over the image shifted sideways by ±k px, each k (() = off)"
     )

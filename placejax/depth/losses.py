@@ -13,8 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax.hha._constants import MAX_DEPTH_M, RADIUS_ANGLE
-from placejax.hha._encode import _correlate
+from placejax.hha import MAX_DEPTH_M, RADIUS_ANGLE, window_sums
 
 __all__ = [
     "LOG_DEPTH_UNIT_M",
@@ -263,15 +262,15 @@ def log_metric_loss(
 def _window_planes(inv_depth: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Least-squares plane ``1/Z ≈ a·s + b·t + c`` in every full 7×7 window (the HHA encoder's angle windows) of
     ``(B, H, W)`` inverse depth (s, t: column and row offsets from the window's centre); "valid" part only,
-    ``(B, H − 6, W − 6)`` each, from the encoder's own window sums (:func:`placejax.hha._encode._correlate`).
+    ``(B, H − 6, W − 6)`` each, from the encoder's own window sums (:func:`placejax.hha.window_sums`).
 
     Over a full, symmetric window the offsets' cross moments vanish, so the fit is three separable sums.
     """
     n = 2 * RADIUS_ANGLE + 1
     second = float(n * sum(k * k for k in range(-RADIUS_ANGLE, RADIUS_ANGLE + 1)))  # Σ s² over the window (= Σ t²)
-    rows = _correlate(inv_depth, (0, 1), axis=-2)  # Σ_t x, Σ_t t·x
-    cols = _correlate(rows[0], (0, 1), axis=-1)  # Σ x, Σ s·x
-    b = _correlate(rows[1], (0,), axis=-1)[0] / second
+    rows = window_sums(inv_depth, (0, 1), axis=-2)  # Σ_t x, Σ_t t·x
+    cols = window_sums(rows[0], (0, 1), axis=-1)  # Σ x, Σ s·x
+    b = window_sums(rows[1], (0,), axis=-1)[0] / second
     return cols[1] / second, b, cols[0] / (n * n)
 
 
@@ -322,7 +321,7 @@ def normal_loss(
         weights: ``(B, H, W)`` positive weights, taken at each window's centre.
     """
     r, n = RADIUS_ANGLE, 2 * RADIUS_ANGLE + 1
-    inside = _correlate(_correlate(surface.astype(pred.dtype), (0,), axis=-2)[0], (0,), axis=-1)[0]
+    inside = window_sums(window_sums(surface.astype(pred.dtype), (0,), axis=-2)[0], (0,), axis=-1)[0]
     full = inside > n * n - 0.5  # every pixel of the window is surface
     cos = jnp.sum(window_normals(pred, kmat) * window_normals(target, kmat), axis=-1)
     w = full.astype(pred.dtype)

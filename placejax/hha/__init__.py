@@ -11,12 +11,16 @@ Public surface:
 """
 
 from placejax.hha._api import encode, encode_full, encode_stream, intrinsics_valid
+from placejax.hha._constants import MAX_DEPTH_M, RADIUS_ANGLE
 from placejax.hha._encode import ENCODER_VERSION, HHAResult
 from placejax.hha._metric import inverse_depth_to_metric
 from placejax.hha._reference import encode_reference
+from placejax.hha._windows import window_sums
 
 __all__ = [
     "ENCODER_VERSION",
+    "MAX_DEPTH_M",
+    "RADIUS_ANGLE",
     "HHAResult",
     "encode",
     "encode_full",
@@ -24,4 +28,5 @@ __all__ = [
     "encode_stream",
     "intrinsics_valid",
     "inverse_depth_to_metric",
+    "window_sums",
 ]

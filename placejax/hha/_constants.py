@@ -1,6 +1,7 @@
 """Constants of the HHA encoding (Gupta et al., ECCV 2014; values of the original code, ``docs/hha.md``)."""
 
-RADIUS_ANGLE = 3  # 7×7 normals feed the angle channel
+RADIUS_ANGLE = 3
+"""Half-width of the 7 × 7 windows whose plane fits give the normals of the angle channel."""
 RADIUS_GRAVITY = 10  # 21×21 normals feed only the gravity estimate
 GRAVITY_THRESHOLDS_DEG = (45.0, 15.0)  # floor/wall thresholds of the two passes
 GRAVITY_ITERATIONS = (5, 5)
@@ -17,3 +18,4 @@ ANGLE_NAN_DEG = 180.0  # angle where the normal is undefined
 # exactly 1000 m) while overflow junk such as 1e30 counts as missing.
 MIN_DEPTH_M = 0.1
 MAX_DEPTH_M = 1000.0
+"""The encoder's farthest valid depth (m): SimCampus's sky, and where far predictions are handed over as sky."""

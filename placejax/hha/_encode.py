@@ -47,7 +47,6 @@ from placejax.hha._constants import (
 )
 from placejax.hha._windows import (
     WEIGHT_SPEC,
-    _correlate,  # noqa: F401  (placejax.depth's window-plane loss shares the encoder's window sums)
     _materialise,
     _moments,
     fit_planes,

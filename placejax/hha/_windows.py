@@ -47,7 +47,7 @@ def _materialise(tree, token: jax.Array):
 # Window moments.
 
 
-def _correlate(x: jax.Array, powers: tuple[int, ...], axis: int) -> dict[int, jax.Array]:
+def window_sums(x: jax.Array, powers: tuple[int, ...], axis: int) -> dict[int, jax.Array]:
     """Σ_{k=-3..3} k^p · x[i + k] along ``axis`` for every p in ``powers``, "valid" part only (6 shorter).
 
     Plain shifted slices of an array that already carries its zero border: no padding op in between, which XLA
@@ -113,14 +113,14 @@ def _moments(
     h, w = x.shape
     xp = jnp.pad(x, _BORDER)
     col_powers = tuple(sorted(spec))
-    cols = _materialise(_correlate(xp, col_powers, axis=1), token)  # columns −7 … W+7
+    cols = _materialise(window_sums(xp, col_powers, axis=1), token)  # columns −7 … W+7
     cols_wide = _materialise(_widen(cols, col_powers, axis=1), token)  # columns 0 … W
     narrow, wide = {}, {}
     for p, row_powers in spec.items():
         # 7×7: rows −3 … H+3 of the columns 0 … W of the 7-tap column sums.
         c7 = cols[p][_BORDER - r : _BORDER + h + r, e : e + w]
-        narrow.update({(p, q): v for q, v in _correlate(c7, row_powers, axis=0).items()})
-        rows = _materialise(_correlate(cols_wide[p], row_powers, axis=0), token)  # rows −7 … H+7
+        narrow.update({(p, q): v for q, v in window_sums(c7, row_powers, axis=0).items()})
+        rows = _materialise(window_sums(cols_wide[p], row_powers, axis=0), token)  # rows −7 … H+7
         wide.update({(p, q): v for q, v in _widen(rows, row_powers, axis=0).items()})
     return _materialise((narrow, wide), token)
 

@@ -4,6 +4,7 @@ exact resizes, CPU inference compiler options, from-scratch initialisation and t
 from placejax.models._cpu import cpu_compiler_options
 from placejax.models._dav2 import (
     DAV2_CONFIGS,
+    DAV2_PATCH,
     DepthAnythingV2,
     DinoV2Encoder,
     DPTHead,
@@ -22,6 +23,7 @@ from placejax.models._init import (
 from placejax.models._midas import EfficientNetLite3Encoder, MidasSmall, fold_batch_norm
 from placejax.models._resize import interpolation_matrix, resize, upsample2x_align_corners
 from placejax.models._vgg import (
+    CONV_NAMES,
     VGG16,
     VGG16Head,
     VGG16Trunk,
@@ -30,7 +32,9 @@ from placejax.models._vgg import (
 )
 
 __all__ = [
+    "CONV_NAMES",
     "DAV2_CONFIGS",
+    "DAV2_PATCH",
     "IMAGENET_MEAN",
     "IMAGENET_MEAN_255",
     "IMAGENET_STD",

@@ -40,7 +40,8 @@ from placejax.models._resize import _TORCH_CUBIC_A, _cubic_weights, resize
 Dtype = Any
 Head = Literal["relative", "metric"]
 
-PATCH = 14
+DAV2_PATCH = 14
+"""Side of Depth Anything V2's (DINOv2's) square patches, pixels: its input sides are multiples of it."""
 # The official DINOv2 encoders' trained patch grid: img_size=518 in dinov2.py's DINOv2() → 37 × 37 patches.
 TRAINED_GRID = 37
 # dinov2.py: interpolate_offset=0.1 ("work-around offset"), added to the target grid before the scale factor.
@@ -180,11 +181,11 @@ class _PatchEmbed(nn.Module):
     def __call__(self, x: Array) -> Array:
         n, hh, ww, c = x.shape
         kernel = self.param(
-            "kernel", nn.initializers.lecun_normal(), (PATCH, PATCH, c, self.features), self.param_dtype
+            "kernel", nn.initializers.lecun_normal(), (DAV2_PATCH, DAV2_PATCH, c, self.features), self.param_dtype
         )
         bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), self.param_dtype)
         x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
-        patches = x.reshape(n, hh // PATCH, PATCH, ww // PATCH, PATCH, c)
+        patches = x.reshape(n, hh // DAV2_PATCH, DAV2_PATCH, ww // DAV2_PATCH, DAV2_PATCH, c)
         return jnp.einsum("nhawbc,abcd->nhwd", patches, kernel) + bias.reshape(1, 1, 1, -1)
 
 
@@ -216,7 +217,7 @@ class DinoV2Encoder(nn.Module):
     @nn.compact
     def __call__(self, x: Array) -> tuple[Array, ...]:
         n, hh, ww, _ = x.shape
-        h, w, d = hh // PATCH, ww // PATCH, self.embed_dim
+        h, w, d = hh // DAV2_PATCH, ww // DAV2_PATCH, self.embed_dim
         kw = dict(dtype=self.dtype, param_dtype=self.param_dtype)
         tokens = _PatchEmbed(d, name="patch_embed", **kw)(x).reshape(n, h * w, d)
         cls = self.param("cls_token", nn.initializers.normal(1e-6), (1, 1, d), self.param_dtype)
@@ -322,7 +323,7 @@ class DPTHead(nn.Module):
             self.sow("intermediates", f"path_{i}", path)
         pad = ((1, 1), (1, 1))
         y = nn.Conv(self.features // 2, (3, 3), padding=pad, name="scratch_output_conv1", **kw)(path)
-        y = resize(y, (h * PATCH, w * PATCH), "bilinear", align_corners=True)
+        y = resize(y, (h * DAV2_PATCH, w * DAV2_PATCH), "bilinear", align_corners=True)
         y = nn.relu(nn.Conv(32, (3, 3), padding=pad, name="scratch_output_conv2_0", **kw)(y))
         y = nn.Conv(1, (1, 1), name="scratch_output_conv2_2", **kw)(y)[..., 0]
         if self.head == "relative":
@@ -379,9 +380,10 @@ class DepthAnythingV2(nn.Module):
     def __call__(self, x: Array) -> Array:
         if x.ndim != 4 or x.shape[-1] != 3:
             raise ValueError(f"DepthAnythingV2 expects NHWC images (N, H, W, 3), got shape {x.shape}")
-        if x.shape[1] % PATCH or x.shape[2] % PATCH or min(x.shape[1:3]) < 2 * PATCH:
+        if x.shape[1] % DAV2_PATCH or x.shape[2] % DAV2_PATCH or min(x.shape[1:3]) < 2 * DAV2_PATCH:
             raise ValueError(
-                f"DepthAnythingV2 needs H and W multiples of {PATCH} and at least {2 * PATCH}, got {x.shape[1:3]}"
+                f"DepthAnythingV2 needs H and W multiples of {DAV2_PATCH} and at least {2 * DAV2_PATCH}, "
+                f"got {x.shape[1:3]}"
             )
         if self.head not in ("relative", "metric"):
             raise ValueError(f"head must be 'relative' or 'metric', got {self.head!r}")
@@ -413,13 +415,15 @@ def dav2_input_size(height: int, width: int, short_side: int = 518) -> tuple[int
     >>> dav2_input_size(480, 640)
     (518, 686)
     """
-    if height < 1 or width < 1 or short_side < PATCH:
-        raise ValueError(f"dav2_input_size needs sizes ≥ 1, short_side ≥ {PATCH}; got {height}, {width}, {short_side}")
+    if height < 1 or width < 1 or short_side < DAV2_PATCH:
+        raise ValueError(
+            f"dav2_input_size needs sizes ≥ 1, short_side ≥ {DAV2_PATCH}; got {height}, {width}, {short_side}"
+        )
     scale = max(short_side / height, short_side / width)
 
     def side(v: float) -> int:
-        y = int(np.round(v / PATCH) * PATCH)
-        return int(np.ceil(v / PATCH) * PATCH) if y < short_side else y
+        y = int(np.round(v / DAV2_PATCH) * DAV2_PATCH)
+        return int(np.ceil(v / DAV2_PATCH) * DAV2_PATCH) if y < short_side else y
 
     return side(scale * height), side(scale * width)
 

@@ -27,6 +27,7 @@ Dtype = Any
 # (block, convs in block, output channels) of VGG16 ("configuration D").
 _BLOCKS: tuple[tuple[int, int, int], ...] = ((1, 2, 64), (2, 2, 128), (3, 3, 256), (4, 3, 512), (5, 3, 512))
 CONV_NAMES: tuple[str, ...] = tuple(f"conv{b}_{j}" for b, n, _ in _BLOCKS for j in range(1, n + 1))
+"""The 13 conv layers of VGG16's trunk in order (``conv1_1`` … ``conv5_3``), the names of its parameters."""
 POOL_SIZE = 7
 _FC_WIDTH = 4096
 

@@ -111,7 +111,7 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
         ``{"trunk": ..., "classifier": ...}`` (no ``"classifier"`` for a shipped or ``.npz`` trunk).
     """
     from placejax.models import VGG16
-    from placejax.weights._convert import convert_vgg16
+    from placejax.weights import convert_vgg16
 
     spec = weights or _IMAGENET
     if spec.startswith(_resolve.REGISTRY_PREFIX):

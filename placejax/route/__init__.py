@@ -35,7 +35,7 @@ Example:
 """
 
 from placejax.route._calibration import calibrated_probabilities, fit_temperature
-from placejax.route._config import FilterConfig
+from placejax.route._config import FilterConfig, first_problem
 from placejax.route._filter import (
     RouteFilter,
     forward,
@@ -51,6 +51,7 @@ __all__ = [
     "FilterConfig",
     "RouteFilter",
     "calibrated_probabilities",
+    "first_problem",
     "fit_temperature",
     "forward",
     "initial_belief",

@@ -21,8 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from placejax.models import DAV2_CONFIGS, VGG16, DepthAnythingV2, MidasSmall
-from placejax.models._vgg import CONV_NAMES
+from placejax.models import CONV_NAMES, DAV2_CONFIGS, VGG16, DepthAnythingV2, MidasSmall
 
 Variables = dict[str, Any]
 # (collection, path in that collection, array already in Flax layout) or None for a key deliberately dropped.
