@@ -227,3 +227,38 @@ def test_data_session_does_not_import_the_cache():
         for alias in node.names
     }
     assert not {m for m in imported if m and m.startswith("placejax")}, imported
+
+
+def _placejax_imports(path: Path) -> list[tuple[int, str]]:
+    """``(line, module)`` of every placejax import of a file, at any depth (function-level imports included)."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out += [(node.lineno, node.module)] + [(node.lineno, f"{node.module}.{a.name}") for a in node.names]
+        elif isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+    return [(line, m) for line, m in out if m.startswith("placejax")]
+
+
+def test_no_package_imports_another_packages_private_module():
+    """A name one subpackage needs from another is public where it lives: no ``placejax.<other>._private``."""
+    bad = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        own = path.relative_to(PACKAGE).parts[0].removesuffix(".py")
+        for line, module in _placejax_imports(path):
+            parts = module.split(".")
+            if len(parts) > 2 and parts[1] != own and any(p.startswith("_") for p in parts[2:]):
+                bad.append(f"{path.relative_to(PACKAGE.parent)}:{line}: {module}")
+    assert not bad, bad
+
+
+def test_classify_does_not_import_stages():
+    """One direction between the two: ``placejax.stages`` writes a run with ``placejax.classify``'s run layout and
+    unseen-place scores; ``placejax.classify`` reads a finished run without the stages."""
+    bad = [
+        f"{path.name}:{line}: {module}"
+        for path in sorted((PACKAGE / "classify").glob("*.py"))
+        for line, module in _placejax_imports(path)
+        if module == "placejax.stages" or module.startswith("placejax.stages.")
+    ]
+    assert not bad, bad

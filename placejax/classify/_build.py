@@ -12,7 +12,7 @@ import json
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import numpy as np
@@ -22,9 +22,6 @@ from placejax.classify import run_layout, unknown
 from placejax.classify._forward import _plain
 from placejax.data import PlaceGrid
 from placejax.depth import SOURCE_NAMES, DepthSource, DepthSourceConfig, depth_source
-
-if TYPE_CHECKING:
-    from placejax.stages import VGGConfig
 
 
 def restore_params(ckdir: Path) -> dict:
@@ -67,8 +64,8 @@ def run_meta_and_params(
         "hha": restore(files.hha_checkpoint),
         "mlp": restore(files.mlp_checkpoint),
     }
-    vgg = _vgg_config(cfg["vgg"])
-    if vgg.pretrained:
+    vgg = _vgg_section(cfg["vgg"])
+    if vgg["pretrained"]:
         for m in ("rgb", "hha"):  # the HHA net may read its own trunk (vgg.hha_weights)
             params[m] = {"trunk": _pretrained_trunk(vgg, m), "classifier": params[m]["classifier"]}
     score = unknown.DEFAULT_SCORE
@@ -90,7 +87,7 @@ def run_meta_and_params(
         "intrinsics": files.intrinsics,
         "normalise": files.normalise,
         "depth": depth_meta,
-        "vgg": {"width": vgg.width, "pretrained": vgg.pretrained},
+        "vgg": {"width": vgg["width"], "pretrained": vgg["pretrained"]},
         "mlp_hidden": cfg["mlp"]["hidden"],
         "grid": files.grid,
         "visited_classes": files.visited_classes,
@@ -157,17 +154,15 @@ def run_depth_source(files: run_layout.RunFiles) -> DepthSource:
     return source
 
 
-def _vgg_config(section: dict) -> VGGConfig:
-    # Older runs' configs have no hha_weights: their HHA net read vgg.weights.
-    from placejax.stages import VGGConfig  # (placejax.stages imports the run layout from this package)
-
-    names = {f.name for f in dataclasses.fields(VGGConfig)}
-    return VGGConfig(**{"hha_weights": "", **{k: v for k, v in section.items() if k in names}})
+def _vgg_section(section: dict) -> dict:
+    """The run's ``vgg`` section, as validated by the run (``placejax.stages.VGGConfig``); a config without
+    ``hha_weights`` had its HHA net read ``vgg.weights``."""
+    return {"hha_weights": "", **section}
 
 
-def _pretrained_trunk(vgg: VGGConfig, modality: str) -> dict:
+def _pretrained_trunk(vgg: dict, modality: str) -> dict:
     from placejax.pretrain import modality_weights, pretrained_vgg16
 
-    weights = modality_weights(modality, weights=vgg.weights, hha_weights=vgg.hha_weights)
-    params = pretrained_vgg16(weights, vgg.width)
+    weights = modality_weights(modality, weights=vgg["weights"], hha_weights=vgg["hha_weights"])
+    params = pretrained_vgg16(weights, vgg["width"])
     return jax.tree_util.tree_map(np.asarray, _plain(params["trunk"]))

@@ -48,7 +48,8 @@ def _materialise(tree, token: jax.Array):
 
 
 def window_sums(x: jax.Array, powers: tuple[int, ...], axis: int) -> dict[int, jax.Array]:
-    """Σ_{k=-3..3} k^p · x[i + k] along ``axis`` for every p in ``powers``, "valid" part only (6 shorter).
+    """Σ_{k=-3..3} k^p · x[i + k] along ``axis`` for every p in ``powers``, "valid" part only: ``x`` of any shape,
+    each result of its shape but 6 shorter along ``axis`` (the 7-wide windows of the angle channel's normals).
 
     Plain shifted slices of an array that already carries its zero border: no padding op in between, which XLA
     CPU would otherwise materialise as a separate copy at every stage.

@@ -19,10 +19,10 @@ import numpy as np
 from flax import traverse_util
 
 from placejax import io
+from placejax import weights as _weights
 from placejax.pretrain import _evaluate
 from placejax.pretrain._train import PRESETS, PretrainConfig, load_trained, train
 from placejax.training import CheckpointError
-from placejax.weights import _resolve, _shipped
 
 # The trunk shipped with the package (its README records command, seed, config and held-out metrics).
 SHIPPED = "simcampus_places_w0125_s64"
@@ -44,7 +44,7 @@ _EXPECTED_MINUTES = {"smoke": 1, "default": 45}
 
 def run_dir(cfg: PretrainConfig, preset: str, root: str | Path | None = None) -> Path:
     """``<root>/pretrain/<preset>-<config hash>``; ``root`` defaults to ``placejax.weights.cache_dir()``."""
-    return _shipped.run_dir("pretrain", preset, cfg.fingerprint(), root)
+    return _weights.run_dir("pretrain", preset, cfg.fingerprint(), root)
 
 
 def export_params(params: dict[str, Any], heads: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
@@ -65,18 +65,18 @@ def save_npz(params: dict[str, Any], path: str | Path, meta: dict, heads: tuple[
     io.write_npz(path, export_params(params, heads), compressed=True, meta=meta)
 
 
-def read_npz(source) -> _shipped.WeightsRecord:
+def read_npz(source) -> _weights.WeightsRecord:
     """``(params, meta)`` of a file written by :func:`save_npz` (``placejax.weights.read_record``): ``params``
     ``{"trunk": ...[, "classifier": {...}]}`` ready to drop into ``VGG16(width=meta["config"]["width"])``'s tree."""
-    return _shipped.read_record(source, what="placejax pretrained-trunk file")
+    return _weights.read_record(source, what="placejax pretrained-trunk file")
 
 
 def shipped_file(name: str = SHIPPED):
     """The packaged file of the shipped trunk ``name`` (``placejax.weights.shipped_file``)."""
-    return _shipped.shipped_file(name)
+    return _weights.shipped_file(name)
 
 
-def load_shipped(name: str = SHIPPED) -> _shipped.WeightsRecord:
+def load_shipped(name: str = SHIPPED) -> _weights.WeightsRecord:
     """The trunk shipped in ``placejax/pretrain/weights/<name>.npz`` and its record (config, seed,
     command, held-out metrics): ``(params, meta)``, a ``placejax.weights.WeightsRecord`` as
     ``placejax.weights.resolve("shipped:NAME")`` returns.
@@ -87,10 +87,10 @@ def load_shipped(name: str = SHIPPED) -> _shipped.WeightsRecord:
         model = VGG16(num_classes=100, width=meta["config"]["width"])
         pooled = model.apply({"params": {"trunk": params["trunk"]}}, x, method=VGG16.conv_features)
     """
-    return _shipped.load_shipped(name)
+    return _weights.load_shipped(name)
 
 
-SHIPPED_PREFIX = _resolve.SHIPPED_PREFIX
+SHIPPED_PREFIX = _weights.SHIPPED_PREFIX
 """The prefix of a shipped weights spec, ``"shipped:"`` (``placejax.weights.SHIPPED_PREFIX``)."""
 _IMAGENET = "registry:vgg16_imagenet"
 
@@ -114,24 +114,24 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
     from placejax.weights import convert_vgg16
 
     spec = weights or _IMAGENET
-    if spec.startswith(_resolve.REGISTRY_PREFIX):
+    if spec.startswith(_weights.REGISTRY_PREFIX):
         if spec != _IMAGENET:  # the registry's other entries are depth networks, not VGG16s
             raise ValueError(f"{weights!r} is not a VGG16: the registry's VGG16 weights are {_IMAGENET!r}")
         if width != 1.0:  # checked before anything is downloaded
             raise ValueError(f"the registry's ImageNet VGG16 has width 1.0, not {width} (pass other weights' path)")
-        return _resolve.resolve(spec).variables["params"]
+        return _weights.resolve(spec).variables["params"]
 
     def convert(sd):
         fc8 = sd.get("classifier.6.weight")
         n_out = int(np.shape(fc8)[0]) if fc8 is not None else 1000
         return convert_vgg16(sd, VGG16(num_classes=n_out, width=width))
 
-    variables, meta = _resolve.resolve(spec, convert=convert)
+    variables, meta = _weights.resolve(spec, convert=convert)
     if "trunk" in variables:  # a placejax record (shipped or .npz): the trunk only
         if meta.get("config", {}).get("width") != width:
             raise ValueError(f"{weights!r} is a width-{meta.get('config', {}).get('width')} trunk, not width {width}")
         return {"trunk": variables["trunk"]}
-    if spec.startswith(_resolve.SHIPPED_PREFIX) or Path(spec).expanduser().suffix == ".npz":
+    if spec.startswith(_weights.SHIPPED_PREFIX) or Path(spec).expanduser().suffix == ".npz":
         # another network's record (e.g. the shipped depth network): a "params" tree, but not a VGG16's
         raise ValueError(f"{weights!r} is not a pretrained VGG16 trunk record (it holds {sorted(variables)})")
     return variables["params"]
@@ -213,9 +213,9 @@ def ensure_trained(
         config = PRESETS[preset]
     workdir = run_dir(config, preset, cache_root)
     report_path = workdir / "pretrain_eval.json"
-    with _shipped.training_lock(workdir):  # a second caller waits here, then loads what the first trained
+    with _weights.training_lock(workdir):  # a second caller waits here, then loads what the first trained
         if progress and not report_path.exists():
-            _shipped.announce_training(
+            _weights.announce_training(
                 "the pretrained VGG16 trunk", preset, f"{config.steps} steps", _EXPECTED_MINUTES.get(preset), workdir
             )
         t0 = time.perf_counter()
