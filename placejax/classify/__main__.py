@@ -43,13 +43,13 @@ FIGURE_SIDE = 640
 
 def _thumbnail(image: np.ndarray) -> np.ndarray:
     """The photograph at most :data:`FIGURE_SIDE` pixels on its longer side, for the figure."""
-    import cv2
+    from placejax.data.camera import resize_image
 
     h, w = image.shape[:2]
     scale = FIGURE_SIDE / max(h, w)
     if scale >= 1:
         return image
-    return cv2.resize(image, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+    return resize_image(image, (max(1, round(h * scale)), max(1, round(w * scale))))
 
 
 def _load_model(model: str, session: str | None):
