@@ -393,9 +393,9 @@ def test_filter_config_is_the_one_owner_of_the_settings():
     import dataclasses
 
     want = [
-        ("temperature", 4.0),
-        ("uniform_mix", 1e-3),
-        ("unknown_level", 5.0),
+        ("temperature", 5.1),
+        ("uniform_mix", 1e-4),
+        ("unknown_level", 3.0),
         ("unknown_prior", 0.01),
         ("unknown_enter_per_m", 0.005),
         ("unknown_leave_per_m", 0.1),

@@ -42,7 +42,7 @@ def tiny_file(tmp_path_factory) -> Path:
     settings = route.FilterConfig(
         temperature=2.5,
         uniform_mix=0.01,
-        unknown_level=3.0,
+        unknown_level=4.0,
         unknown_prior=0.05,
         unknown_enter_per_m=0.01,
         unknown_leave_per_m=0.2,
@@ -186,7 +186,9 @@ def test_tracker_reproduces_the_runs_route_column(smoke_run, tmp_path):
 
     cfg, workdir, results = smoke_run
     clf = PlaceClassifier.load(PlaceClassifier.from_run(workdir, TRAIN).save(tmp_path / "wi.placejax"))
-    assert clf.route == route.FilterConfig(**{k: v for k, v in cfg.route.items() if k != "block_frames"})
+    report_keys = ("block_frames", "lag_frames")  # the experiment's own entries of its route section
+    assert clf.route == route.FilterConfig(**{k: v for k, v in cfg.route.items() if k not in report_keys})
+    assert clf.sequence == route.MatchConfig(**cfg.sequence)
     assert Tracker.from_run(workdir, TRAIN).config == clf.route
     c = sections(cfg)
     ws = stages.Workspace(Path(workdir).absolute(), data_mesh(None), progress=False)
@@ -207,5 +209,22 @@ def test_tracker_reproduces_the_runs_route_column(smoke_run, tmp_path):
         assert route_top1 == row["ours_route_per_seed"][0], (t.name, route_top1, row["ours_route_per_seed"])
         assert frame_top1 == row["ours_per_seed"][0], (t.name, frame_top1, row["ours_per_seed"])
         assert not any(s.rejected for s in steps)
+        # The fixed-lag column: each frame's answer `lag` frames later, the last ones at the end of the drive.
+        lag = int(cfg.route.lag_frames)
+        lagged = Tracker.from_run(workdir, TRAIN, lag=lag)
+        answers = {}
+        for im, d in zip(np.asarray(t.cached.images), moved, strict=True):
+            s = lagged.step(im, float(d))
+            if s.lagged_frame >= 0:
+                answers[s.lagged_frame] = s.lagged_label
+        answers.update({a["lagged_frame"]: a["lagged_label"] for a in lagged.flush()})
+        lag_top1 = float(np.mean(np.array([answers[i] for i in range(len(t))]) == t.labels))
+        assert lag_top1 == row["ours_route_lag_per_seed"][0], (t.name, lag_top1, row["ours_route_lag_per_seed"])
+        # The sequence matcher against the classifier's own training drive.
+        seq = Tracker(clf, method="sequence")
+        steps = [seq.step(im, float(d)) for im, d in zip(np.asarray(t.cached.images), moved, strict=True)]
+        seq_top1 = float(np.mean(np.array([s.label for s in steps]) == t.labels))
+        assert seq_top1 == row["seq_match_per_seed"][0], (t.name, seq_top1, row["seq_match_per_seed"])
+        assert all(0 <= s.matched_frame < len(clf.sequence_reference()) for s in steps)
         tested.append(t.name)
     assert tested == [s for s in SESSIONS if s != TRAIN]

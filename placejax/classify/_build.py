@@ -80,6 +80,9 @@ def run_meta_and_params(
             )
         with np.load(files.embeddings) as z:
             params["unknown"] = unknown.fit_feature_model(score, z["embeddings"], z["labels"])
+    sequence = sequence_drive(files, cfg)
+    if sequence is not None:
+        params["sequence"] = sequence[1]
     meta = {
         "train_session": train_session,
         "num_classes": PlaceGrid.from_dict(files.grid).num_classes,
@@ -98,10 +101,28 @@ def run_meta_and_params(
             "all_scores": files.unknown,
         },
         "route": route_settings(cfg).to_dict(),
+        **({"sequence": sequence[0].to_dict()} if sequence is not None else {}),
         "config": cfg,
         "source": {"workdir": str(files.workdir), "train_session": train_session},
     }
     return meta, params
+
+
+def sequence_drive(files: run_layout.RunFiles, cfg: dict[str, Any]) -> tuple[route.MatchConfig, dict] | None:
+    """The sequence matcher's settings (the run's ``sequence`` section) and training drive (its frames' matcher
+    embeddings, positions and cells), or ``None`` for a run that saved no positions (older than the matcher)."""
+    if files.embeddings is None or not Path(files.embeddings).is_file():
+        return None
+    with np.load(files.embeddings) as z:
+        if "positions" not in z.files:
+            return None
+        emb, positions, labels = z["embeddings"], z["positions"], z["labels"]
+    settings = route.MatchConfig(**(cfg.get("sequence") or {}))
+    return settings, {
+        "embeddings": route.select_embedding(emb, settings.embedding),
+        "positions": np.asarray(positions, np.float32),
+        "labels": np.asarray(labels, np.int32),
+    }
 
 
 # Settings older runs' configs lack, at the values those runs used (the depth stage had no such step then).

@@ -124,16 +124,21 @@ class PlaceClassifier:
         route: the `placejax.route.FilterConfig` of the run that trained it (its config section ``route``: the
             temperature and filter settings its ``Ours + route`` column used; the defaults for files written
             before it was stored). ``Tracker`` runs with it.
+        sequence: the `placejax.route.MatchConfig` of the run (its ``sequence`` section), with the training drive
+            in ``params["sequence"]`` (`sequence_reference`); ``None`` for files written before the matcher.
     """
 
     def __init__(self, meta: dict[str, Any], params: dict[str, Any]):
         self.route = _route_settings(meta.get("route"))
+        self.sequence = None if meta.get("sequence") is None else route.MatchConfig(**meta["sequence"])
         self.meta = meta
         self.params = jax.tree_util.tree_map(jnp.asarray, params)
         self.grid = PlaceGrid.from_dict(meta["grid"], source="classifier grid")
         self._spec = ClassifierSpec.from_meta(meta)
         self._check_params()
         self._check_unknown()
+        self._check_sequence()
+        self._reference = None
 
     # ----------------------------------------------------------------------------------------------- building
 
@@ -184,6 +189,54 @@ class PlaceClassifier:
         elif len(arrays["reference"]) < unknown._knn_k(score):
             raise _artefact.ArtefactError(f"the {score} score needs at least its k reference embeddings")
 
+    def _check_sequence(self) -> None:
+        """The sequence matcher's training drive (``params["sequence"]``) fits its settings and the networks."""
+        arrays = {k: np.asarray(v) for k, v in self.params.get("sequence", {}).items()}
+        if self.sequence is None:
+            if arrays:
+                raise _artefact.ArtefactError(f"sequence arrays {sorted(arrays)} but no sequence settings")
+            return
+        want = {"embeddings": 2, "positions": 2, "labels": 1}
+        if set(arrays) != set(want) or any(arrays[k].ndim != n for k, n in want.items()):
+            have = {k: list(v.shape) for k, v in arrays.items()}
+            raise _artefact.ArtefactError(f"the sequence matcher needs arrays {want} (name: rank), got {have}")
+        n = len(arrays["labels"])
+        width = _fc7_width(self._spec.vgg) * (2 if self.sequence.embedding == "fused" else 1)
+        if n == 0 or arrays["embeddings"].shape != (n, width) or arrays["positions"].shape != (n, 2):
+            raise _artefact.ArtefactError(
+                f"sequence arrays: embeddings {list(arrays['embeddings'].shape)}, positions "
+                f"{list(arrays['positions'].shape)}, labels {[n]}; expected ({n} ≥ 1, {width}), ({n}, 2), ({n},) "
+                f"for the {self.sequence.embedding!r} embedding"
+            )
+        for k in ("embeddings", "positions"):
+            if not np.isfinite(arrays[k]).all():
+                raise _artefact.ArtefactError(f"sequence/{k} holds values that are not finite")
+        labels = arrays["labels"]
+        if not np.issubdtype(labels.dtype, np.integer) or labels.min() < 0 or labels.max() >= self.grid.num_classes:
+            raise _artefact.ArtefactError(f"sequence/labels must be cells in [0, {self.grid.num_classes})")
+
+    def sequence_reference(self) -> route.MatchReference:
+        """The training drive the sequence matcher matches against (built once), or a ``ValueError`` for a
+        classifier saved without one (built from a run older than the sequence matcher)."""
+        if self.sequence is None:
+            raise ValueError(
+                "this classifier has no training drive for the sequence matcher (built from a run older than it): "
+                "rerun the run's command, then PlaceClassifier.from_run again"
+            )
+        if self._reference is None:
+            a = {k: np.asarray(v) for k, v in self.params["sequence"].items()}
+            self._reference = route.match_reference(
+                a["embeddings"], a["positions"], a["labels"], self.grid.num_classes, neighbours=self.sequence.neighbours
+            )
+        return self._reference
+
+    def sequence_embedding(self, outputs: dict[str, np.ndarray]) -> np.ndarray:
+        """The embedding the sequence matcher compares (``sequence.embedding``) of :meth:`logits`' ``outputs``,
+        float32 ``(N, D)`` (`placejax.route.unit_embedding` of the fc7 blocks it names)."""
+        if self.sequence is None:
+            self.sequence_reference()  # raises, saying why
+        return route.select_embedding(np.asarray(outputs["embedding"], np.float32), self.sequence.embedding)
+
     @classmethod
     def from_run(cls, workdir: str | os.PathLike, train_session: str) -> PlaceClassifier:
         """The classifier trained on ``train_session`` in a finished ``experiments.cross_season`` run.
@@ -230,8 +283,9 @@ class PlaceClassifier:
         meta = {k: v for k, v in manifest.items() if k not in ("format", "version", "arrays", "versions")}
         try:
             params = {name: _artefact.unflatten(flat, name) for name in ("depth", "rgb", "hha", "mlp")}
-            if any(k.startswith("unknown/") for k in flat):  # a feature-space unseen-place score's arrays
-                params["unknown"] = _artefact.unflatten(flat, "unknown")
+            for group in ("unknown", "sequence"):  # a feature-space unseen-place score's; the training drive
+                if any(k.startswith(f"{group}/") for k in flat):
+                    params[group] = _artefact.unflatten(flat, group)
             return cls(meta, params)
         except (KeyError, TypeError, ValueError) as e:  # ArtefactError is a ValueError
             raise _artefact.ArtefactError(f"{path}: {e}") from None

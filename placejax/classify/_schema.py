@@ -50,10 +50,11 @@ _TOP = {
     "visited_classes",
     "unknown",
     "route",
+    "sequence",
     "config",
     "source",
 }
-_OPTIONAL_TOP = {"versions", "visited_classes", "route", "config", "source"}
+_OPTIONAL_TOP = {"versions", "visited_classes", "route", "sequence", "config", "source"}
 _DEPTH_REQUIRED = {"kind", "features", "encoder_width", "size", "near_m", "far_m"}
 _DEPTH_OPTIONAL = {"metric", "far_as_sky_m", "flip_average", "shifts", "source"}
 _DAV2_REQUIRED = {
@@ -71,7 +72,8 @@ _DAV2_REQUIRED = {
     "near_m",
     "far_m",
 }
-_ARRAY_GROUPS = ("depth", "rgb", "hha", "mlp", "unknown")  # unknown: a feature-space unseen-place score
+# unknown: a feature-space unseen-place score; sequence: the training drive the sequence matcher matches against
+_ARRAY_GROUPS = ("depth", "rgb", "hha", "mlp", "unknown", "sequence")
 _TINY = 2.0**-126  # smallest normal float32: the networks and the HHA encoder compute in float32
 
 
@@ -205,6 +207,8 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
 
     if "route" in m:  # files written before the route settings were stored have none: the defaults
         _check_route(c, m["route"])
+    if "sequence" in m:  # files written before the sequence matcher have none (and no sequence arrays)
+        _check_sequence(c, m["sequence"])
 
     for name in m["arrays"]:
         if name.split("/", 1)[0] not in _ARRAY_GROUPS:
@@ -219,6 +223,16 @@ def _check_route(c: _Checker, r: Any) -> None:
     bad = first_problem(r)
     if bad is not None:
         c.fail(f"route.{bad[0]}", bad[1])
+
+
+def _check_sequence(c: _Checker, r: Any) -> None:
+    """``sequence``: every field of ``placejax.route.MatchConfig``, each checked by MatchConfig's own rules."""
+    from placejax.route import MATCH_FIELDS, first_match_problem
+
+    c.obj(r, "sequence", set(MATCH_FIELDS))
+    bad = first_match_problem(r)
+    if bad is not None:
+        c.fail(f"sequence.{bad[0]}", bad[1])
 
 
 def _check_near_far(c: _Checker, d: dict) -> None:

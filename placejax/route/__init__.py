@@ -18,6 +18,14 @@ Public surface:
     fit_temperature, calibrated_probabilities: temperature scaling on held-out frames.
     moved_from_travelled, moved_from_timestamps: per-frame distances from an odometer or from time × speed.
     transition_matrix: the motion model's cell-to-cell matrix for one distance (for inspection and tests).
+    FixedLagFilter: the streaming filter that also answers for the frame ``lag`` frames back (`smooth`'s answer).
+
+Sequence matching against the training drive (an HMM over the training session's frames, ``docs/route.md``):
+    MatchConfig: its settings; match_reference: the training drive (embeddings, positions, cells);
+    match_forward: a whole test drive; SequenceMatcher: one frame at a time (the same answers);
+    unit_embedding: per-block L2-normalised, concatenated embeddings; select_embedding: the matcher's from a
+    classifier's fused one; travel_directions: a drive's headings;
+    window_mean: causal window means (the route's unseen-place score, ``MatchOutput.window_distance``).
 
 Bad input fails closed: the batch functions refuse non-finite or out-of-range probabilities, logits, distances and
 priors with a ``ValueError`` naming the argument and the first bad frame.
@@ -37,6 +45,8 @@ Example:
 from placejax.route._calibration import calibrated_probabilities, fit_temperature
 from placejax.route._config import FilterConfig, first_problem
 from placejax.route._filter import (
+    MAX_LAG,
+    FixedLagFilter,
     RouteFilter,
     forward,
     initial_belief,
@@ -46,19 +56,49 @@ from placejax.route._filter import (
     transition_matrix,
 )
 from placejax.route._odometry import moved_from_timestamps, moved_from_travelled
+from placejax.route._sequence import (
+    EMBEDDINGS,
+    MATCH_FIELDS,
+    MatchConfig,
+    MatchOutput,
+    MatchReference,
+    SequenceMatcher,
+    first_match_problem,
+    match_forward,
+    match_reference,
+    select_embedding,
+    travel_directions,
+    unit_embedding,
+    window_mean,
+)
 
 __all__ = [
+    "EMBEDDINGS",
+    "MATCH_FIELDS",
+    "MAX_LAG",
     "FilterConfig",
+    "FixedLagFilter",
+    "MatchConfig",
+    "MatchOutput",
+    "MatchReference",
     "RouteFilter",
+    "SequenceMatcher",
     "calibrated_probabilities",
+    "first_match_problem",
     "first_problem",
     "fit_temperature",
     "forward",
     "initial_belief",
+    "match_forward",
+    "match_reference",
     "moved_from_timestamps",
     "moved_from_travelled",
     "num_states",
     "place_belief",
+    "select_embedding",
     "smooth",
     "transition_matrix",
+    "travel_directions",
+    "unit_embedding",
+    "window_mean",
 ]

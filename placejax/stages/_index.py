@@ -84,7 +84,11 @@ def write_classifier_index(
             thresholds[score] = {"threshold": thr, "target_frr": unknown.DEFAULT_TARGET_FRR, "held_out": held}
         path = Path(UNKNOWN_DIR) / f"{s.name}.npz"
         (ws.workdir / UNKNOWN_DIR).mkdir(exist_ok=True)
-        io.write_npz(ws.workdir / path, {"embeddings": emb, "labels": np.asarray(s.labels, np.int32)})
+        # positions: the training drive the sequence matcher matches against (frames in drive order)
+        positions = np.asarray(s.cached.poses, np.float64)[:, :2]
+        io.write_npz(
+            ws.workdir / path, {"embeddings": emb, "labels": np.asarray(s.labels, np.int32), "positions": positions}
+        )
         index_sessions[s.name] = {
             "rgb": str(Path(NETS_DIR) / run.nets[(s.name, "rgb")].key["ckpt"]),
             "hha": str(Path(NETS_DIR) / run.nets[(s.name, "hha")].key["ckpt"]),
