@@ -1,7 +1,8 @@
-"""Per-frame cost of the route filter (placejax.route) on the CPU: batch, streaming steps, fixed-lag smoother, and
-a robot's whole step (``Tracker.step``: the classifier, then the filter).
+"""Per-frame cost of the route methods (placejax.route) on the CPU: the cell filter (batch, streaming steps,
+fixed-lag smoother and streaming fixed-lag steps), the sequence matcher (batch and streaming) and a robot's whole
+step (``Tracker.step``: the classifier, then each method).
 
-    python -m benchmarks.route_speed [--repeats 5] [--frames 2000] [--n 10] [--no-tracker]
+    python -m benchmarks.route_speed [--repeats 5] [--frames 2000] [--n 10] [--reference 2000] [--no-tracker]
 
 Prints a table and writes ``benchmarks/results/route_speed.json`` with every run's time. The grid has ``n × n``
 cells (100 by default: the experiment's grid) plus the unknown state; the inputs are random classifier outputs
@@ -10,12 +11,17 @@ the median ms per frame over ``--repeats`` timed runs after one untimed compile 
 spread (max − min) / median of the runs. ``batch``: `placejax.route.forward` over the whole session (a jitted
 loop, 64 frames per call), timed to the result on the host; ``streaming``: `RouteFilter.step` frame by frame,
 each call returning the belief to NumPy, as a robot would use it; ``smooth lag L``: `placejax.route.smooth`.
-Target: < 1 ms per frame for 100 cells.
+Target: < 1 ms per frame for 100 cells. ``FixedLagFilter.step``: the streaming filter that also answers for the frame
+``--lag`` back. Sequence matcher: a training drive of ``--reference`` frames (a default training session has
+1,800–2,400) with the default preset's fused embedding (2 × 512) and ``MatchConfig``'s neighbours; ``match_forward``
+over ``--frames`` test frames and ``SequenceMatcher.step`` one frame at a time.
 
 ``Tracker.step``: a ``PlaceClassifier`` of the built-in size with random weights (the default preset's: 96×96
 images, the default depth network over its ten views, VGG16 at 1/8 width with float16 trunk features, the fusion
 MLP, 100 classes, the ``knn1`` unseen-place score against 1000 reference embeddings) followed by the filter, one
-uint8 image per call, ``--tracker-steps`` steps per timed run. Its ``first call s`` is the median over
+uint8 image per call, ``--tracker-steps`` steps per timed run, for each method it offers (the filter; the filter with
+a lag of ``--lag`` frames; the sequence matcher against a random training drive of ``--reference`` frames). Its
+``first call s`` is the median over
 ``--first-repeats`` first steps, each after every compilation cache was cleared (what a robot's first frame
 costs: the classifier's and the filter's compilation). ``PlaceClassifier.logits (1 image)``: the classifier
 alone, for the share of the step it takes, its runs alternated with the Tracker's (both see the same load).
@@ -68,7 +74,7 @@ def _row(case: str, cfg_name: str, frames: int, compile_s: float | None, times: 
     }
 
 
-def builtin_classifier(seed: int = 0):
+def builtin_classifier(seed: int = 0, reference: int = 2000):
     """A ``PlaceClassifier`` of the default preset's size with random weights (speed does not depend on them).
 
     Everything the file of a default run holds, read from the experiment's default config and the default depth
@@ -115,8 +121,25 @@ def builtin_classifier(seed: int = 0):
     mlp = jax.jit(spec.mlp.init)(k3, jnp.zeros((1, width)))["params"]
     rng = np.random.default_rng(seed)
     ref = unknown.fit_feature_model("knn1", rng.normal(size=(TRACKER_REFERENCE, width)), np.zeros(TRACKER_REFERENCE))
-    params = {"depth": depth, "rgb": vgg, "hha": vgg, "mlp": mlp, "unknown": ref}
+    drive = _drive(reference, width, c.grid.n, seed)
+    params = {"depth": depth, "rgb": vgg, "hha": vgg, "mlp": mlp, "unknown": ref, "sequence": drive}
+    meta["sequence"] = route.MatchConfig(**c.sequence).to_dict()
     return PlaceClassifier(meta, params)
+
+
+def _drive(frames: int, width: int, n: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """A random training drive: a wandering path of ``frames`` frames about 1 m apart inside the ``n × n`` grid of
+    20 m cells, random unit embeddings of ``width``, each frame's cell."""
+    rng = np.random.default_rng(seed)
+    heading = np.cumsum(rng.normal(0, 0.2, frames))
+    xy = np.cumsum(np.stack([np.cos(heading), np.sin(heading)], 1), axis=0)
+    xy = np.abs((xy + 10.0 * n) % (40.0 * n) - 20.0 * n)  # folded back into the grid's box
+    labels = np.minimum(xy[:, 0] // 20, n - 1) * n + np.minimum(xy[:, 1] // 20, n - 1)
+    return {
+        "embeddings": route.unit_embedding(rng.normal(size=(frames, width))),
+        "positions": xy.astype(np.float32),
+        "labels": labels.astype(np.int32),
+    }
 
 
 def _clear_compilations() -> None:
@@ -129,11 +152,12 @@ def _clear_compilations() -> None:
     jax.clear_caches()
 
 
-def tracker_rows(repeats: int, steps: int, first_repeats: int) -> list[dict]:
-    """``Tracker.step`` on the built-in classifier (first step and steady state), and the classifier alone."""
+def tracker_rows(repeats: int, steps: int, first_repeats: int, lag: int = 10, reference: int = 2000) -> list[dict]:
+    """``Tracker.step`` on the built-in classifier (first step and steady state) for each method, and the
+    classifier alone."""
     from placejax.classify import Tracker
 
-    clf = builtin_classifier()
+    clf = builtin_classifier(reference=reference)
     rng = np.random.default_rng(1)
     images = rng.integers(0, 256, (steps, *clf.image_size, 3), dtype=np.uint8)
     moved = rng.uniform(0.0, 3.0, steps)
@@ -145,28 +169,40 @@ def tracker_rows(repeats: int, steps: int, first_repeats: int) -> list[dict]:
         tracker.step(images[0], 0.0)
         first.append(time.perf_counter() - t0)
 
-    def track():
+    trackers = {
+        "Tracker.step (classifier + filter)": ("cells + unknown", tracker),
+        f"Tracker.step (classifier + filter, lag {lag})": ("cells + unknown", Tracker(clf, lag=lag)),
+        "Tracker.step (classifier + sequence matcher)": (
+            f"{len(clf.sequence_reference())} frames + unknown",
+            Tracker(clf, method="sequence"),
+        ),
+    }
+
+    def track(t):
         for image, d in zip(images, moved, strict=True):
-            tracker.step(image, float(d))
+            t.step(image, float(d))
 
     def classify():
         for image in images:
             clf.logits(image[None])
 
-    # Alternated run by run, so that both see the same load (the machine is shared).
+    # Alternated run by run, so that every case sees the same load (the machine is shared).
     classify()
-    times = {"track": [], "classify": []}
+    for _, t in trackers.values():
+        track(t)
+    cases = {name: (lambda t=t: track(t)) for name, (_, t) in trackers.items()} | {"classify": classify}
+    times = {name: [] for name in cases}
     for _ in range(repeats):
-        for name, fn in (("track", track), ("classify", classify)):
+        for name, fn in cases.items():
             t0 = time.perf_counter()
             fn()
             times[name].append(time.perf_counter() - t0)
-    rows = [
-        _row("Tracker.step (classifier + filter)", "cells + unknown", steps, float(np.median(first)), times["track"])
-    ]
+    rows = []
+    for i, (name, (states, _)) in enumerate(trackers.items()):
+        rows.append(_row(name, states, steps, float(np.median(first)) if i == 0 else None, times[name]))
+        # Paired by run: the Tracker's time over the classifier's in the run next to it.
+        rows[-1]["ratio_to_logits"] = float(np.median(np.array(times[name]) / np.array(times["classify"])))
     rows[0]["first_step_s_runs"] = first
-    # Paired by run: the Tracker's time over the classifier's in the run next to it.
-    rows[0]["ratio_to_logits"] = float(np.median(np.array(times["track"]) / np.array(times["classify"])))
     rows.append(_row("PlaceClassifier.logits (1 image)", "–", steps, None, times["classify"]))
     return rows
 
@@ -178,7 +214,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--frames", type=int, default=2000, help="frames of the batch session")
     parser.add_argument("--stream-frames", type=int, default=500, help="frames per timed streaming run")
     parser.add_argument("--n", type=int, default=10, help="cells per grid axis (n² cells)")
-    parser.add_argument("--lag", type=int, default=10, help="fixed-lag smoother look-ahead (frames)")
+    parser.add_argument("--lag", type=int, default=20, help="fixed-lag look-ahead (frames; the experiment's: 20)")
+    parser.add_argument("--reference", type=int, default=2000, help="training frames of the sequence matcher")
     parser.add_argument("--tracker-steps", type=int, default=20, help="Tracker.step calls per timed run")
     parser.add_argument("--first-repeats", type=int, default=3, help="first Tracker steps, each compiled afresh")
     parser.add_argument("--no-tracker", action="store_true", help="leave out the Tracker.step rows")
@@ -202,8 +239,33 @@ def main(argv: list[str] | None = None) -> None:
     cfg = route.FilterConfig()
     c, t = _runs(lambda: np.asarray(route.smooth(probs, moved, grid, cfg, lag=args.lag)), max(1, args.repeats // 2))
     rows.append(_row(f"smooth lag {args.lag}", "cells + unknown", args.frames, c, t))
+
+    def lagged():
+        f = route.FixedLagFilter(grid, cfg, lag=args.lag)
+        for i in range(args.stream_frames):
+            f.step(probs[i], float(moved[i]))
+
+    c, t = _runs(lagged, args.repeats)
+    rows.append(_row(f"streaming lag {args.lag} (FixedLagFilter.step)", "cells + unknown", args.stream_frames, c, t))
+
+    width = 2 * 512  # the default preset's fused embedding
+    drive = _drive(args.reference, width, args.n)
+    match = route.MatchConfig()
+    reference = route.match_reference(drive["embeddings"], drive["positions"], drive["labels"], args.n**2)
+    queries = route.unit_embedding(np.random.default_rng(3).normal(size=(args.frames, width)))
+    states = f"{args.reference} frames + unknown"
+    c, t = _runs(lambda: route.match_forward(queries, moved, reference, match), max(1, args.repeats // 2))
+    rows.append(_row("sequence matcher batch (match_forward)", states, args.frames, c, t))
+
+    def matcher():
+        m = route.SequenceMatcher(reference, match)
+        for i in range(args.stream_frames):
+            m.step(queries[i], float(moved[i]))
+
+    c, t = _runs(matcher, args.repeats)
+    rows.append(_row("sequence matcher streaming (SequenceMatcher.step)", states, args.stream_frames, c, t))
     if not args.no_tracker:
-        rows += tracker_rows(args.repeats, args.tracker_steps, args.first_repeats)
+        rows += tracker_rows(args.repeats, args.tracker_steps, args.first_repeats, args.lag, args.reference)
 
     print(f"route filter, {args.n}×{args.n} = {args.n**2} cells, {jax.devices()[0].platform}")
     print_table(

@@ -710,23 +710,42 @@ def test_smoke_route_columns(smoke):
     workdir, results = smoke
     r = results["route"]
     assert r["settings"] == results["config"]["route"]
+    assert r["sequence"] == results["config"]["sequence"]
     assert r["distance_source"] == {s: "odometry" for s in SEASONS}
-    assert set(r["gains"]) == {"ours_route_vs_ours", "rgb_net_route_vs_rgb_net"}
+    assert set(r["gains"]) == {
+        "ours_route_vs_ours",
+        "rgb_net_route_vs_rgb_net",
+        "ours_route_lag_vs_ours",
+        "seq_match_vs_ours",
+        "seq_match_vs_ours_route",
+    }
+    assert r["lag_frames"] == results["config"]["route"]["lag_frames"] and r["lag_m"] > 0
     grid = PlaceGrid.load(workdir / "grid.json")
     cfg = get_config("smoke")
     labels = {s: _session_labels(workdir, grid, s, "64x64") for s in SEASONS}
     for p in results["pairs"]:
-        for m, base in (("ours_route", "ours"), ("rgb_net_route", "rgb_net")):
+        for m, base in (
+            ("ours_route", "ours"),
+            ("rgb_net_route", "rgb_net"),
+            ("ours_route_lag", "ours"),
+            ("seq_match", "ours"),
+            ("seq_match", "ours_route"),
+        ):
             assert 0.0 <= p[m] <= p["seen_class_fraction"] + 1e-9
             assert len(p[f"{m}_per_seed"]) == 2 and p[m] == pytest.approx(np.mean(p[f"{m}_per_seed"]))
             g = p[f"gain_{m}_vs_{base}"]
             assert g["gain"] == pytest.approx(p[m] - p[base]) and g["lo"] <= g["hi"]
             assert g["excludes_zero"] == (g["lo"] > 0 or g["hi"] < 0)
         # The route's unseen-place columns are defined exactly where the single-frame ones are.
-        for key in ("unknown_route_auroc", "unknown_route_msp_auroc"):
+        for key in ("unknown_route_auroc", "unknown_route_msp_auroc", "unknown_seq_auroc"):
             assert (p[key] is None) == (p["unknown_msp_auroc"] is None)
             assert p[key] is None or 0.0 <= p[key] <= 1.0
-        for key in ("unknown_route_rejected_seen", "unknown_route_rejected_unseen"):
+        for key in (
+            "unknown_route_rejected_seen",
+            "unknown_route_rejected_unseen",
+            "unknown_seq_rejected_seen",
+            "unknown_seq_rejected_unseen",
+        ):
             assert p[key] is None or 0.0 <= p[key] <= 1.0
         test = simcampus.load_session(p["test"], image_size=(8, 8), frame_spacing=cfg.data.frame_spacing)
         moved = route.moved_from_travelled(test.travelled_m)
@@ -744,7 +763,11 @@ def test_smoke_route_columns(smoke):
     for key in ("unknown_route_auroc", "unknown_route_msp_auroc"):
         assert key in r["unknown_mean"]
     table = (workdir / "table.md").read_text()
-    assert "| train | test | Ours | Ours + route | gain | RGB-Net | RGB-Net + route | gain |" in table
+    lag = r["lag_frames"]
+    assert (
+        f"| train | test | Ours | Ours + route | gain | Ours + route, lag {lag} | gain | Seq. match | gain | vs route "
+        "| RGB-Net | RGB-Net + route | gain |" in table
+    )
     assert "timings_s" in results and results["timings_s"]["route"] > 0
 
 

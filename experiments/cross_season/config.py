@@ -10,6 +10,7 @@ Every section is one dataclass, and its defaults, ranges and help are written th
     mlp        placejax.stages.MLPConfig         the fusion MLP
     eval       placejax.stages.EvalConfig        inference batches
     route      placejax.route.FilterConfig       the route filter (its run-level settings) + RouteReport
+    sequence   placejax.route.MatchConfig        the sequence matcher against the training drive
     ablations  Ablations                          which extra columns the table gets
     (top)      RunConfig                          seeds, devices, figures, progress
 
@@ -30,7 +31,7 @@ from experiments.overrides import apply_overrides, get, leaf_keys
 from placejax import config as _config
 from placejax.data import DataConfig, GridConfig
 from placejax.depth import DepthSourceConfig
-from placejax.route import FilterConfig
+from placejax.route import FilterConfig, MatchConfig
 from placejax.stages import EvalConfig, MLPConfig, TrainConfig, VGGConfig
 
 __all__ = [
@@ -74,9 +75,14 @@ class RouteReport:
     """How the route columns are reported (beside the filter's settings in the ``route`` section)."""
 
     block_frames: int = _config.setting(25, "consecutive test frames per block of the route gains' bootstrap")
+    # Chosen on world 1 by the rule in docs/research-log.md (issue 59): the smallest of 5, 10, 20 within 1 point of
+    # the best.
+    lag_frames: int = _config.setting(20, "frames of look-ahead of the fixed-lag column ours_route_lag")
 
     def __post_init__(self):
-        _config.check(self, positive_int=("block_frames",))
+        _config.check(
+            self, positive_int=("block_frames",), nonnegative_int=("lag_frames",), at_most={"lag_frames": 10_000}
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,6 +149,7 @@ SECTIONS: dict[str, type] = {
     "train": TrainConfig,
     "mlp": MLPConfig,
     "eval": EvalConfig,
+    "sequence": MatchConfig,
     "ablations": Ablations,
 }
 """Config section → the dataclass that owns it (``route`` is composed: FilterConfig's settings + RouteReport)."""
@@ -152,7 +159,7 @@ def base_config() -> ml_collections.ConfigDict:
     """Every key at its library default (the presets override some): a fresh, mutable ConfigDict."""
     c = ml_collections.ConfigDict()
     c.preset = ""
-    for name in ("data", "grid", "depth", "vgg", "train", "mlp", "eval"):
+    for name in ("data", "grid", "depth", "vgg", "train", "mlp", "eval", "sequence"):
         c[name] = _config.section(SECTIONS[name])
     route_defaults = FilterConfig()
     c.route = {**{k: getattr(route_defaults, k) for k in ROUTE_SETTINGS}, **_config.section(RouteReport)}

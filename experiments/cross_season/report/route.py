@@ -25,16 +25,35 @@ from placejax import route
 from placejax.classify import unknown as _unknown
 from placejax.data import DataConfig, PlaceGrid, moved_m
 from placejax.evaluation import frame_gains, gain_intervals, mean_sd
-from placejax.stages import SeedRun, SessionData, Workspace
+from placejax.stages import SeedRun, SessionData, Workspace, fused_embedding
 
-# Route column → the single-frame column whose outputs it filters.
+# Route column → the single-frame column whose outputs it filters (the cell filter, causal).
 METHODS = {"ours_route": "ours", "rgb_net_route": "rgb_net"}
+LAG_COLUMN = "ours_route_lag"
+"""The fusion's outputs through the fixed-lag smoother (``route.lag_frames`` frames of look-ahead)."""
+SEQ_COLUMN = "seq_match"
+"""The sequence matcher against the training drive (``sequence`` section; its embedding: ``sequence.embedding``)."""
+# Every route column and the column its gain is measured against (the sequence matcher also against the cell filter).
+GAINS = (
+    ("ours_route", "ours"),
+    ("rgb_net_route", "rgb_net"),
+    (LAG_COLUMN, "ours"),
+    (SEQ_COLUMN, "ours"),
+    (SEQ_COLUMN, "ours_route"),
+)
+COLUMNS = ("ours_route", "rgb_net_route", LAG_COLUMN, SEQ_COLUMN)
 UNKNOWN_THRESHOLD = 0.5  # the unknown state's posterior: more likely off the map than on it
 UNKNOWN_KEYS = (
     "unknown_route_auroc",
     "unknown_route_msp_auroc",
     "unknown_route_rejected_unseen",
     "unknown_route_rejected_seen",
+    "unknown_seq_auroc",
+    "unknown_seq_rejected_unseen",
+    "unknown_seq_rejected_seen",
+    "unknown_window_auroc",
+    "unknown_window_rejected_unseen",
+    "unknown_window_rejected_seen",
 )
 
 
@@ -43,6 +62,17 @@ def filter_config(config: ml_collections.ConfigDict, *, bounded: bool = False) -
     from experiments.cross_season.config import ROUTE_SETTINGS
 
     return route.FilterConfig(**{k: config.route[k] for k in ROUTE_SETTINGS}, bounded=bounded)
+
+
+def match_config(config: ml_collections.ConfigDict) -> route.MatchConfig:
+    """The ``sequence`` section as a `placejax.route.MatchConfig`."""
+    return route.MatchConfig(**config.sequence)
+
+
+def sequence_embedding(outputs: dict, train: str, test: str, embedding: str) -> np.ndarray:
+    """The embedding the sequence matcher compares (``sequence.embedding``) of the nets trained on ``train``, on
+    ``test`` (`placejax.route.select_embedding` of the fused embedding, as a ``PlaceClassifier`` computes it)."""
+    return route.select_embedding(fused_embedding(outputs, train, test), embedding)
 
 
 def session_moved(config: ml_collections.ConfigDict, t: SessionData) -> tuple[np.ndarray, str]:
@@ -57,6 +87,15 @@ def _blocks(gains: np.ndarray, block: int) -> np.ndarray:
     return np.array([b.mean() for b in np.array_split(gains, max(1, int(np.ceil(len(gains) / block))))])
 
 
+def _unknown_scores(
+    row: dict, prefix: str, unknown: np.ndarray, unseen: np.ndarray, threshold: float = UNKNOWN_THRESHOLD
+) -> None:
+    row[f"unknown_{prefix}_auroc"] = _none_if_nan(_unknown.auroc(unknown, unseen))
+    reject = unknown > threshold
+    row[f"unknown_{prefix}_rejected_unseen"] = float(reject[unseen].mean()) if unseen.any() else None
+    row[f"unknown_{prefix}_rejected_seen"] = float(reject[~unseen].mean()) if (~unseen).any() else None
+
+
 def route_columns(
     ws: Workspace,
     config: ml_collections.ConfigDict,
@@ -67,70 +106,98 @@ def route_columns(
 ) -> tuple[dict[str, Any], dict[tuple[str, str], dict[str, np.ndarray]]]:
     """Adds the route columns to every cross-session row of ``pairs`` (in place) and returns their summary.
 
+    Columns (per seed, like the single-frame ones): ``ours_route`` and ``rgb_net_route`` (the cell filter, causal),
+    ``ours_route_lag`` (the fusion's outputs through the fixed-lag smoother, ``route.lag_frames``) and
+    ``seq_match`` (the sequence matcher against the training drive, ``sequence``).
+
     Args:
         ws: the run's workspace (the ``route`` timer).
-        config: the run's config (``route``, ``seed``).
+        config: the run's config (``route``, ``sequence``, ``seed``).
         sessions: every session, labelled.
         runs: one per seed (``placejax.stages.train_seed``).
         grid: the place grid.
         pairs: the cross-session rows of ``scores.evaluate``.
 
     Returns:
-        ``(summary, traces)``: the ``route`` part of ``results.json`` (settings, distance source per session, means,
-        sd over seeds, mean gains with intervals, unseen-place means) and, per ``(train, test)``, the first seed's
-        ``ours_route`` beliefs over the cells ``(N, K)``, unknown-state probability ``(N,)`` and single-frame
-        labels ``(N,)`` (for the figure).
+        ``(summary, traces)``: the ``route`` part of ``results.json`` (settings, distance source per session, the
+        lag in metres, means, sd over seeds, mean gains with intervals, unseen-place means) and, per
+        ``(train, test)``, the first seed's ``ours_route`` beliefs over the cells ``(N, K)``, unknown-state
+        probability ``(N,)`` and single-frame labels ``(N,)`` (for the figure).
     """
     from experiments.cross_season.report.scores import method_logits
 
     by_name = {s.name: s for s in sessions}
     k = grid.num_classes
+    lag = int(config.route.lag_frames)
+    match = match_config(config)
     moved = {s.name: session_moved(config, s) for s in sessions}
     traces: dict[tuple[str, str], dict[str, np.ndarray]] = {}
-    gains: dict[str, list[np.ndarray]] = {m: [] for m in METHODS}
+    gains: dict[tuple[str, str], list[np.ndarray]] = {g: [] for g in GAINS}
+    references: dict[tuple[int, str], route.MatchReference] = {}
     with ws.timed("route"):
         for row in pairs:
             s, t = by_name[row["train"]], by_name[row["test"]]
             dist, source = moved[t.name]
             cfg = filter_config(config, bounded=source == "timestamps")
-            per_seed = [method_logits(r, s.name, t.name, config) for r in runs]
-            correct = {m: [] for m in METHODS}
-            single = {m: [] for m in METHODS}
-            for si, logits in enumerate(per_seed):
+            unseen = ~np.isin(t.labels, np.unique(s.labels))
+            correct: dict[str, list[np.ndarray]] = {m: [] for m in (*COLUMNS, "ours", "rgb_net")}
+            for si, run in enumerate(runs):
+                logits = method_logits(run, s.name, t.name, config)
                 for m, base in METHODS.items():
-                    probs = route.calibrated_probabilities(logits[base], float(config.route.temperature))
+                    probs = route.calibrated_probabilities(logits[base], cfg.temperature)
                     cells, unk = route.place_belief(route.forward(probs, dist, grid, cfg), k)
                     correct[m].append(cells.argmax(axis=1) == t.labels)
-                    single[m].append(np.argmax(logits[base], axis=1) == t.labels)
+                    correct[base].append(np.argmax(logits[base], axis=1) == t.labels)
                     if si == 0 and m == "ours_route":
                         traces[(s.name, t.name)] = {"cells": cells, "unknown": unk, "single": probs.argmax(axis=1)}
-            for m in METHODS:
+                probs = route.calibrated_probabilities(logits["ours"], cfg.temperature)
+                cells, _ = route.place_belief(route.smooth(probs, dist, grid, cfg, lag=lag), k)
+                correct[LAG_COLUMN].append(cells.argmax(axis=1) == t.labels)
+                if (si, s.name) not in references:
+                    references[(si, s.name)] = route.match_reference(
+                        sequence_embedding(run.outputs, s.name, s.name, match.embedding),
+                        np.asarray(s.cached.poses, np.float32)[:, :2],  # as a PlaceClassifier stores them
+                        s.labels,
+                        k,
+                        neighbours=match.neighbours,
+                    )
+                out = route.match_forward(
+                    sequence_embedding(run.outputs, s.name, t.name, match.embedding),
+                    dist,
+                    references[(si, s.name)],
+                    match,
+                )
+                correct[SEQ_COLUMN].append(out.cells.argmax(axis=1) == t.labels)
+                if si == 0:
+                    _unknown_scores(row, "seq", out.unknown, unseen)
+                    _unknown_scores(row, "window", out.window_distance, unseen, match.distance_threshold)
+            for m in COLUMNS:
                 accs = [float(c.mean()) for c in correct[m]]
                 row[m], row[f"{m}_sd"] = mean_sd(accs)
                 row[f"{m}_per_seed"] = accs
-                gains[m].append(
-                    _blocks(frame_gains(np.stack(correct[m]), np.stack(single[m])), config.route.block_frames)
+            for m, base in GAINS:
+                gains[(m, base)].append(
+                    _blocks(frame_gains(np.stack(correct[m]), np.stack(correct[base])), config.route.block_frames)
                 )
             tr = traces[(s.name, t.name)]
-            unseen = ~np.isin(t.labels, np.unique(s.labels))
-            row["unknown_route_auroc"] = _none_if_nan(_unknown.auroc(tr["unknown"], unseen))
+            _unknown_scores(row, "route", tr["unknown"], unseen)
             row["unknown_route_msp_auroc"] = _none_if_nan(_unknown.auroc(1.0 - tr["cells"].max(axis=1), unseen))
-            reject = tr["unknown"] > UNKNOWN_THRESHOLD
-            row["unknown_route_rejected_unseen"] = float(reject[unseen].mean()) if unseen.any() else None
-            row["unknown_route_rejected_seen"] = float(reject[~unseen].mean()) if (~unseen).any() else None
         summary: dict[str, Any] = {
             "settings": config.route.to_dict(),
+            "sequence": match.to_dict(),
             "distance_source": {name: src for name, (_, src) in moved.items()},
+            "lag_frames": lag,
+            "lag_m": float(np.median(np.concatenate([d[1:] for d, _ in moved.values()])) * lag),
             "unknown_threshold": UNKNOWN_THRESHOLD,
-            "mean": {m: float(np.mean([p[m] for p in pairs])) for m in METHODS},
+            "mean": {m: float(np.mean([p[m] for p in pairs])) for m in COLUMNS},
             "mean_sd_over_seeds": {
                 m: mean_sd([np.mean([p[f"{m}_per_seed"][i] for p in pairs]) for i in range(len(runs))])[1]
-                for m in METHODS
+                for m in COLUMNS
             },
             "gains": {},
         }
-        for m, base in METHODS.items():
-            per_pair, mean = gain_intervals(gains[m], seed=config.seed)
+        for m, base in GAINS:
+            per_pair, mean = gain_intervals(gains[(m, base)], seed=config.seed)
             for p, g in zip(pairs, per_pair, strict=True):
                 g["gain"] = float(p[m] - p[base])  # the frame mean; the interval is over blocks of frames
                 p[f"gain_{m}_vs_{base}"] = g
@@ -198,6 +265,8 @@ def route_markdown(results: dict) -> str:
     auc = lambda x: "–" if x is None else f"{x:.2f}"
 
     def gain(r: dict, m: str, base: str, g: dict | None) -> str:
+        if r.get(m) is None or r.get(base) is None:  # a record from before the column
+            return "–"
         text = f"{100 * (r[m] - r[base]):+.1f}"
         if g is None:
             return text
@@ -209,55 +278,65 @@ def route_markdown(results: dict) -> str:
         "Ours",
         "Ours + route",
         "gain",
+        f"Ours + route, lag {results['route'].get('lag_frames', 0)}",
+        "gain",
+        "Seq. match",
+        "gain",
+        "vs route",
         "RGB-Net",
         "RGB-Net + route",
         "gain",
         "AUROC route",
-        "AUROC route msp",
+        "AUROC seq",
+        "AUROC window",
         "AUROC msp",
         "seen rejected",
         "unseen rejected",
+        "seen rejected (window)",
+        "unseen rejected (window)",
     ]
     lines = ["", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
     def row(train, test, r, gains, unk):
-        return (
-            "| "
-            + " | ".join(
-                [
-                    train,
-                    test,
-                    pct(r["ours"]),
-                    pct(r["ours_route"]),
-                    gain(r, "ours_route", "ours", gains.get("ours_route_vs_ours")),
-                    pct(r["rgb_net"]),
-                    pct(r["rgb_net_route"]),
-                    gain(r, "rgb_net_route", "rgb_net", gains.get("rgb_net_route_vs_rgb_net")),
-                    auc(unk.get("unknown_route_auroc")),
-                    auc(unk.get("unknown_route_msp_auroc")),
-                    auc(unk.get("unknown_msp_auroc")),
-                    pct(unk.get("unknown_route_rejected_seen")),
-                    pct(unk.get("unknown_route_rejected_unseen")),
-                ]
-            )
-            + " |"
-        )
+        g = lambda m, base: gain(r, m, base, gains.get(f"{m}_vs_{base}"))
+        cells = [train, test, pct(r["ours"]), pct(r["ours_route"]), g("ours_route", "ours")]
+        cells += [pct(r.get(LAG_COLUMN)), g(LAG_COLUMN, "ours")]
+        cells += [pct(r.get(SEQ_COLUMN)), g(SEQ_COLUMN, "ours"), g(SEQ_COLUMN, "ours_route")]
+        cells += [pct(r["rgb_net"]), pct(r["rgb_net_route"]), g("rgb_net_route", "rgb_net")]
+        cells += [
+            auc(unk.get("unknown_route_auroc")),
+            auc(unk.get("unknown_seq_auroc")),
+            auc(unk.get("unknown_window_auroc")),
+            auc(unk.get("unknown_msp_auroc")),
+            pct(unk.get("unknown_route_rejected_seen")),
+            pct(unk.get("unknown_route_rejected_unseen")),
+            pct(unk.get("unknown_window_rejected_seen")),
+            pct(unk.get("unknown_window_rejected_unseen")),
+        ]
+        return "| " + " | ".join(cells) + " |"
 
     for p in results["pairs"]:
-        g = {f"{m}_vs_{b}": p.get(f"gain_{m}_vs_{b}") for m, b in METHODS.items()}
+        g = {f"{m}_vs_{b}": p.get(f"gain_{m}_vs_{b}") for m, b in GAINS}
         lines.append(row(p["train"], p["test"], p, g, p))
     r = results["route"]
     mean = {**results["mean"], **r["mean"]}
     unk = {**results.get("unknown", {}).get("mean", {}), **r["unknown_mean"]}
     lines.append(row("**mean**", "", mean, r["gains"], unk))
     s = r["settings"]
+    q = r.get("sequence", {})
     note = (
         f"\nAlong the route (docs/route.md; top-1 %): the same outputs through the route filter, which reads them "
         f"(softmax at temperature {s['temperature']:g}) and the distance travelled between frames "
-        f"({', '.join(sorted(set(r['distance_source'].values())))}), nothing else. gain = route − single frame "
-        f"(points) with its paired bootstrap 95 % interval over blocks of {s['block_frames']} consecutive test "
-        f"frames (* excludes zero). Unseen places: AUROC of the filter's unknown-state probability, of 1 − its "
-        f"largest cell belief and (for comparison) of the single-frame msp; the shares of seen / unseen test frames "
-        f"whose unknown-state probability exceeds {r['unknown_threshold']:g}.\n"
+        f"({', '.join(sorted(set(r['distance_source'].values())))}), nothing else; with a lag, each frame's answer "
+        f"waits for the {r.get('lag_frames', 0)} frames after it (about {r.get('lag_m', 0):.0f} m). Seq. match: the "
+        f"sequence matcher against the training drive's frames ({q.get('embedding', '?')} fc7 embedding, causal); "
+        f"vs route = Seq. match − Ours + route. gain = column − its single-frame column (points) with its paired "
+        f"bootstrap 95 % interval over blocks of {s['block_frames']} consecutive test frames (* excludes zero). "
+        f"Unseen places: AUROC of the filter's unknown-state probability, of the sequence matcher's, of the window "
+        f"distance (the mean of 1 − a frame's best cosine similarity to the training frames over the last "
+        f"{q.get('distance_window', '?')} frames: the route's unseen-place score) and (for comparison) of the "
+        f"single-frame msp; the shares of seen / unseen test frames whose route unknown-state probability exceeds "
+        f"{r['unknown_threshold']:g}, and whose window distance exceeds "
+        f"{q.get('distance_threshold', float('nan')):g}.\n"
     )
     return "\n".join(lines) + "\n" + note

@@ -224,6 +224,14 @@ def table_text(results: dict, width: int = 100) -> str:
         names = {"hha_net_rendered": "HHA-Net", "ours_rendered": "Ours", "average_rendered": "Avg"}
         parts = [f"{name} {acc(m[k], sd.get(k))}" for k, name in names.items() if k in m]
         out.append(f"on rendered depth (the ceiling): {', '.join(parts)}")
+    r = results.get("route", {}).get("mean", {})
+    if "ours_route" in r:  # the route columns (docs/route.md)
+        parts = [f"Ours + route {_pct(r['ours_route'])}"]
+        if "ours_route_lag" in r:
+            parts.append(f"with a lag of {results['route']['lag_frames']} frames {_pct(r['ours_route_lag'])}")
+        if "seq_match" in r:
+            parts.append(f"sequence matching {_pct(r['seq_match'])}")
+        out.append(f"along the route: {', '.join(parts)}")
     spread = f"mean ± sd over {n_seeds} seeds" if n_seeds > 1 else "one seed"
     note = (
         f"Top-1 % on every other session, {results['num_classes']} place classes, {spread}. Ours − X: points, with "
