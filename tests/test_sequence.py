@@ -4,13 +4,10 @@ drives, batch == streaming bit for bit, bad input named, a classifier file carry
 
 from __future__ import annotations
 
-import hashlib
-import json
-import zipfile
-
 import numpy as np
 import pytest
 from test_classify_hostile import tiny_meta, tiny_params
+from test_tracker import _rewrite_manifest
 
 from placejax import route
 from placejax.classify import ArtefactError, PlaceClassifier, Tracker
@@ -267,19 +264,6 @@ def test_the_file_carries_the_training_drive(drive_file):
         Tracker(without, method="sequence")
 
 
-def _rewrite(src, dst, edit):
-    with zipfile.ZipFile(src) as z:
-        items = {i.filename: z.read(i) for i in z.infolist()}
-    manifest = json.loads(items["manifest.json"])
-    edit(manifest)
-    text = json.dumps(manifest).encode()
-    items["manifest.json"], items["manifest.sha256"] = text, hashlib.sha256(text).hexdigest().encode()
-    with zipfile.ZipFile(dst, "w") as z:
-        for name, data in items.items():
-            z.writestr(name, data)
-    return dst
-
-
 @pytest.mark.parametrize(
     ("edit", "match"),
     [
@@ -293,7 +277,7 @@ def _rewrite(src, dst, edit):
 )
 def test_bad_sequence_entries_are_refused_by_name(drive_file, tmp_path, edit, match):
     with pytest.raises(ArtefactError, match=match):
-        PlaceClassifier.load(_rewrite(drive_file, tmp_path / "bad.placejax", edit))
+        PlaceClassifier.load(_rewrite_manifest(drive_file, tmp_path / "bad.placejax", edit))
 
 
 def test_a_classifier_with_broken_drive_arrays_is_refused():

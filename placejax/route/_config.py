@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from typing import ClassVar
 
 from placejax.config import setting
 
@@ -68,17 +69,44 @@ FIELDS = tuple(_CHECKS)
 """`FilterConfig`'s field names, in order."""
 
 
-def first_problem(values: dict) -> tuple[str, str] | None:
-    """``(field, problem)`` of the first of ``values`` (``{field: value}``, every field present) out of range."""
-    for name, check in _CHECKS.items():
+def problem_in(checks: dict, values: dict) -> tuple[str, str] | None:
+    """``(field, problem)`` of the first of ``values`` (``{field: value}``, every field of ``checks`` present) that
+    its check (``checks[field](value) → problem or None``) refuses."""
+    for name, check in checks.items():
         problem = check(values[name])
         if problem is not None:
             return name, problem
     return None
 
 
+def first_problem(values: dict) -> tuple[str, str] | None:
+    """``(field, problem)`` of the first of ``values`` (``{field: value}``, every field present) out of range."""
+    return problem_in(_CHECKS, values)
+
+
+class CheckedSettings:
+    """The route's settings dataclasses (`FilterConfig`, ``MatchConfig``): ``__post_init__`` runs every field's
+    check (the class's ``CHECKS``, field → check) and raises ``ValueError`` naming ``Class.field``; ``replace`` and
+    ``to_dict``."""
+
+    CHECKS: ClassVar[dict]
+
+    def __post_init__(self):
+        bad = problem_in(self.CHECKS, {name: getattr(self, name) for name in self.CHECKS})
+        if bad is not None:
+            raise ValueError(f"{type(self).__name__}.{bad[0]} {bad[1]}")
+
+    def replace(self, **changes):
+        """A copy with ``changes`` (field names as keywords), checked like a new one."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        """``{field: value}`` in field order (JSON-able; ``Class(**d)`` reads it back)."""
+        return dataclasses.asdict(self)
+
+
 @dataclasses.dataclass(frozen=True)
-class FilterConfig:
+class FilterConfig(CheckedSettings):
     """Settings of the route filter, and the one place their defaults and ranges are written.
 
     The defaults are the settings ``experiments.cross_season`` chose on world 1 (docs/route.md, "In the
@@ -129,15 +157,4 @@ class FilterConfig:
     n_angles: int = setting(32, "headings the motion model averages over")
     n_noise: int = setting(5, "distance samples the motion model averages over")
 
-    def __post_init__(self):
-        bad = first_problem({name: getattr(self, name) for name in FIELDS})
-        if bad is not None:
-            raise ValueError(f"FilterConfig.{bad[0]} {bad[1]}")
-
-    def replace(self, **changes) -> FilterConfig:
-        """A copy with ``changes`` (field names as keywords), checked like a new one."""
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        """``{field: value}`` in field order (JSON-able; ``FilterConfig(**d)`` reads it back)."""
-        return dataclasses.asdict(self)
+    CHECKS: ClassVar[dict] = _CHECKS

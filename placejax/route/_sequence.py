@@ -29,14 +29,14 @@ import collections
 import dataclasses
 import functools
 import math
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from placejax.config import setting
-from placejax.route._config import _count, _flag, _probability, _real
+from placejax.route._config import CheckedSettings, _count, _flag, _probability, _real, problem_in
 
 MAX_NEIGHBOURS = 4096
 MAX_WINDOW = 10_000
@@ -73,15 +73,11 @@ MATCH_FIELDS = tuple(_CHECKS)
 
 def first_match_problem(values: dict) -> tuple[str, str] | None:
     """``(field, problem)`` of the first of ``values`` (``{field: value}``, every field present) out of range."""
-    for name, check in _CHECKS.items():
-        problem = check(values[name])
-        if problem is not None:
-            return name, problem
-    return None
+    return problem_in(_CHECKS, values)
 
 
 @dataclasses.dataclass(frozen=True)
-class MatchConfig:
+class MatchConfig(CheckedSettings):
     """Settings of the sequence matcher (`SequenceMatcher`, `match_forward`), and the one place their defaults and
     ranges are written.
 
@@ -129,18 +125,7 @@ class MatchConfig:
     distance_window: int = setting(20, "frames of the causal mean of the unseen-place distance (window_distance)")
     distance_threshold: float = setting(0.201, "window_distance above this: an unseen place (in (0, 2])")
 
-    def __post_init__(self):
-        bad = first_match_problem({name: getattr(self, name) for name in MATCH_FIELDS})
-        if bad is not None:
-            raise ValueError(f"MatchConfig.{bad[0]} {bad[1]}")
-
-    def replace(self, **changes) -> MatchConfig:
-        """A copy with ``changes`` (field names as keywords), checked like a new one."""
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        """``{field: value}`` in field order (JSON-able; ``MatchConfig(**d)`` reads it back)."""
-        return dataclasses.asdict(self)
+    CHECKS: ClassVar[dict] = _CHECKS
 
 
 def unit_embedding(*parts) -> np.ndarray:
