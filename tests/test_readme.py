@@ -285,18 +285,22 @@ def test_the_readme_quotes_the_committed_record_of_its_default_run():
         f"{pct(c['nn_gradient'])}, on 16 × 16 HHA thumbnails of this run's depth {pct(c['nn_hha'])}, of rendered "
         f"depth {pct(c['nn_hha_true'])}"
     ) in flat
-    r, rg = rec["route"]["mean"], rec["route"]["gains"]
-    ours_route = rg["ours_route_vs_ours"]
-    rgb_route = rg["rgb_net_route_vs_rgb_net"]
+    r, rg, route = rec["route"]["mean"], rec["route"]["gains"], rec["route"]
+    f, q = rg["ours_route_vs_ours"], rg["seq_match_vs_ours"]
     assert (
-        f"Ours {pct(m['ours'])} → {pct(r['ours_route'])} % ({gain(ours_route['gain'], ours_route).rstrip('*')}), "
-        f"RGB-Net {pct(m['rgb_net'])} → {pct(r['rgb_net_route'])} % ({gain(rgb_route['gain'], rgb_route).rstrip('*')})"
+        f"Ours {pct(m['ours'])} → {pct(r['ours_route'])} % with the filter ({gain(f['gain'], f).rstrip('*')}), "
+        f"{pct(r['ours_route_lag'])} % with a lag of {route['lag_frames']} frames ({route['lag_m']:.0f} m), "
+        f"{pct(r['seq_match'])} % with sequence matching ({gain(q['gain'], q).rstrip('*')})"
     ) in flat
-    u, k = rec["route"]["unknown_mean"], rec["unknown"]["mean"]
+    assert all(p[c] > p["ours"] for p in rec["pairs"] for c in ("ours_route", "ours_route_lag", "seq_match"))
+    assert f"RGB-Net {pct(m['rgb_net'])} → {pct(r['rgb_net_route'])} % with the filter" in flat
+    u, k = route["unknown_mean"], rec["unknown"]["mean"]
     assert (
-        f"{u['unknown_route_auroc']:.2f} for the route's unknown state ({100 * u['unknown_route_rejected_seen']:.0f} % "
-        f"of seen, {100 * u['unknown_route_rejected_unseen']:.0f} % of unseen frames rejected), "
-        f"{k['unknown_knn1_auroc']:.2f} for the distance"
+        f"{u['unknown_window_auroc']:.2f} for the route's score, the distance to the nearest training frame averaged "
+        f"over {route['sequence']['distance_window']} frames ({100 * u['unknown_window_rejected_seen']:.0f} % of "
+        f"seen, {100 * u['unknown_window_rejected_unseen']:.0f} % of unseen frames rejected), "
+        f"{u['unknown_route_auroc']:.2f} for the filter's unknown state, {k['unknown_knn1_auroc']:.2f} for the "
+        "single-frame distance"
     ) in flat
 
 
