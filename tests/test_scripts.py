@@ -265,8 +265,10 @@ def test_benchmark_route_speed(bench):
         *("--tracker-steps", "2", "--first-repeats", "1"),
     )
     cases = [row["case"] for row in r["rows"]]
-    assert r["cells"] == 9 and len(cases) == 7 and "frames/s" in out
+    assert r["cells"] == 9 and len(cases) == 12 and "frames/s" in out
     assert any(c.startswith("Tracker.step") for c in cases) and "PlaceClassifier.logits (1 image)" in cases
+    assert "sequence matcher streaming (SequenceMatcher.step)" in cases
+    assert "Tracker.step (classifier + sequence matcher)" in cases
 
 
 @pytest.mark.slow

@@ -4,6 +4,8 @@ drives, batch == streaming bit for bit, bad input named, a classifier file carry
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from test_classify_hostile import tiny_meta, tiny_params
@@ -128,7 +130,7 @@ def test_streaming_steps_are_the_batch_answers_bit_for_bit(unknown):
     batch = route.match_forward(queries, moved, ref, cfg)  # two chunks of 64 and a partial one
     m = route.SequenceMatcher(ref, cfg)
     steps = [m.step(q, d) for q, d in zip(queries, moved, strict=True)]
-    for field in route.MatchOutput._fields:
+    for field in (f.name for f in dataclasses.fields(route.MatchOutput)):
         np.testing.assert_array_equal(np.concatenate([getattr(s, field) for s in steps]), getattr(batch, field))
     m.reset()
     np.testing.assert_array_equal(m.belief, route.SequenceMatcher(ref, cfg).belief)

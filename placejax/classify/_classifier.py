@@ -441,7 +441,7 @@ def _route_settings(entry: Any) -> route.FilterConfig:
     written before they were stored have none and get its defaults (the experiment's chosen values)."""
     if entry is None:
         return route.FilterConfig()
-    fields = route.FilterConfig.__dataclass_fields__
+    fields = [f.name for f in dataclasses.fields(route.FilterConfig)]
     if type(entry) is not dict or set(entry) != set(fields):
         raise ValueError(f"meta['route'] must hold exactly the FilterConfig fields {list(fields)}, got {entry!r:.200}")
     return route.FilterConfig(**entry)

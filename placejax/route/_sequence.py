@@ -190,7 +190,8 @@ def travel_directions(positions) -> np.ndarray:
     return (d[j] / length[j, None]).astype(np.float32)
 
 
-class MatchReference(NamedTuple):
+@dataclasses.dataclass(frozen=True, eq=False)  # arrays: compared by identity
+class MatchReference:
     """The training drive a `SequenceMatcher` matches against (`match_reference` builds it).
 
     Attributes:
@@ -374,7 +375,8 @@ def _chunk_fn(st: _Static):
     return jax.jit(run)
 
 
-class MatchOutput(NamedTuple):
+@dataclasses.dataclass(frozen=True, eq=False)  # arrays: compared by identity
+class MatchOutput:
     """What the sequence matcher says of each test frame.
 
     Attributes:
