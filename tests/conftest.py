@@ -120,7 +120,18 @@ def copy_of_smoke_run(shared_smoke_run, tmp_path_factory, name: str) -> tuple[Pa
 # loop (`pytest -m "not slow"`) leaves it out; CI runs everything.
 # So is every test that starts Python processes through a module fixture (test_cli's failing commands,
 # test_folder_hostile's cases, each read in a child whose memory and CPU are measured).
-SLOW_FIXTURES = frozenset({"smoke", "smoke_run", "smoke_depth_run", "shared_smoke_run", "failed_runs", "outcomes"})
+SLOW_FIXTURES = frozenset(
+    {
+        "smoke",
+        "smoke_depth_run",
+        "shared_smoke_run",
+        "classify_run",
+        "tracker_run",
+        "pretrain_run",
+        "failed_runs",
+        "outcomes",
+    }
+)
 
 
 def pytest_collection_modifyitems(config, items):

@@ -33,7 +33,7 @@ pytestmark = pytest.mark.xdist_group("classify")
 
 
 @pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory, smoke_depth_run):
+def classify_run(tmp_path_factory, smoke_depth_run):
     """A smoke run with a (4-step) trained depth network, two seasons, one seed, one device: a classifier can be
     built from it. Its depth cache is seeded with the session's smoke depth network (the experiment reuses it, as
     it would its own from an earlier run, and writes its report)."""
@@ -61,8 +61,8 @@ def smoke_run(tmp_path_factory, smoke_depth_run):
 
 
 @pytest.fixture(scope="module")
-def clf(smoke_run):
-    _, workdir, _ = smoke_run
+def clf(classify_run):
+    _, workdir, _ = classify_run
     return PlaceClassifier.from_run(workdir, TRAIN)
 
 
@@ -80,11 +80,11 @@ def _sessions_with_depth(cfg, workdir: Path):
 
 
 @pytest.fixture(scope="module")
-def experiment_outputs(smoke_run):
+def experiment_outputs(classify_run):
     """The experiment's evaluation path recomputed with its own stage functions (all cached or checkpointed):
     per session its uint8 frames, HHA images, labels and the logits of RGB-Net, HHA-Net and the fusion MLP of
     the classifier trained on ``TRAIN``."""
-    cfg, workdir, _ = smoke_run
+    cfg, workdir, _ = classify_run
     c = sections(cfg)
     ws, sessions, grid = _sessions_with_depth(cfg, Path(workdir).absolute())
     nets = stages.train_nets(
@@ -328,8 +328,8 @@ def test_missing_file_is_a_file_not_found(tmp_path):
         PlaceClassifier.load(tmp_path / "nope.placejax")
 
 
-def test_from_run_errors_name_the_problem(smoke_run, tmp_path, monkeypatch):
-    _, workdir, _ = smoke_run
+def test_from_run_errors_name_the_problem(classify_run, tmp_path, monkeypatch):
+    _, workdir, _ = classify_run
     with pytest.raises(KeyError, match=r"'XX'.*WI"):
         PlaceClassifier.from_run(workdir, "XX")
     with pytest.raises(FileNotFoundError, match=r"classifiers\.json"):
@@ -342,14 +342,14 @@ def test_from_run_errors_name_the_problem(smoke_run, tmp_path, monkeypatch):
         PlaceClassifier.from_run(workdir, TRAIN)
 
 
-def test_from_run_reads_the_shipped_depth_network(smoke_run, monkeypatch):
+def test_from_run_reads_the_shipped_depth_network(classify_run, monkeypatch):
     """A run whose depth stage got the network shipped with placejax (``depth.trained_preset=default``) builds a
     classifier on that network through the depth-source registry, predicting depth as the shipped file does; an
     index recording another depth source than the one rebuilt now is refused, naming both."""
     from placejax import depth
     from placejax.weights import resolve
 
-    _, workdir, _ = smoke_run
+    _, workdir, _ = classify_run
     shipped_record = resolve(f"shipped:{depth.SHIPPED['default']}")
     shipped, meta = depth.TrainedDepth.from_record(shipped_record), shipped_record.meta
     real = run_layout.locate_run
@@ -419,8 +419,8 @@ def test_command_text_json_and_figure(saved, experiment_outputs, tmp_path, capsy
     assert cv2.imread(str(tmp_path / "fig.png")) is not None
 
 
-def test_command_from_a_run_directory(smoke_run, experiment_outputs, tmp_path, capsys):
-    _, workdir, _ = smoke_run
+def test_command_from_a_run_directory(classify_run, experiment_outputs, tmp_path, capsys):
+    _, workdir, _ = classify_run
     a = _png(tmp_path / "a.png", experiment_outputs[TRAIN]["images"][0])
     assert classify_main([str(workdir), "--session", TRAIN, str(a), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["model"]["train_session"] == TRAIN
@@ -467,8 +467,8 @@ def test_scores_grow_with_uncertainty():
         assert float(unknown.unknown_score(unsure, name)[0]) > float(unknown.unknown_score(sure, name)[0]), name
 
 
-def test_results_and_table_carry_the_unknown_columns(smoke_run):
-    _, workdir, results = smoke_run
+def test_results_and_table_carry_the_unknown_columns(classify_run):
+    _, workdir, results = classify_run
     pair = results["pairs"][0]
     for k in ("unknown_msp_auroc", "unknown_rejected_unseen", "unknown_rejected_seen"):
         assert k in pair
@@ -480,10 +480,10 @@ def test_results_and_table_carry_the_unknown_columns(smoke_run):
     assert jax.tree_util.tree_leaves(index["sessions"][TRAIN]["unknown"])
 
 
-def test_from_run_uses_the_score_chosen_on_world_1(smoke_run, clf, experiment_outputs):
+def test_from_run_uses_the_score_chosen_on_world_1(classify_run, clf, experiment_outputs):
     """The classifier rejects by ``unknown.DEFAULT_SCORE`` (k-NN of the fused embedding), with the
     held-out threshold of the run's index and the reference of the run's saved training embeddings."""
-    _, workdir, _ = smoke_run
+    _, workdir, _ = classify_run
     entry = json.loads((workdir / "classifiers.json").read_text())["sessions"][TRAIN]
     assert clf.unknown_kind == unknown.DEFAULT_SCORE in unknown.FEATURE_SCORES
     assert clf.threshold == entry["unknown"][unknown.DEFAULT_SCORE]["threshold"]
@@ -512,14 +512,14 @@ def test_top_level_name_is_lazy():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_run, clf):
+def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(classify_run, clf):
     """``depth.far_as_sky_m``: the experiment's trained-depth stage and the classifier's depth stage both hand
     HHA the metric network's depth with everything at or beyond the threshold at 1000 m. The threshold here is
     the median prediction, so about half of the pixels move."""
     from placejax.classify._classifier import stage_depth
     from placejax.depth import far_to_sky
 
-    cfg, workdir, _ = smoke_run
+    cfg, workdir, _ = classify_run
     assert clf._spec.far_as_sky_m == cfg.depth.far_as_sky_m > 0  # the run's settings reached the classifier
     assert clf._spec.flip_average is cfg.depth.flip_average is True  # (the equality tests above cover it)
     assert clf._spec.shifts == tuple(cfg.depth.shift_px) == ()  # (no shifted views by default since 2026-12-07)
@@ -547,13 +547,13 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(smoke_r
     assert 0.2 < (got == 1000.0).mean() < 0.8
 
 
-def test_fusion_head_options_train_on_the_copies(smoke_run, tmp_path, monkeypatch):
+def test_fusion_head_options_train_on_the_copies(classify_run, tmp_path, monkeypatch):
     """The fusion head's options (docs/lookup-gap.md) in the experiment: with ``mlp.jittered`` the MLP trains on the
     originals' embeddings and then the jittered copies' (copy-major, labels tiled), the copies' fc7 being the
     nets' own on their cached jittered features; the options enter the MLP's key only when on."""
     from placejax.stages import _fusion, jittered_fc7, results_only
 
-    cfg, workdir, _ = smoke_run
+    cfg, workdir, _ = classify_run
     shutil.copytree(workdir, tmp_path / "run")
     assert not {"input_dropout", "modality_dropout", "jittered"} & set(results_only(sections(cfg)["mlp"]))
     cfg = cfg.copy_and_resolve_references()

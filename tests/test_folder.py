@@ -605,9 +605,17 @@ def test_missing_session_folders_named_in_one_error(tmp_path):
 
 
 def test_render_presets_match_the_experiment():
+    """The export's presets render the frames the experiment's presets train on: both against the values
+    docs/simcampus.md states, written here once by hand (both sides read one table in the library, so comparing
+    them with each other alone could not fail)."""
     from experiments.cross_season.config import get_config
 
-    for preset, settings_ in SIMCAMPUS_RENDER_PRESETS.items():
+    stated = {
+        "default": {"world_seed": 0, "image_size": (96, 96), "frame_spacing": 1.0, "max_frames": 0},
+        "smoke": {"world_seed": 0, "image_size": (64, 64), "frame_spacing": 40.0, "max_frames": 0},
+    }
+    assert SIMCAMPUS_RENDER_PRESETS == stated
+    for preset, settings_ in stated.items():
         c = get_config(preset).data
         assert c.source == "simcampus"
         got = {"world_seed": c.world_seed, "image_size": tuple(c.image_size), "frame_spacing": c.frame_spacing}

@@ -45,7 +45,7 @@ def test_recall_at_1_is_exact_on_identical_descriptors():
 
 
 @pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory):
+def pretrain_run(tmp_path_factory):
     """The smoke preset trained once through the train-once-and-cache lifecycle, with its per-step metrics."""
     cache = tmp_path_factory.mktemp("cache")
     history = []
@@ -62,8 +62,8 @@ def smoke_run(tmp_path_factory):
     return params, report, history, cache
 
 
-def test_pretext_learns_and_transfers_to_held_out_worlds(smoke_run):
-    _, report, history, _ = smoke_run
+def test_pretext_learns_and_transfers_to_held_out_worlds(pretrain_run):
+    _, report, history, _ = pretrain_run
     cfg = pretrain.PRESETS["smoke"]
     first = np.mean([m["loss"] for m in history[:8]])
     last = np.mean([m["loss"] for m in history[-8:]])
@@ -76,8 +76,8 @@ def test_pretext_learns_and_transfers_to_held_out_worlds(smoke_run):
     assert mean["trunk"]["view"] >= mean["random_trunk"]["view"] + 2 / (2 * cfg.eval_frames), mean
 
 
-def test_ensure_trained_reuses_the_cached_run(smoke_run, monkeypatch):
-    params, report, _, cache = smoke_run
+def test_ensure_trained_reuses_the_cached_run(pretrain_run, monkeypatch):
+    params, report, _, cache = pretrain_run
     assert (pretrain.run_dir(pretrain.PRESETS["smoke"], "smoke", cache) / "pretrain_eval.json").exists()
 
     def no_training(*args, **kwargs):

@@ -166,7 +166,7 @@ def test_a_classifier_output_that_is_not_finite_is_an_unknown_step(tiny_file):
 
 
 @pytest.fixture(scope="module")
-def smoke_run(shared_smoke_run, tmp_path_factory):
+def tracker_run(shared_smoke_run, tmp_path_factory):
     """The suite's smoke run (``conftest.shared_smoke_run``: four seasons, the shipped depth network), a copy:
     ``(config, workdir, results)``, whose ``results.json`` holds the ``Ours + route`` column per seed."""
     workdir, results = copy_of_smoke_run(shared_smoke_run, tmp_path_factory, "tracker_run")
@@ -174,7 +174,7 @@ def smoke_run(shared_smoke_run, tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_tracker_reproduces_the_runs_route_column(smoke_run, tmp_path):
+def test_tracker_reproduces_the_runs_route_column(tracker_run, tmp_path):
     """The experiment's ``Ours + route`` top-1 of the first seed (``PlaceClassifier.from_run`` takes the first
     seed's networks), to the last frame: a saved and reloaded classifier, each other season's cached frames in
     order, one at a time through ``Tracker.step`` with the distances the experiment used (SimCampus's simulated
@@ -184,7 +184,7 @@ def test_tracker_reproduces_the_runs_route_column(smoke_run, tmp_path):
     from placejax.data import moved_m
     from placejax.training import data_mesh
 
-    cfg, workdir, results = smoke_run
+    cfg, workdir, results = tracker_run
     clf = PlaceClassifier.load(PlaceClassifier.from_run(workdir, TRAIN).save(tmp_path / "wi.placejax"))
     report_keys = ("block_frames", "lag_frames")  # the experiment's own entries of its route section
     assert clf.route == route.FilterConfig(**{k: v for k, v in cfg.route.items() if k not in report_keys})
