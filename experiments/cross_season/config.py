@@ -75,8 +75,7 @@ class RouteReport:
     """How the route columns are reported (beside the filter's settings in the ``route`` section)."""
 
     block_frames: int = _config.setting(25, "consecutive test frames per block of the route gains' bootstrap")
-    # Chosen on world 1 by the rule in docs/research-log.md (issue 59): the smallest of 5, 10, 20 within 1 point of
-    # the best.
+    # Chosen on world 1 (docs/research-log.md): the smallest of 5, 10, 20 within 1 point of the best.
     lag_frames: int = _config.setting(20, "frames of look-ahead of the fixed-lag column ours_route_lag")
 
     def __post_init__(self):

@@ -137,11 +137,10 @@ class FilterConfig(CheckedSettings):
     products overflow. A value out of range raises ``ValueError`` naming the field.
     """
 
-    # Chosen on world 1 for the 96² / 1 m nets by the rule of docs/research-log.md (issue 59): the temperature
-    # fitted (route.fit_temperature) on world 1's cross-season Ours frames, 5.06 → 5.1 (the best of the grid T in
-    # 1..16 was not 0.5 points above it), the mixing the grid chose at its T, then the unknown level with the
-    # highest route AUROC among those rejecting at most 10 % of seen frames. Odometry noise, floor and the unknown
-    # state's rates are a priori values (docs/route.md, "In the experiment").
+    # Chosen on world 1 (docs/research-log.md): the temperature fitted (route.fit_temperature) on world 1's
+    # cross-season Ours frames, the mixing by Ours + route top-1, then the unknown level with the highest route
+    # AUROC among those rejecting at most 10 % of seen frames. Odometry noise, floor and the unknown state's rates
+    # are a priori values (docs/route.md, "In the experiment").
     temperature: float = setting(5.1, "softmax temperature of the outputs the route filter reads (docs/route.md)")
     uniform_mix: float = setting(1e-4, "probability per frame of a jump to any cell (recovery), in [0, 1)")
     unknown_level: float = setting(3.0, "the unknown state's emission, in units of 1 / classes")
