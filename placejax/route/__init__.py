@@ -45,16 +45,14 @@ Example:
 from placejax.route._calibration import calibrated_probabilities, fit_temperature
 from placejax.route._config import FilterConfig, first_problem
 from placejax.route._filter import (
-    MAX_LAG,
-    FixedLagFilter,
     RouteFilter,
     forward,
     initial_belief,
     num_states,
     place_belief,
-    smooth,
     transition_matrix,
 )
+from placejax.route._lag import MAX_LAG, FixedLagFilter, smooth
 from placejax.route._odometry import moved_from_timestamps, moved_from_travelled
 from placejax.route._sequence import (
     EMBEDDINGS,

@@ -36,7 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax.config import setting
+from placejax.route._chunks import padded_chunks
 from placejax.route._config import CheckedSettings, _count, _flag, _probability, _real, problem_in
+from placejax.route._filter import check_moved
 
 MAX_NEIGHBOURS = 4096
 MAX_WINDOW = 10_000
@@ -81,8 +83,8 @@ class MatchConfig(CheckedSettings):
     """Settings of the sequence matcher (`SequenceMatcher`, `match_forward`), and the one place their defaults and
     ranges are written.
 
-    The defaults are those ``experiments.cross_season`` chose on world 1 (docs/research-log.md, issue 59's rule;
-    docs/route.md, "Sequence matching"). A value out of range raises ``ValueError`` naming the field.
+    The defaults are those ``experiments.cross_season`` chose on world 1 (docs/research-log.md; docs/route.md,
+    "Sequence matching against the training drive"). A value out of range raises ``ValueError`` naming the field.
 
     Attributes:
         embedding: which embedding of a ``PlaceClassifier`` the matcher compares (`EMBEDDINGS`: ``"fused"``, both
@@ -104,9 +106,8 @@ class MatchConfig(CheckedSettings):
         distance_threshold: ``window_distance`` above it says "an unseen place" (in ``(0, 2]``).
     """
 
-    # embedding, τ, σ and κ chosen on world 1 by the rule of docs/research-log.md (issue 59, rule 4 and its two
-    # amendments: the grid's best τ was its edge, 0.05, then 0.1, 0.2, 0.4 (43.9 %), 0.8 tried); the unknown level
-    # by the unseen-place criterion after them; the rest a priori.
+    # Embedding, τ, σ and κ chosen on world 1 by top-1, then the unknown level by the unseen-place criterion
+    # (docs/research-log.md); the rest a priori.
     embedding: str = setting("fused", "the embedding compared: 'fused' (both nets' fc7), 'rgb' or 'hha'")
     similarity_scale: float = setting(0.4, "τ: a training frame τ less cosine-similar than the best is e× less likely")
     position_sd_m: float = setting(1.0, "motion model: position sd at zero distance (m)")
@@ -119,9 +120,8 @@ class MatchConfig(CheckedSettings):
     unknown_prior: float = setting(0.01, "initial probability of the unknown state, in [0, 1)")
     unknown_enter_per_m: float = setting(0.005, "rate per metre of entering the unknown state")
     unknown_leave_per_m: float = setting(0.1, "rate per metre of leaving the unknown state")
-    # The route's unseen-place score (issue 59, rule 6 on world 1): the causal mean over 20 frames of 1 − the best
-    # cosine similarity to a training frame beat both unknown states; its threshold is the 90th percentile of the
-    # score over world 1's seen frames.
+    # The route's unseen-place score, chosen on world 1 over both unknown states (docs/research-log.md); its
+    # threshold is the 90th percentile of the score over world 1's seen frames.
     distance_window: int = setting(20, "frames of the causal mean of the unseen-place distance (window_distance)")
     distance_threshold: float = setting(0.201, "window_distance above this: an unseen place (in (0, 2])")
 
@@ -134,7 +134,7 @@ def unit_embedding(*parts) -> np.ndarray:
 
     Example:
         >>> e = unit_embedding(np.array([[3.0, 4.0]]), np.array([[0.0, 2.0]]))
-        >>> np.round(e, 3).tolist(), round(float(np.linalg.norm(e)), 6)
+        >>> np.round(e.astype(float), 3).tolist(), round(float(np.linalg.norm(e)), 6)
         ([[0.424, 0.566, 0.0, 0.707]], 1.0)
     """
     if not parts:
@@ -352,9 +352,6 @@ def _readout(st: _Static, p: dict, belief) -> tuple[jax.Array, jax.Array, jax.Ar
     return cells, unknown, jnp.argmax(belief[: st.n]).astype(jnp.int32)
 
 
-_CHUNK = 64
-
-
 @functools.lru_cache(maxsize=16)
 def _chunk_fn(st: _Static):
     def run(p, belief, queries, moved, n):
@@ -443,11 +440,7 @@ def _check_queries(queries, d: int, name: str = "embeddings") -> np.ndarray:
 def _run(st, p, belief, queries: np.ndarray, moved: np.ndarray):
     fn = _chunk_fn(st)
     outs = []
-    for lo in range(0, len(queries), _CHUNK):
-        n = min(_CHUNK, len(queries) - lo)
-        qq = np.zeros((_CHUNK, queries.shape[1]), np.float32)
-        mm = np.zeros(_CHUNK, np.float32)
-        qq[:n], mm[:n] = queries[lo : lo + n], moved[lo : lo + n]
+    for n, (qq, mm) in padded_chunks(queries.astype(np.float32), moved.astype(np.float32)):
         belief, cells, unknown, frame, best = fn(p, belief, qq, mm, np.int32(n))
         outs.append((cells[:n], unknown[:n], frame[:n], best[:n]))
     cat = lambda i: np.concatenate([np.asarray(o[i]) for o in outs])
@@ -474,8 +467,6 @@ def match_forward(embeddings, moved_m, reference: MatchReference, config: MatchC
         >>> out.frame[-3:].tolist(), out.cells[-1].argmax().item()
         ([17, 18, 19], 1)
     """
-    from placejax.route._filter import check_moved
-
     config = MatchConfig() if config is None else config
     _check(reference, config)
     q = _check_queries(embeddings, reference.embeddings.shape[1])
@@ -527,8 +518,6 @@ class SequenceMatcher:
             A `MatchOutput` of one frame (arrays of length 1). Not finite embedding: the prediction alone, its
             ``frame`` −1, ``unknown`` 1.0 and `rejected` set.
         """
-        from placejax.route._filter import check_moved
-
         d = self.reference.embeddings.shape[1]
         try:
             q = np.asarray(embedding, np.float64)
