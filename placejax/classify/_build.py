@@ -72,15 +72,15 @@ def run_meta_and_params(
     if score in unknown.FEATURE_SCORES and files.embeddings is None:
         score = "msp"  # a run from before the feature scores saved no embeddings: its classifiers used msp
     thr = files.unknown.get(score, {})
+    training = training_frames(files)
     if score in unknown.FEATURE_SCORES:
-        if not Path(files.embeddings).is_file() or "threshold" not in thr:
+        if training is None or "threshold" not in thr:
             raise FileNotFoundError(
                 f"the run in {files.workdir} has no training embeddings or no {score} threshold for "
                 f"{train_session} (a run older than the feature-space unseen-place scores): rerun it"
             )
-        with np.load(files.embeddings) as z:
-            params["unknown"] = unknown.fit_feature_model(score, z["embeddings"], z["labels"])
-    sequence = sequence_drive(files, cfg)
+        params["unknown"] = unknown.fit_feature_model(score, training["embeddings"], training["labels"])
+    sequence = sequence_drive(training, cfg)
     if sequence is not None:
         params["sequence"] = sequence[1]
     meta = {
@@ -108,15 +108,22 @@ def run_meta_and_params(
     return meta, params
 
 
-def sequence_drive(files: run_layout.RunFiles, cfg: dict[str, Any]) -> tuple[route.MatchConfig, dict] | None:
-    """The sequence matcher's settings (the run's ``sequence`` section) and training drive (its frames' matcher
-    embeddings, positions and cells), or ``None`` for a run that saved no positions (older than the matcher)."""
+def training_frames(files: run_layout.RunFiles) -> dict[str, np.ndarray] | None:
+    """The training session's saved frames (``unknown/<train>.npz``: fused embeddings, labels and, where the run
+    saved them, positions), read once; ``None`` for a run that saved none."""
     if files.embeddings is None or not Path(files.embeddings).is_file():
         return None
     with np.load(files.embeddings) as z:
-        if "positions" not in z.files:
-            return None
-        emb, positions, labels = z["embeddings"], z["positions"], z["labels"]
+        return {k: z[k] for k in z.files}
+
+
+def sequence_drive(training: dict | None, cfg: dict[str, Any]) -> tuple[route.MatchConfig, dict] | None:
+    """The sequence matcher's settings (the run's ``sequence`` section) and training drive (its frames' matcher
+    embeddings, positions and cells) from `training_frames`, or ``None`` for a run that saved no positions (older
+    than the matcher)."""
+    if training is None or "positions" not in training:
+        return None
+    emb, positions, labels = training["embeddings"], training["positions"], training["labels"]
     settings = route.MatchConfig(**(cfg.get("sequence") or {}))
     return settings, {
         "embeddings": route.select_embedding(emb, settings.embedding),
