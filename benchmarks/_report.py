@@ -68,6 +68,17 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def cpu_model() -> str:
+    """The processor's model name (``/proc/cpuinfo``; ``platform.processor()`` elsewhere)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
 def write_json(name: str, payload: dict) -> Path:
     """Writes ``benchmarks/results/<name>.json`` atomically, with machine facts added; returns the path."""
     import jax
@@ -78,6 +89,7 @@ def write_json(name: str, payload: dict) -> Path:
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "machine": {
             "platform": platform.platform(),
+            "cpu": cpu_model(),
             "cpu_count": os.cpu_count(),
             "jax": jax.__version__,
             "devices": [str(d) for d in jax.devices()],

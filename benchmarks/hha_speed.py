@@ -9,9 +9,10 @@ image on a 2-core x86 machine (``docs/hha.md``); the NumPy float64 baseline here
 that (it replaces the direct 2-D convolutions with separable sums), so the speed-ups quoted are conservative.
 
 ``--baseline-encoder`` loads ``placejax/hha/_encode.py`` of another checkout (e.g. the main branch's) and times
-its compiled batch encoder on the same prepared inputs, call for call alternating with this checkout's
-(``_encode_batch``, the same arrays ``hha.encode`` hands it), so that both see the same load on a shared
-machine; the table then gives both, their ratio, and their CPU time (all threads; steadier than wall time on a
+its compiled batch encoder on the whole batch (all that ``hha.encode`` ran before batches were split over the
+cores) on the same prepared inputs, call for call alternating with this checkout's (the runner ``hha.encode``
+hands them to, split included), so that both see the same load on a shared machine; the table then gives
+both, their ratio, and their CPU time (all threads; steadier than wall time on a
 loaded machine). The load average before and after is printed and recorded. For single-core numbers, start it
 under ``taskset -c 0`` (XLA sizes its thread pool to the cores it may use).
 """
@@ -31,7 +32,7 @@ import numpy as np
 
 from benchmarks._report import argument_parser, current_rss_mb, median_seconds, peak_rss_mb, print_table, write_json
 from placejax import cli, hha
-from placejax.hha import _encode
+from placejax.hha import _api
 from placejax.hha.scenes import ground_and_wall
 
 SIZES = ((256, 256), (480, 640))
@@ -119,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
                 d = jnp.asarray(batch)
                 ks = jnp.asarray(np.broadcast_to(k, (b, 3, 3)), jnp.float32)
                 r = jnp.asarray([0.1, 1000.0], jnp.float32)
-                fns["this"] = lambda d=d, ks=ks, r=r: _encode._encode_batch(d, ks, None, r, full=False)
+                fns["this"] = lambda d=d, ks=ks, r=r: _api._run(d, ks, None, r, full=False)
                 fns["baseline"] = lambda d=d, ks=ks, r=r: baseline(d, ks, r)
                 for fn in fns.values():
                     jax.block_until_ready(fn())
@@ -192,7 +193,14 @@ def main(argv: list[str] | None = None) -> None:
         f"{rss[0]:.0f} → {rss[-1]:.0f} MiB (growth {stream['growth_mb']:+.0f} MiB)"
     )
     print(f"load average (1, 5, 15 min) before {load_before}, after {load_after}")
-    payload = {"rows": rows, "stream": stream, "repeats": repeats, "load_average": [load_before, load_after]}
+    print(f"batches split over {hha.workers()} cores (placejax.hha.workers)")
+    payload = {
+        "rows": rows,
+        "stream": stream,
+        "repeats": repeats,
+        "workers": hha.workers(),
+        "load_average": [load_before, load_after],
+    }
     if args.baseline_encoder is not None:
         payload["baseline_encoder"] = str(args.baseline_encoder)
     path = write_json("hha_speed", payload)

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks._report import argument_parser
+from benchmarks._report import argument_parser, cpu_model
 from placejax import cli, io
 from placejax.models import (
     VGG16,
@@ -191,16 +191,6 @@ def _case(name, batch, hw, flax_fns, torch_fns, repeats, rng, **extra):
     return row
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
-
-
 @cli.command
 def main(argv: list[str] | None = None) -> None:
     parser = argument_parser(__file__, __doc__.splitlines()[0])
@@ -319,7 +309,7 @@ def main(argv: list[str] | None = None) -> None:
         "devices": [str(d) for d in jax.devices()],
         "cpu_count": os.cpu_count(),
         "machine": platform.platform(),
-        "cpu_model": _cpu_model(),
+        "cpu_model": cpu_model(),
         "repeats": args.repeats,
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         # Shared machines: a load average above the core count means the timings are contended.

@@ -119,6 +119,38 @@ def test_batch_equals_loop_and_per_image_intrinsics():
     np.testing.assert_array_equal(np.asarray(shared), np.asarray(hha.encode(depth, np.broadcast_to(ks[0], (3, 3, 3)))))
 
 
+@pytest.mark.parametrize("workers", ["2", "3", "8"])
+def test_a_batch_split_across_cores_is_one_call_bit_for_bit(monkeypatch, workers):
+    # Parts of the batch run on their own threads (one per core); each image's program is the same in every part.
+    rng = np.random.default_rng(9)
+    images, ks = [], []
+    for i in range(7):
+        depth, k, _, _ = ground_and_wall(24, 32, f=30.0, pitch_deg=rng.uniform(-12, -4), roll_deg=rng.uniform(-6, 6))
+        if i % 3 == 1:
+            depth[rng.random(depth.shape) < 0.05] = np.nan
+        images.append(depth)
+        ks.append(k)
+    depth, ks = np.stack(images), np.stack(ks)
+    monkeypatch.setenv("PLACEJAX_HHA_WORKERS", "1")
+    assert hha.workers() == 1
+    whole = hha.encode_full(depth, ks)
+    monkeypatch.setenv("PLACEJAX_HHA_WORKERS", workers)
+    assert hha.workers() == int(workers)
+    split = hha.encode_full(depth, ks)
+    for a, b in zip(whole, split, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(hha.encode(depth, ks)), np.asarray(whole.hha))
+    # Under a caller's jit the batch stays one program, with the same result.
+    np.testing.assert_array_equal(np.asarray(jax.jit(hha.encode)(depth, ks)), np.asarray(whole.hha))
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "two"])
+def test_a_bad_worker_count_is_refused_by_name(monkeypatch, value):
+    monkeypatch.setenv("PLACEJAX_HHA_WORKERS", value)
+    with pytest.raises(ValueError, match="PLACEJAX_HHA_WORKERS"):
+        hha.encode(np.ones((2, 24, 32)), np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]]))
+
+
 def test_mixed_batch_equals_the_loop_exactly():
     # Each image is its own computation (dense or with holes, decided per image), whatever its neighbours: a batch
     # mixing both kinds is the loop bit for bit.
@@ -160,6 +192,33 @@ def test_dense_closed_form_fit_equals_the_general_fit(h, w):
         np.testing.assert_allclose(n_dense, n_general, atol=2e-5)
     if min(h, w) == 1:  # a single row or column: every window is collinear, no normal anywhere
         assert not np.asarray(inv_dense > 0).any()
+
+
+@pytest.mark.parametrize("gap", [1e-1, 1e-3, 1e-5, 0.0])
+def test_gravity_eigenvector_is_as_accurate_as_lapack(gap):
+    # The loop's Jacobi eigenvector of the 3×3 floor/wall matrix against float64 LAPACK: as close as float32
+    # LAPACK gets (measured beside it), for well separated, nearly double and exactly double smallest eigenvalues
+    # (where any unit vector of the pair's plane is an answer: then it must lie in that plane).
+    rng = np.random.default_rng(int(gap * 1e6) + 3)
+    q = np.linalg.qr(rng.normal(size=(500, 3, 3)))[0]
+    ev = np.sort(rng.normal(size=(500, 3)) * 1000, axis=1)
+    ev[:, 1] = ev[:, 0] + np.abs(ev[:, 0]) * gap + (gap > 0)
+    ev[:, 2] = np.maximum(ev[:, 2], ev[:, 1] + 10)
+    mats = np.einsum("nij,nj,nkj->nik", q, ev, q)
+    got = np.asarray(jax.jit(jax.vmap(_encode._smallest_eigenvector))(jnp.asarray(mats, jnp.float32)), np.float64)
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-6)
+    if gap == 0.0:
+        out_of_plane = np.abs(np.einsum("ni,ni->n", got, q[:, :, 2]))  # component along the largest's vector
+        assert out_of_plane.max() < 1e-4
+        return
+    ref = np.linalg.eigh(mats)[1][:, :, 0]
+    lapack32 = np.asarray(jax.vmap(lambda a: jnp.linalg.eigh(a)[1][:, 0])(jnp.asarray(mats, jnp.float32)), np.float64)
+
+    def error(v):
+        return np.minimum(np.linalg.norm(v - ref, axis=1), np.linalg.norm(v + ref, axis=1))
+
+    assert error(got).max() <= max(2 * error(lapack32).max(), 1e-5)
+    assert np.median(error(got)) <= max(np.median(error(lapack32)), 1e-6)
 
 
 def test_gravity_stopping_at_its_fixed_point_is_the_full_loop():

@@ -5,12 +5,13 @@ Public surface:
     ENCODER_VERSION: the encoder's version, in every HHA cache key (bumped whenever its outputs may change).
     encode_full: the same plus the intermediates (:class:`HHAResult`).
     encode_stream: bounded-memory encoding of a stream of images in fixed-size batches.
+    workers: how many cores a concrete batch is split over (``PLACEJAX_HHA_WORKERS`` overrides it).
     intrinsics_valid: the camera check the encoder applies, usable on traced arrays.
     encode_reference: plain NumPy float64 implementation, one image at a time (test oracle, baseline).
     inverse_depth_to_metric: relative inverse depth (MiDaS) → metric depth for HHA.
 """
 
-from placejax.hha._api import encode, encode_full, encode_stream, intrinsics_valid
+from placejax.hha._api import encode, encode_full, encode_stream, intrinsics_valid, workers
 from placejax.hha._constants import MAX_DEPTH_M, RADIUS_ANGLE
 from placejax.hha._encode import ENCODER_VERSION, HHAResult
 from placejax.hha._metric import inverse_depth_to_metric
@@ -29,4 +30,5 @@ __all__ = [
     "intrinsics_valid",
     "inverse_depth_to_metric",
     "window_sums",
+    "workers",
 ]

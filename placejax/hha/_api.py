@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import math
+import os
+import threading
 from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -192,6 +195,66 @@ def _prepare(depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, 
     return depth, k, raw, depth_range, squeeze
 
 
+# ----------------------------------------------------------------------------------------------------------------------
+# Running a batch on every core.
+
+_POOL: dict[str, object] = {"pid": None, "pool": None}
+_POOL_LOCK = threading.Lock()
+
+
+def workers() -> int:
+    """How many parts a concrete batch is split into on the CPU: the cores this process may run on (its affinity
+    mask where the OS has one). ``PLACEJAX_HHA_WORKERS`` overrides it (1: one compiled call per batch)."""
+    value = os.environ.get("PLACEJAX_HHA_WORKERS", "").strip()
+    if value:
+        try:
+            n = int(value)
+        except ValueError:
+            raise ValueError(f"PLACEJAX_HHA_WORKERS must be a positive integer, got {value!r}") from None
+        if n < 1:
+            raise ValueError(f"PLACEJAX_HHA_WORKERS must be a positive integer, got {value!r}")
+        return n
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def _pool(n: int) -> ThreadPoolExecutor:
+    """One thread pool per process (rebuilt after a fork, whose child inherits no running threads)."""
+    with _POOL_LOCK:
+        pool = _POOL["pool"]
+        if _POOL["pid"] != os.getpid() or pool is None or pool._max_workers < n:
+            pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="placejax-hha")
+            _POOL.update(pid=os.getpid(), pool=pool)
+        return pool
+
+
+def _run(depth, k, raw, depth_range, full: bool):
+    """``_encode_batch`` on the whole batch, or, for concrete CPU inputs, on contiguous parts of it, one per core,
+    each from its own thread.
+
+    XLA CPU splits every kernel of one image between the cores, and the kernels of a 256² image are too small
+    for that to pay (two threads took twice the CPU time of one per image); whole images on separate cores
+    scale instead. Each image's program is the same in every part, so the result is bit-identical to one
+    call. Traced inputs (a caller's ``jit``/``vmap``) and other backends keep one program.
+    """
+    b = depth.shape[0]
+    traced = any(isinstance(x, jax.core.Tracer) for x in (depth, k, raw, depth_range) if x is not None)
+    on_cpu = all(
+        d.platform == "cpu" for x in (depth, k) if isinstance(x, jax.Array) and not traced for d in x.devices()
+    )
+    n = 1 if traced or not on_cpu or jax.default_backend() != "cpu" else min(b, workers())
+    if n <= 1:
+        return _encode_batch(depth, k, raw, depth_range, full=full)
+    bounds = np.linspace(0, b, n + 1).round().astype(int)
+
+    def part(i):
+        a, z = bounds[i], bounds[i + 1]
+        out = _encode_batch(depth[a:z], k[a:z], None if raw is None else raw[a:z], depth_range, full=full)
+        return jax.block_until_ready(out)  # the work runs on this thread, beside the other parts
+
+    outs = list(_pool(n).map(part, range(n)))
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *outs)
+
+
 def encode_full(
     depth_m,
     intrinsics,
@@ -209,7 +272,7 @@ def encode_full(
     depth, k, raw, depth_range, squeeze = _prepare(
         depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, max_depth_m
     )
-    out = _encode_batch(depth, k, raw, depth_range, full=True)
+    out = _run(depth, k, raw, depth_range, full=True)
     if squeeze:
         out = jax.tree_util.tree_map(lambda x: x[0], out)
     return out
@@ -228,7 +291,8 @@ def encode(
     """HHA encoding (Gupta et al., ECCV 2014) of metric depth images, as the original implementation computes it.
 
     Compiled once per input shape and dtype; a batch runs as a loop over its images inside the compiled code, so
-    that each image's working set stays in cache. The same result comes out eagerly, under a caller's
+    that each image's working set stays in cache, and a concrete batch on the CPU is split into one contiguous
+    part per core (:func:`workers`), each run from its own thread. The same result comes out eagerly, under a caller's
     ``jax.jit`` and under ``jax.vmap``: whether every pixel is valid (the fast path) is decided on the data inside
     the compiled code, never from a Python-level look at it.
 
@@ -281,7 +345,7 @@ def encode(
     depth, k, raw, depth_range, squeeze = _prepare(
         depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, max_depth_m
     )
-    out = _encode_batch(depth, k, raw, depth_range, full=False)  # the intermediates are never computed
+    out = _run(depth, k, raw, depth_range, full=False)  # the intermediates are never computed
     return out[0] if squeeze else out
 
 

@@ -17,6 +17,8 @@ the gravity estimate, the channels and the batch loop.
 * ``encode`` (the HHA image only) compiles without the intermediates ``encode_full`` returns: the stacked
   normals, heights and angles are never written.
 * ``jnp.arccos`` (an ``atan2`` that does not vectorise) is replaced by a float32 polynomial of the same accuracy.
+* The gravity loop's 3×3 eigenvector comes from a fixed number of Jacobi rotations (scalar arithmetic inside
+  the loop, as accurate as LAPACK's float32 solver), not from a LAPACK call per iteration.
 
 Where the time goes, stage by stage, against the machine's memory bandwidth and arithmetic rate:
 ``python -m benchmarks.hha_roofline`` (``docs/hha.md``, "Speed").
@@ -56,10 +58,10 @@ from placejax.hha._windows import (
     unit_normals,
 )
 
-ENCODER_VERSION = 2
-"""The encoder's version, part of every HHA cache key: bumped whenever its outputs may change (2: the per-image
-loop of 2026-12-06, one level apart from version 1 on about 7e-5 of the values), so that a cache of an older
-encoder is rebuilt, not reused."""
+ENCODER_VERSION = 3
+"""The encoder's version, part of every HHA cache key: bumped whenever its outputs may change, so that a cache of
+an older encoder is rebuilt, not reused (3: the gravity loop's eigenvector by Jacobi rotations instead of LAPACK,
+which can move a value on a .5 boundary by one level)."""
 
 
 class HHAResult(NamedTuple):
@@ -125,13 +127,49 @@ def _gravity_step(outer: jax.Array, y: jax.Array, theta_deg: float) -> jax.Array
     weight = jnp.where(c2 < sin2_t, 1.0, 0.0).astype(dtype) - jnp.where(c2 > cos2_t, 1.0, 0.0).astype(dtype)
     axx, axy, axz, ayy, ayz, azz = jnp.dot(outer, weight, precision=jax.lax.Precision.HIGHEST)
     a = jnp.stack([jnp.stack([axx, axy, axz]), jnp.stack([axy, ayy, ayz]), jnp.stack([axz, ayz, azz])])
-    _, vecs = jnp.linalg.eigh(a, symmetrize_input=False)  # a is symmetric by construction
-    new = vecs[:, 0]  # eigenvalues ascend: the smallest one's eigenvector
+    new = _smallest_eigenvector(a)
     new = new * jnp.where(new @ y < 0, -1.0, 1.0)
     # Nothing selected: A = 0 has no preferred direction, so keep the current estimate. A = 0 means exactly
     # that, without a separate count: tr A = |W| − |F| (unit normals) would force |W| = |F| = k, and then
     # yᵀAy = Σ_W c² − Σ_F c² < k sin²θ − k cos²θ ≤ 0 (θ ≤ 45°) unless k = 0.
     return jnp.where(jnp.any(a != 0), new, y)
+
+
+def _rotation_parts(p: int, q: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Constant parts of the 3×3 Jacobi rotation in the plane (p, q): J = keep + c · diag + s · skew."""
+    e = np.eye(3, dtype=np.float32)
+    diag = np.outer(e[p], e[p]) + np.outer(e[q], e[q])
+    return e - diag, diag, np.outer(e[p], e[q]) - np.outer(e[q], e[p])
+
+
+_ROTATION_PARTS = {pq: _rotation_parts(*pq) for pq in ((0, 1), (0, 2), (1, 2))}
+_JACOBI_SWEEPS = 4  # cyclic sweeps; quadratic convergence leaves a 3×3 diagonal to float32 rounding after ~4
+
+
+def _smallest_eigenvector(a: jax.Array) -> jax.Array:
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix: cyclic Jacobi rotations.
+
+    Backward stable like LAPACK's solver, and a fixed sequence of small array operations that XLA fuses into a
+    few kernels per rotation, where a LAPACK call costs several kernels and a library call per iteration of
+    the gravity loop. Rotations use the textbook update (Golub & Van Loan, Alg. 8.5.2); a zero off-diagonal
+    entry leaves the matrix as it is.
+    """
+    m, v = a, jnp.eye(3, dtype=a.dtype)
+    for _ in range(_JACOBI_SWEEPS):
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            apq = m[p, q]
+            nonzero = apq != 0
+            theta = (m[q, q] - m[p, p]) / (2 * jnp.where(nonzero, apq, 1.0))
+            t = jnp.where(theta >= 0, 1.0, -1.0) / (jnp.abs(theta) + jnp.sqrt(theta * theta + 1))
+            t = jnp.where(nonzero, t, 0.0)
+            c = jax.lax.rsqrt(t * t + 1)
+            # J: the identity with [[c, s], [−s, c]] in rows and columns p, q; then m ← Jᵀ m J, v ← v J.
+            keep, diag, skew = _ROTATION_PARTS[(p, q)]
+            rot = keep + c * diag + (t * c) * skew
+            m = rot.T @ m @ rot
+            v = v @ rot
+    d = jnp.diagonal(m)
+    return v[:, jnp.argmin(d)]
 
 
 def _gravity_iterate(outer: jax.Array) -> tuple[jax.Array, jax.Array]:
