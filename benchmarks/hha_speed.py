@@ -96,10 +96,16 @@ def main(argv: list[str] | None = None) -> None:
     baseline = None if args.baseline_encoder is None else load_encoder(args.baseline_encoder)
     load_before = os.getloadavg()
 
-    rows = []
+    rows, parity = [], {}
     for h, w in sizes:
         depth, k = scenes(h, w, max(batches))
         base_s, _ = median_seconds(lambda d=depth[0], k=k: hha.encode_reference(d, k), max(1, repeats // 2))
+        # Parity with the NumPy reference on this size's scenes (four of them, encoded as one batch).
+        n_ref = min(4, len(depth))
+        ref = np.stack([hha.encode_reference(d, k)[0] for d in depth[:n_ref]]).astype(int)
+        diff = np.abs(np.asarray(hha.encode(depth[:n_ref], k), int) - ref)
+        share = float((diff > 0).mean())
+        parity[f"{h}x{w}"] = {"images": n_ref, "max_level_diff": int(diff.max()), "share_differing": share}
         rows.append(
             {
                 "size": f"{h}x{w}",
@@ -193,12 +199,18 @@ def main(argv: list[str] | None = None) -> None:
         f"{rss[0]:.0f} → {rss[-1]:.0f} MiB (growth {stream['growth_mb']:+.0f} MiB)"
     )
     print(f"load average (1, 5, 15 min) before {load_before}, after {load_after}")
+    for size, p in parity.items():
+        print(
+            f"parity with the NumPy reference at {size} ({p['images']} scenes): max {p['max_level_diff']} level, "
+            f"{p['share_differing']:.2e} of the values differ"
+        )
     print(f"batches split over {hha.workers()} cores (placejax.hha.workers)")
     payload = {
         "rows": rows,
         "stream": stream,
         "repeats": repeats,
         "workers": hha.workers(),
+        "parity_vs_numpy_reference": parity,
         "load_average": [load_before, load_after],
     }
     if args.baseline_encoder is not None:
