@@ -242,7 +242,7 @@ def test_nclt_session_cache_keyed_by_fingerprint(tmp_path):
 def test_corrupt_caches_are_detected_and_rebuilt(tmp_path):
     """Bit rot in the data, a truncated or missing extra, a non-object manifest and a non-dict progress marker:
     each is a CacheError on open, and the next build rebuilds the cache instead of failing forever."""
-    from placejax.data.cache import _VERIFIED, CacheError
+    from placejax.data._cache_files import _VERIFIED, CacheError
 
     data = np.arange(40 * 3, dtype=np.float32).reshape(40, 3)
     calls = []
@@ -513,7 +513,7 @@ def test_a_full_disk_is_an_oserror_naming_the_cache_file(tmp_path, monkeypatch):
 def test_every_single_byte_change_of_a_manifest_is_a_cache_error_or_harmless(tmp_path):
     """Each byte of a cache's manifest.json replaced by another: opening it either works (a byte JSON ignores, such
     as spacing) or raises CacheError, never another exception (a renamed field used to end in KeyError)."""
-    from placejax.data.cache import _VERIFIED, CacheError
+    from placejax.data._cache_files import _VERIFIED, CacheError
 
     data = np.arange(12, dtype=np.float32).reshape(4, 3)
     c = build_array_cache(

@@ -181,7 +181,6 @@ def test_tracker_reproduces_the_runs_route_column(tracker_run, tmp_path):
     odometry)."""
     from experiments.cross_season.config import sections
     from placejax import stages
-    from placejax.data import moved_m
     from placejax.training import data_mesh
 
     cfg, workdir, results = tracker_run
@@ -199,7 +198,8 @@ def test_tracker_reproduces_the_runs_route_column(tracker_run, tmp_path):
     for t in sessions:
         if t.name == TRAIN:
             continue
-        moved, source = moved_m(c["data"], t.source, np.asarray(t.cached.utimes), clf.route.max_speed_mps)
+        utimes = np.asarray(t.cached.utimes)
+        moved, source = route.moved_from_session(c["data"], t.source, utimes, clf.route.max_speed_mps)
         assert source == "odometry"
         tracker = Tracker(clf)  # the classifier's settings: the run's temperature and filter
         steps = [tracker.step(im, float(d)) for im, d in zip(np.asarray(t.cached.images), moved, strict=True)]

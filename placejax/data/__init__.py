@@ -35,7 +35,7 @@ from placejax.data.grid import PlaceGrid
 from placejax.data.jitter import ViewJitter, jittered_copies, jittered_view
 from placejax.data.pipeline import Augment, FrameSource, eval_dataset, train_dataset
 from placejax.data.session import ArraySession, Session, session_identity, truncated
-from placejax.data.sources import SIMCAMPUS_RENDERS, DataConfig, GridConfig, moved_m, open_session, simcampus_render
+from placejax.data.sources import SIMCAMPUS_RENDERS, DataConfig, GridConfig, open_session, simcampus_render
 
 # Imported on first attribute access (PEP 562): SimCampus renders with JAX, which the rest of the data layer
 # does not need; nclt (and the others) are lazy too so that `python -m placejax.data.nclt` does not find its own
@@ -78,7 +78,6 @@ __all__ = [
     "images",
     "jittered_copies",
     "jittered_view",
-    "moved_m",
     "nclt",
     "open_array_cache",
     "open_session",

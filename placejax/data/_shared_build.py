@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from placejax import progress as _progress
-from placejax.data.cache import (
+from placejax.data._cache_files import (
     _DATA,
     _PROGRESS,
     _VERIFIED,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -229,6 +230,14 @@ def simcampus_main(argv: list[str] | None = None) -> int:
     for p in paths:
         print(f"{p}: {len(_folder.load_session(p))} frames")
     return 0
+
+
+def nclt_command(argv: list[str] | None = None) -> int:
+    """``python -m placejax.data.nclt export ROOT DIR [...]``: NCLT sessions as session folders (:func:`nclt_main`)."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] != ["export"]:
+        raise SystemExit("usage: python -m placejax.data.nclt export ROOT DIR [--dates ...] (see --help)")
+    return nclt_main(argv[1:])
 
 
 def nclt_main(argv: list[str] | None = None) -> int:

@@ -489,20 +489,8 @@ def load_session(
     )
 
 
-def _export_main(argv: list[str] | None = None) -> int:
-    """``python -m placejax.data.nclt export ROOT DIR [...]``: NCLT sessions as session folders
-    (``placejax.data.export``)."""
-    import sys
-
-    from placejax.data.export import nclt_main
-
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] != ["export"]:
-        raise SystemExit("usage: python -m placejax.data.nclt export ROOT DIR [--dates ...] (see --help)")
-    return nclt_main(argv[1:])
-
-
-if __name__ == "__main__":
+if __name__ == "__main__":  # a program: it may use the modules built on this one
     from placejax import cli
+    from placejax.data.export import nclt_command
 
-    raise SystemExit(cli.command(_export_main)())
+    raise SystemExit(cli.command(nclt_command)())

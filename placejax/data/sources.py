@@ -13,12 +13,10 @@ import dataclasses
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from placejax import config as _config
 from placejax.data.session import Session, truncated
 
-__all__ = ["SIMCAMPUS_RENDERS", "SOURCES", "DataConfig", "GridConfig", "moved_m", "open_session", "simcampus_render"]
+__all__ = ["SIMCAMPUS_RENDERS", "SOURCES", "DataConfig", "GridConfig", "open_session", "simcampus_render"]
 
 log = logging.getLogger(__name__)
 
@@ -180,32 +178,3 @@ def open_session(cfg: DataConfig, name: str, *, progress: bool = True) -> Sessio
     src = folder.load_session(Path(cfg.root) / name, name=name, stride=cfg.stride, max_frames=cfg.max_frames or None)
     log.info("%s", src.report)
     return src
-
-
-def moved_m(cfg: DataConfig, source: Session, utimes_us: np.ndarray, max_speed_mps: float) -> tuple[np.ndarray, str]:
-    """Metres travelled before each frame (``(N,)``, ``[0] = 0``) and where they come from.
-
-    ``"odometry"``: the session's own odometer (SimCampus's simulated wheel odometry, a session folder's
-    odometry file) or NCLT's ``odometry_mu_100hz.csv``; ``"timestamps"``: elapsed time × ``max_speed_mps``, an
-    upper bound (the route filter then needs ``FilterConfig(bounded=True)``).
-
-    Args:
-        cfg: the run's data settings.
-        source: the session as opened by :func:`open_session`.
-        utimes_us: int ``(N,)`` the frames' times, microseconds (the cached session's).
-        max_speed_mps: the speed bound used without odometry.
-    """
-    from placejax import route
-
-    n = len(utimes_us)
-    travelled = getattr(source, "travelled_m", None)
-    if travelled is not None:
-        return route.moved_from_travelled(np.asarray(travelled)[:n]), "odometry"
-    if cfg.source == "nclt" and cfg.nclt_root:
-        from placejax.data import nclt
-
-        path = Path(cfg.nclt_root) / "sensor_data" / source.name / "odometry_mu_100hz.csv"
-        if path.is_file():
-            odo = nclt.read_odometry(path)
-            return route.moved_from_travelled(nclt.travelled_at(odo, utimes_us)), "odometry"
-    return route.moved_from_timestamps(np.asarray(utimes_us), float(max_speed_mps)), "timestamps"

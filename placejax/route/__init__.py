@@ -16,7 +16,8 @@ Public surface:
     place_belief: beliefs → (belief over cells, unknown-state probability).
     initial_belief, num_states: the default prior and the state count.
     fit_temperature, calibrated_probabilities: temperature scaling on held-out frames.
-    moved_from_travelled, moved_from_timestamps: per-frame distances from an odometer or from time × speed.
+    moved_from_travelled, moved_from_timestamps: per-frame distances from an odometer or from time × speed;
+    moved_from_session: the same for a session of a run (its odometer, NCLT's odometry file, else time × speed).
     transition_matrix: the motion model's cell-to-cell matrix for one distance (for inspection and tests).
     FixedLagFilter: the streaming filter that also answers for the frame ``lag`` frames back (`smooth`'s answer).
 
@@ -53,7 +54,7 @@ from placejax.route._filter import (
     transition_matrix,
 )
 from placejax.route._lag import MAX_LAG, FixedLagFilter, smooth
-from placejax.route._odometry import moved_from_timestamps, moved_from_travelled
+from placejax.route._odometry import moved_from_session, moved_from_timestamps, moved_from_travelled
 from placejax.route._sequence import (
     EMBEDDINGS,
     MATCH_FIELDS,
@@ -89,6 +90,7 @@ __all__ = [
     "initial_belief",
     "match_forward",
     "match_reference",
+    "moved_from_session",
     "moved_from_timestamps",
     "moved_from_travelled",
     "num_states",

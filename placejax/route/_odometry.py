@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+from placejax.data import nclt
+from placejax.data.session import Session
+from placejax.data.sources import DataConfig
 
 MAX_TRAVELLED_M = 1e9
 """Largest odometer reading (metres, a million kilometres): anything beyond is not a robot's distance travelled."""
@@ -63,3 +69,30 @@ def moved_from_timestamps(utimes_us, max_speed_mps: float) -> np.ndarray:
     if (dt < 0).any():
         raise ValueError(f"utimes_us must be non-decreasing, first step back at frame {int(np.argmax(dt < 0))}")
     return dt * 1e-6 * v
+
+
+def moved_from_session(
+    cfg: DataConfig, source: Session, utimes_us: np.ndarray, max_speed_mps: float
+) -> tuple[np.ndarray, str]:
+    """Metres travelled before each frame (``(N,)``, ``[0] = 0``) and where they come from.
+
+    ``"odometry"``: the session's own odometer (SimCampus's simulated wheel odometry, a session folder's
+    odometry file) or NCLT's ``odometry_mu_100hz.csv``; ``"timestamps"``: elapsed time × ``max_speed_mps``, an
+    upper bound (the route filter then needs ``FilterConfig(bounded=True)``).
+
+    Args:
+        cfg: the run's data settings.
+        source: the session as opened by :func:`placejax.data.open_session`.
+        utimes_us: int ``(N,)`` the frames' times, microseconds (the cached session's).
+        max_speed_mps: the speed bound used without odometry.
+    """
+    n = len(utimes_us)
+    travelled = getattr(source, "travelled_m", None)
+    if travelled is not None:
+        return moved_from_travelled(np.asarray(travelled)[:n]), "odometry"
+    if cfg.source == "nclt" and cfg.nclt_root:
+        path = Path(cfg.nclt_root) / "sensor_data" / source.name / "odometry_mu_100hz.csv"
+        if path.is_file():
+            odo = nclt.read_odometry(path)
+            return moved_from_travelled(nclt.travelled_at(odo, utimes_us)), "odometry"
+    return moved_from_timestamps(np.asarray(utimes_us), float(max_speed_mps)), "timestamps"

@@ -24,7 +24,7 @@ import numpy as np
 
 from placejax import route
 from placejax.classify import unknown as _unknown
-from placejax.data import DataConfig, PlaceGrid, moved_m
+from placejax.data import DataConfig, PlaceGrid
 from placejax.evaluation import frame_gains, gain_intervals, mean_sd
 from placejax.stages import SeedRun, SessionData, Workspace, fused_embedding
 
@@ -80,9 +80,9 @@ def sequence_embedding(outputs: dict, train: str, test: str, embedding: str) -> 
 
 def session_moved(config: ml_collections.ConfigDict, t: SessionData) -> tuple[np.ndarray, str]:
     """Metres travelled before each frame of ``t`` (``(N,)``, ``[0] = 0``) and where they come from
-    (``placejax.data.moved_m``)."""
+    (``placejax.route.moved_from_session``)."""
     data = DataConfig(**config.data)
-    return moved_m(data, t.source, np.asarray(t.cached.utimes), float(config.route.max_speed_mps))
+    return route.moved_from_session(data, t.source, np.asarray(t.cached.utimes), float(config.route.max_speed_mps))
 
 
 def _blocks(gains: np.ndarray, block: int) -> np.ndarray:
