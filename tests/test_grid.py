@@ -1,6 +1,5 @@
 """PlaceGrid: fit over all sessions, row-major labels, edges, save/load."""
 
-import doctest
 import json
 
 import numpy as np
@@ -116,11 +115,6 @@ def test_bad_inputs_give_clear_errors(tmp_path):
     bad.write_text("{")
     with pytest.raises(ValueError, match=r"g\.json.*invalid"):
         PlaceGrid.load(bad)
-
-
-def test_doctest_examples():
-    failures, _ = doctest.testmod(grid_module, extraglobs={"np": np})
-    assert failures == 0
 
 
 @pytest.mark.parametrize("n", [2.5, True, np.True_, 0, -3, 50000, grid_module.MAX_N + 1, "10", None])

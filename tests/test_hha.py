@@ -205,7 +205,10 @@ def test_gravity_eigenvector_is_as_accurate_as_lapack(gap):
     ev[:, 1] = ev[:, 0] + np.abs(ev[:, 0]) * gap + (gap > 0)
     ev[:, 2] = np.maximum(ev[:, 2], ev[:, 1] + 10)
     mats = np.einsum("nij,nj,nkj->nik", q, ev, q)
-    got = np.asarray(jax.jit(jax.vmap(_encode._smallest_eigenvector))(jnp.asarray(mats, jnp.float32)), np.float64)
+    y = np.asarray(rng.normal(size=(500, 3)), np.float32)
+    y /= np.linalg.norm(y, axis=1, keepdims=True)
+    solve = jax.jit(jax.vmap(_encode._smallest_eigenvector))
+    got = np.asarray(solve(jnp.asarray(mats, jnp.float32), jnp.asarray(y)), np.float64)
     np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-6)
     if gap == 0.0:
         out_of_plane = np.abs(np.einsum("ni,ni->n", got, q[:, :, 2]))  # component along the largest's vector
@@ -219,6 +222,23 @@ def test_gravity_eigenvector_is_as_accurate_as_lapack(gap):
 
     assert error(got).max() <= max(2 * error(lapack32).max(), 1e-5)
     assert np.median(error(got)) <= max(np.median(error(lapack32)), 1e-6)
+
+
+def test_a_repeated_smallest_eigenvalue_keeps_the_estimate_nearest_the_current_one():
+    # Fronto-parallel walls only: A = diag(0, 0, k); down is any vector of the x–y plane, and the loop keeps the
+    # one nearest its current estimate (so that a wall seen head-on keeps the image's down axis).
+    a = jnp.diag(jnp.asarray([0.0, 0.0, 500.0]))
+    for y in ([0.0, 1.0, 0.0], [0.6, 0.8, 0.0], [0.48, 0.64, 0.6]):
+        y = jnp.asarray(y)
+        want = np.array([y[0], y[1], 0.0]) / np.linalg.norm([y[0], y[1]])
+        np.testing.assert_allclose(np.asarray(_encode._smallest_eigenvector(a, y)), want, atol=1e-6)
+    # Orthogonal to the eigenspace: one of its axes.
+    got = np.abs(np.asarray(_encode._smallest_eigenvector(a, jnp.asarray([0.0, 0.0, 1.0]))))
+    assert sorted(got.round(6).tolist()) == [0.0, 0.0, 1.0] and got[2] == 0
+    # A head-on wall at 2 m: gravity stays the image's down axis, so height grows downwards from the top row.
+    k = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
+    out = hha.encode_full(np.full((48, 64), 2.0), k)
+    np.testing.assert_allclose(np.asarray(out.gravity), [0.0, 1.0, 0.0], atol=1e-6)
 
 
 def test_gravity_stopping_at_its_fixed_point_is_the_full_loop():

@@ -643,16 +643,6 @@ def test_tracker_reports_a_broken_frame_as_unknown_never_as_a_place():
         tracker.step_probabilities(probs[0], -1.0)
 
 
-def test_doctest_examples():
-    import doctest
-
-    from placejax.route import _calibration, _filter, _odometry
-
-    for module in (route, _filter, _calibration, _odometry):
-        globs = {"np": np, "PlaceGrid": PlaceGrid, "FilterConfig": route.FilterConfig}
-        assert doctest.testmod(module, extraglobs=globs).failed == 0, module.__name__
-
-
 def test_an_odometer_beyond_a_million_kilometres_is_refused():
     """[-1e308, 1e308] is finite, but its difference overflows to inf: refused as no odometer reading."""
     with pytest.raises(ValueError, match="not an odometer reading"):

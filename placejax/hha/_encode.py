@@ -127,7 +127,7 @@ def _gravity_step(outer: jax.Array, y: jax.Array, theta_deg: float) -> jax.Array
     weight = jnp.where(c2 < sin2_t, 1.0, 0.0).astype(dtype) - jnp.where(c2 > cos2_t, 1.0, 0.0).astype(dtype)
     axx, axy, axz, ayy, ayz, azz = jnp.dot(outer, weight, precision=jax.lax.Precision.HIGHEST)
     a = jnp.stack([jnp.stack([axx, axy, axz]), jnp.stack([axy, ayy, ayz]), jnp.stack([axz, ayz, azz])])
-    new = _smallest_eigenvector(a)
+    new = _smallest_eigenvector(a, y)
     new = new * jnp.where(new @ y < 0, -1.0, 1.0)
     # Nothing selected: A = 0 has no preferred direction, so keep the current estimate. A = 0 means exactly
     # that, without a separate count: tr A = |W| − |F| (unit normals) would force |W| = |F| = k, and then
@@ -143,13 +143,15 @@ def _rotation_parts(p: int, q: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 _ROTATION_PARTS = {pq: _rotation_parts(*pq) for pq in ((0, 1), (0, 2), (1, 2))}
+_TIE_RTOL = 1e-5
 _JACOBI_SWEEPS = 4  # cyclic sweeps; quadratic convergence leaves a 3×3 diagonal to float32 rounding after ~4
 
 
-def _smallest_eigenvector(a: jax.Array) -> jax.Array:
+def _smallest_eigenvector(a: jax.Array, y: jax.Array) -> jax.Array:
     """Unit eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix: cyclic Jacobi rotations.
 
-    Backward stable like LAPACK's solver, and a fixed sequence of small array operations that XLA fuses into a
+    Backward stable like LAPACK's solver (a repeated smallest eigenvalue gets the vector of its eigenspace nearest
+    ``y``), and a fixed sequence of small array operations that XLA fuses into a
     few kernels per rotation, where a LAPACK call costs several kernels and a library call per iteration of
     the gravity loop. Rotations use the textbook update (Golub & Van Loan, Alg. 8.5.2); a zero off-diagonal
     entry leaves the matrix as it is.
@@ -169,7 +171,16 @@ def _smallest_eigenvector(a: jax.Array) -> jax.Array:
             m = rot.T @ m @ rot
             v = v @ rot
     d = jnp.diagonal(m)
-    return v[:, jnp.argmin(d)]
+    # Where the smallest eigenvalue is repeated (a scene of fronto-parallel walls: A ≈ diag(0, 0, k)), every unit
+    # vector of its eigenspace is an answer, and which one an eigensolver returns is decided by rounding; the one
+    # nearest the current estimate ``y`` keeps what the data do not contradict (and makes ``y`` itself a fixed
+    # point when it lies in that space). Repeated: equal to float32 precision of the sums (relative 1e-5).
+    tied = d <= jnp.min(d) + _TIE_RTOL * jnp.max(jnp.abs(d))
+    nearest = v @ jnp.where(tied, v.T @ y, 0.0)
+    length2 = nearest @ nearest
+    nearest = nearest * jax.lax.rsqrt(jnp.where(length2 > 0, length2, 1.0))
+    use_nearest = (jnp.sum(tied) > 1) & (length2 > 0)
+    return jnp.where(use_nearest, nearest, v[:, jnp.argmin(d)])
 
 
 def _gravity_iterate(outer: jax.Array) -> tuple[jax.Array, jax.Array]:

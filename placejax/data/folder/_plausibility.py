@@ -53,7 +53,7 @@ def trajectory_warnings(
         >>> line = np.stack([np.arange(50.0), np.zeros(50), np.full(50, 1.2)], -1)   # 1 m/s along x
         >>> level = np.broadcast_to(np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]]), (50, 3, 3))
         >>> [w[:40] for w in trajectory_warnings("a", t, line, level, "z")]
-        ['a: spans 49 m along x but 0 m along y (ra']
+        ['a: spans 49 m along x but 0 m along y (r']
     """
     out = []
     a, b = VERTICAL_AXES[vertical_axis]
