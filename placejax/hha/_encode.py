@@ -58,10 +58,11 @@ from placejax.hha._windows import (
     unit_normals,
 )
 
-ENCODER_VERSION = 3
+ENCODER_VERSION = 4
 """The encoder's version, part of every HHA cache key: bumped whenever its outputs may change, so that a cache of
 an older encoder is rebuilt, not reused (3: the gravity loop's eigenvector by Jacobi rotations instead of LAPACK,
-which can move a value on a .5 boundary by one level)."""
+which can move a value on a .5 boundary by one level; 4: a repeated smallest eigenvalue keeps the eigenvector
+nearest the current estimate)."""
 
 
 class HHAResult(NamedTuple):
