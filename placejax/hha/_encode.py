@@ -17,8 +17,6 @@ the gravity estimate, the channels and the batch loop.
 * ``encode`` (the HHA image only) compiles without the intermediates ``encode_full`` returns: the stacked
   normals, heights and angles are never written.
 * ``jnp.arccos`` (an ``atan2`` that does not vectorise) is replaced by a float32 polynomial of the same accuracy.
-* The gravity loop's 3×3 eigenvector comes from a fixed number of Jacobi rotations (scalar arithmetic inside
-  the loop, as accurate as LAPACK's float32 solver), not from a LAPACK call per iteration.
 
 Where the time goes, stage by stage, against the machine's memory bandwidth and arithmetic rate:
 ``python -m benchmarks.hha_roofline`` (``docs/hha.md``, "Speed").
@@ -58,11 +56,11 @@ from placejax.hha._windows import (
     unit_normals,
 )
 
-ENCODER_VERSION = 4
+ENCODER_VERSION = 3
 """The encoder's version, part of every HHA cache key: bumped whenever its outputs may change, so that a cache of
-an older encoder is rebuilt, not reused (3: the gravity loop's eigenvector by Jacobi rotations instead of LAPACK,
-which can move a value on a .5 boundary by one level; 4: a repeated smallest eigenvalue keeps the eigenvector
-nearest the current estimate)."""
+an older encoder is rebuilt, not reused (2: the per-image loop, one level apart from version 1 on about 7e-5 of the
+values; 3: a repeated smallest eigenvalue in the gravity loop keeps the estimate nearest the current one, which
+changes head-on walls and nothing in the default run's images)."""
 
 
 class HHAResult(NamedTuple):
@@ -136,52 +134,26 @@ def _gravity_step(outer: jax.Array, y: jax.Array, theta_deg: float) -> jax.Array
     return jnp.where(jnp.any(a != 0), new, y)
 
 
-def _rotation_parts(p: int, q: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Constant parts of the 3×3 Jacobi rotation in the plane (p, q): J = keep + c · diag + s · skew."""
-    e = np.eye(3, dtype=np.float32)
-    diag = np.outer(e[p], e[p]) + np.outer(e[q], e[q])
-    return e - diag, diag, np.outer(e[p], e[q]) - np.outer(e[q], e[p])
-
-
-_ROTATION_PARTS = {pq: _rotation_parts(*pq) for pq in ((0, 1), (0, 2), (1, 2))}
 _TIE_RTOL = 1e-5
-_JACOBI_SWEEPS = 4  # cyclic sweeps; quadratic convergence leaves a 3×3 diagonal to float32 rounding after ~4
+"""Eigenvalues within this fraction of the largest magnitude of the smallest count as one repeated eigenvalue: the
+float32 sums of the floor/wall matrix do not tell them apart."""
 
 
 def _smallest_eigenvector(a: jax.Array, y: jax.Array) -> jax.Array:
-    """Unit eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix: cyclic Jacobi rotations.
+    """Unit eigenvector of the smallest eigenvalue of the symmetric 3×3 ``a``; where that eigenvalue is repeated,
+    the vector of its eigenspace nearest the current estimate ``y``.
 
-    Backward stable like LAPACK's solver (a repeated smallest eigenvalue gets the vector of its eigenspace nearest
-    ``y``), and a fixed sequence of small array operations that XLA fuses into a
-    few kernels per rotation, where a LAPACK call costs several kernels and a library call per iteration of
-    the gravity loop. Rotations use the textbook update (Golub & Van Loan, Alg. 8.5.2); a zero off-diagonal
-    entry leaves the matrix as it is.
+    A scene of head-on walls gives A ≈ diag(0, 0, k): every direction of the image plane is an answer, and which
+    one an eigensolver returns is decided by rounding (float32 here, float64 in the reference: its answer for a
+    flat wall is the image's down axis, ours was its x axis). The nearest to ``y`` keeps what the data do not
+    contradict, and ``y`` itself is then a fixed point.
     """
-    m, v = a, jnp.eye(3, dtype=a.dtype)
-    for _ in range(_JACOBI_SWEEPS):
-        for p, q in ((0, 1), (0, 2), (1, 2)):
-            apq = m[p, q]
-            nonzero = apq != 0
-            theta = (m[q, q] - m[p, p]) / (2 * jnp.where(nonzero, apq, 1.0))
-            t = jnp.where(theta >= 0, 1.0, -1.0) / (jnp.abs(theta) + jnp.sqrt(theta * theta + 1))
-            t = jnp.where(nonzero, t, 0.0)
-            c = jax.lax.rsqrt(t * t + 1)
-            # J: the identity with [[c, s], [−s, c]] in rows and columns p, q; then m ← Jᵀ m J, v ← v J.
-            keep, diag, skew = _ROTATION_PARTS[(p, q)]
-            rot = keep + c * diag + (t * c) * skew
-            m = rot.T @ m @ rot
-            v = v @ rot
-    d = jnp.diagonal(m)
-    # Where the smallest eigenvalue is repeated (a scene of fronto-parallel walls: A ≈ diag(0, 0, k)), every unit
-    # vector of its eigenspace is an answer, and which one an eigensolver returns is decided by rounding; the one
-    # nearest the current estimate ``y`` keeps what the data do not contradict (and makes ``y`` itself a fixed
-    # point when it lies in that space). Repeated: equal to float32 precision of the sums (relative 1e-5).
-    tied = d <= jnp.min(d) + _TIE_RTOL * jnp.max(jnp.abs(d))
-    nearest = v @ jnp.where(tied, v.T @ y, 0.0)
+    w, vecs = jnp.linalg.eigh(a, symmetrize_input=False)  # a is symmetric by construction; w ascends
+    tied = w <= w[0] + _TIE_RTOL * jnp.max(jnp.abs(w))
+    nearest = vecs @ jnp.where(tied, vecs.T @ y, 0.0)
     length2 = nearest @ nearest
     nearest = nearest * jax.lax.rsqrt(jnp.where(length2 > 0, length2, 1.0))
-    use_nearest = (jnp.sum(tied) > 1) & (length2 > 0)
-    return jnp.where(use_nearest, nearest, v[:, jnp.argmin(d)])
+    return jnp.where((jnp.sum(tied) > 1) & (length2 > 0), nearest, vecs[:, 0])
 
 
 def _gravity_iterate(outer: jax.Array) -> tuple[jax.Array, jax.Array]:
