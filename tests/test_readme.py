@@ -320,3 +320,30 @@ def test_the_readmes_pool_figures_are_the_ablations_record():
     for p, q in zip(base["pairs"], rec["pairs"], strict=True):
         for m in ("ours", "rgb_net", "hha_net", "average"):
             assert p[f"{m}_per_seed"] == q[f"{m}_per_seed"], (p["train"], p["test"], m)
+
+
+def test_the_readmes_hha_rows_are_the_benchmarks_record():
+    """The HHA rows of the benchmark table, figure for figure, from the committed record of the run they quote."""
+    rec = json.loads((REPO / "docs" / "benchmarks" / "hha_speed.json").read_text())
+    rows = {(r["size"], r["impl"].startswith("numpy"), r["batch"]): r for r in rec["rows"]}
+    lines = [line for line in README.read_text().splitlines() if line.startswith("| HHA encoder")]
+    assert len(lines) == 2
+    small, large = lines
+    r = rows[("256x256", False, 32)]
+    numpy_small = rows[("256x256", True, 1)]
+    assert f"{r['ms_per_image']:.2f} ms/image ({r['images_per_s']:.0f} images/s)" in small
+    assert (
+        f"encoder {r['this_images_per_s']:,.0f} against the previous encoder's {r['baseline_images_per_s']:.0f}"
+        in small
+    )
+    assert f"{r['baseline_over_this']:.2f}×" in small and f"{r['speedup']:.0f}× slower" in small
+    assert numpy_small["impl"] == "numpy float64 (baseline)"
+    b8, b1 = rows[("480x640", False, 8)], rows[("480x640", False, 1)]
+    numpy_large = rows[("480x640", True, 1)]
+    assert f"{b8['ms_per_image']:.2f} / {b1['ms_per_image']:.1f} ms/image" in large
+    assert f"({b8['images_per_s']:.0f} / {b1['images_per_s']:.0f} images/s)" in large
+    assert f"encoder {b8['this_images_per_s']:.0f} / {b1['this_images_per_s']:.0f}" in large
+    assert f"previous encoder's {b8['baseline_images_per_s']:.0f} / {b1['baseline_images_per_s']:.0f}" in large
+    assert f"{b8['baseline_over_this']:.2f}× / {b1['baseline_over_this']:.2f}×" in large
+    assert f"{numpy_large['ms_per_image']:.0f} ms/image ({b8['speedup']:.0f}× / {b1['speedup']:.0f}× slower)" in large
+    assert all(r.get("max_level_diff_vs_baseline", 0) == 0 for r in rec["rows"])  # the previous encoder's outputs

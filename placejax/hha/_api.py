@@ -237,6 +237,8 @@ def _run(depth, k, raw, depth_range, full: bool):
     call. Traced inputs (a caller's ``jit``/``vmap``) and other backends keep one program.
     """
     b = depth.shape[0]
+    if b <= 1:
+        return _encode_batch(depth, k, raw, depth_range, full=full)
     traced = any(isinstance(x, jax.core.Tracer) for x in (depth, k, raw, depth_range) if x is not None)
     on_cpu = all(
         d.platform == "cpu" for x in (depth, k) if isinstance(x, jax.Array) and not traced for d in x.devices()
