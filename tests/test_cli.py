@@ -231,6 +231,11 @@ def _cases(t: Path) -> dict[str, tuple[list[str], dict[str, str], str]]:
             {},
             f"ENOENT: no such file or directory: {nope}",
         ),
+        "height_channel": (
+            ["-m", "experiments.height_channel", str(nope)],
+            {},
+            f"ENOENT: no such file or directory: {nope}",
+        ),
         "simcampus_sanity": (["-m", "experiments.simcampus_sanity", "--out", str(t / "s.json")], bogus, no_backend),
         "unseen_diagnose": (["-m", "experiments.unseen_diagnose", str(nope)], {}, f"{nope}/results.json not found"),
         "record": (

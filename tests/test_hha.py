@@ -101,6 +101,76 @@ def test_ground_and_wall_analytic(pitch, roll):
     np.testing.assert_array_equal(np.asarray(out.hha[..., 0]), np.rint(np.minimum(310.0 / np.maximum(depth, 1.0), 255)))
 
 
+def _ground_wall_and_sky(pitch=-10.0, roll=4.0):
+    """The ground-and-wall scene with a patch of the ground at 1000 m (a puddle mirroring the sky, or a depth
+    network's sky where it is not): its points lie far below the camera, where the reference's lowest-point rule
+    then puts the floor."""
+    depth, k, g_true, is_ground = ground_and_wall(96, 128, f=100.0, pitch_deg=pitch, roll_deg=roll, wall_distance_m=12)
+    sky = np.zeros_like(depth, bool)
+    sky[-5:, 20:26] = True
+    depth = depth.copy()
+    depth[sky] = 1000.0
+    return depth, k, g_true, is_ground, sky
+
+
+def test_height_rules_put_the_floor_on_the_ground_not_in_the_sky():
+    depth, k, _, is_ground, sky = _ground_wall_and_sky()
+    ground = is_ground & (box_sum((is_ground & ~sky).astype(float), 10) == 21 * 21)  # away from crease and sky
+    lowest = hha.encode_full(depth, k)
+    near = hha.encode_full(depth, k, height=hha.HeightRule(floor="near", near_m=60.0))
+    camera = hha.encode_full(depth, k, height=hha.HeightRule(floor="camera", camera_height_m=1.3))
+    # The reference's floor is wherever the sky's lowest point falls; the other two put the ground near 0.
+    g = np.asarray(lowest.gravity, np.float64)
+    assert np.asarray(lowest.height_cm)[ground].min() > 1000  # the reference's floor: 10 m and more below the ground
+    for out in (near, camera):
+        np.testing.assert_array_equal(np.asarray(out.gravity), g)  # the rule changes heights only
+        h = np.asarray(out.height_cm)[ground]
+        assert np.abs(h).max() < 30, np.abs(h).max()  # 0 up to the gravity estimate's error over a few metres
+        np.testing.assert_array_equal(np.asarray(out.hha)[..., [0, 2]], np.asarray(lowest.hha)[..., [0, 2]])
+    # A floor rule cannot put the floor above the camera's 0.9 m: "near" keeps the reference's fallback.
+    flat = np.full((48, 64), 3.0)
+    kk = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
+    a = hha.encode_full(flat, kk, height=hha.HeightRule(floor="near", near_m=50.0))
+    np.testing.assert_array_equal(np.asarray(a.hha), np.asarray(hha.encode_full(flat, kk).hha))
+
+
+def test_centimetres_per_level_scale_the_height_channel_only():
+    depth, k, *_ = _ground_wall_and_sky()
+    rule = hha.HeightRule(floor="camera", camera_height_m=1.3, cm_per_level=4.0)
+    out = hha.encode_full(depth, k, height=rule)
+    valid = np.asarray(out.valid)
+    want = np.clip(np.rint(np.asarray(out.height_cm) / 4.0), 0, 255)
+    got = np.asarray(out.hha[..., 1], float)
+    assert np.abs(got - want)[valid].max() <= 1 and (got != want)[valid].mean() < 1e-3
+    one = hha.encode_full(depth, k, height=hha.HeightRule(floor="camera", camera_height_m=1.3))
+    np.testing.assert_array_equal(np.asarray(out.height_cm), np.asarray(one.height_cm))
+    assert (np.asarray(one.hha[..., 1]) == 255).mean() > (got == 255).mean()
+    np.testing.assert_array_equal(np.asarray(hha.encode(depth, k, height=rule)), np.asarray(out.hha))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"floor": "sky"}, "floor must be"),
+        ({"floor": "near"}, "near_m must be a positive number"),
+        ({"floor": "near", "near_m": -1.0}, "near_m must be a positive number"),
+        ({"floor": "camera", "camera_height_m": float("inf")}, "camera_height_m must be a positive number"),
+        ({"near_m": 50.0}, "near_m applies only to floor='near'"),
+        ({"cm_per_level": 0}, "cm_per_level must be a positive number"),
+        ({"cm_per_level": True}, "cm_per_level must be a positive number"),
+    ],
+)
+def test_a_bad_height_rule_is_refused_by_field(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        hha.HeightRule(**kwargs)
+
+
+def test_height_must_be_a_height_rule():
+    k = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    with pytest.raises(TypeError, match="HeightRule"):
+        hha.encode(np.ones((2, 24, 32)), k, height="camera")
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # Invariants.
 

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax.hha._constants import MAX_DEPTH_M, MIN_DEPTH_M
-from placejax.hha._encode import HHAResult, _encode_batch
+from placejax.hha._encode import REFERENCE_HEIGHT, HeightRule, HHAResult, _encode_batch
 
 
 def _is_concrete(x) -> bool:
@@ -227,7 +227,7 @@ def _pool(n: int) -> ThreadPoolExecutor:
         return pool
 
 
-def _run(depth, k, raw, depth_range, full: bool):
+def _run(depth, k, raw, depth_range, full: bool, height: HeightRule = REFERENCE_HEIGHT):
     """``_encode_batch`` on the whole batch, or, for concrete CPU inputs, on contiguous parts of it, one per core,
     each from its own thread.
 
@@ -237,20 +237,23 @@ def _run(depth, k, raw, depth_range, full: bool):
     call. Traced inputs (a caller's ``jit``/``vmap``) and other backends keep one program.
     """
     b = depth.shape[0]
+    if not isinstance(height, HeightRule):
+        raise TypeError(f"height must be a placejax.hha.HeightRule, got {type(height).__name__}")
     if b <= 1:
-        return _encode_batch(depth, k, raw, depth_range, full=full)
+        return _encode_batch(depth, k, raw, depth_range, full=full, height_rule=height)
     traced = any(isinstance(x, jax.core.Tracer) for x in (depth, k, raw, depth_range) if x is not None)
     on_cpu = all(
         d.platform == "cpu" for x in (depth, k) if isinstance(x, jax.Array) and not traced for d in x.devices()
     )
     n = 1 if traced or not on_cpu or jax.default_backend() != "cpu" else min(b, workers())
     if n <= 1:
-        return _encode_batch(depth, k, raw, depth_range, full=full)
+        return _encode_batch(depth, k, raw, depth_range, full=full, height_rule=height)
     bounds = np.linspace(0, b, n + 1).round().astype(int)
 
     def part(i):
         a, z = bounds[i], bounds[i + 1]
-        out = _encode_batch(depth[a:z], k[a:z], None if raw is None else raw[a:z], depth_range, full=full)
+        part_raw = None if raw is None else raw[a:z]
+        out = _encode_batch(depth[a:z], k[a:z], part_raw, depth_range, full=full, height_rule=height)
         return jax.block_until_ready(out)  # the work runs on this thread, beside the other parts
 
     outs = list(_pool(n).map(part, range(n)))
@@ -266,6 +269,7 @@ def encode_full(
     min_depth_m: float = MIN_DEPTH_M,
     max_depth_m: float = MAX_DEPTH_M,
     dtype=jnp.float32,
+    height: HeightRule = REFERENCE_HEIGHT,
 ) -> HHAResult:
     """HHA image plus its intermediates (normals, gravity, height, angle); see :class:`HHAResult`.
 
@@ -274,7 +278,7 @@ def encode_full(
     depth, k, raw, depth_range, squeeze = _prepare(
         depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, max_depth_m
     )
-    out = _run(depth, k, raw, depth_range, full=True)
+    out = _run(depth, k, raw, depth_range, full=True, height=height)
     if squeeze:
         out = jax.tree_util.tree_map(lambda x: x[0], out)
     return out
@@ -289,6 +293,7 @@ def encode(
     min_depth_m: float = MIN_DEPTH_M,
     max_depth_m: float = MAX_DEPTH_M,
     dtype=jnp.float32,
+    height: HeightRule = REFERENCE_HEIGHT,
 ) -> jax.Array:
     """HHA encoding (Gupta et al., ECCV 2014) of metric depth images, as the original implementation computes it.
 
@@ -322,6 +327,8 @@ def encode(
         dtype: compute dtype, float32 or float64 (float16/bfloat16 are refused: ``TypeError``); float32
             reproduces the reference (the normal fits are centred for that reason). Concrete integer depth must
             convert to it exactly (at most 2**24 units for float32), otherwise ``ValueError``.
+        height: the height channel's floor and centimetres per level (:class:`HeightRule`); the default is the
+            reference's (the lowest point as the floor, 1 cm per level).
 
     Returns:
         ``uint8 (..., H, W, 3)`` channels in the order (disparity, height, angle): 31000 / max(Z_cm, 100),
@@ -347,7 +354,7 @@ def encode(
     depth, k, raw, depth_range, squeeze = _prepare(
         depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, max_depth_m
     )
-    out = _run(depth, k, raw, depth_range, full=False)  # the intermediates are never computed
+    out = _run(depth, k, raw, depth_range, full=False, height=height)  # the intermediates are never computed
     return out[0] if squeeze else out
 
 
@@ -360,6 +367,7 @@ def encode_stream(
     min_depth_m: float = MIN_DEPTH_M,
     max_depth_m: float = MAX_DEPTH_M,
     dtype=jnp.float32,
+    height: HeightRule = REFERENCE_HEIGHT,
 ) -> Iterator[np.ndarray]:
     """Encodes a stream of ``(H, W)`` depth images in fixed-size batches, in bounded memory.
 
@@ -373,7 +381,7 @@ def encode_stream(
             (``raw_depth`` may be ``None``). Units and dtype rules as in :func:`encode`.
         intrinsics: ``(3, 3)`` finite matrix with positive focal lengths, shared by all images (0-based).
         batch_size: images per compiled call, a positive int.
-        depth_scale, min_depth_m, max_depth_m, dtype: as in :func:`encode`.
+        depth_scale, min_depth_m, max_depth_m, dtype, height: as in :func:`encode`.
 
     Yields:
         ``uint8 (H, W, 3)`` HHA images, one per input, in order.
@@ -387,7 +395,9 @@ def encode_stream(
         raise ValueError(f"intrinsics must have shape (3, 3) for encode_stream, got shape {np.shape(intrinsics)}")
     _check_intrinsics(np.asarray(intrinsics, np.float64), dtype)  # as given, before any cast to float32
     k = np.asarray(_as_intrinsics(intrinsics))
-    kwargs = dict(depth_scale=depth_scale, min_depth_m=min_depth_m, max_depth_m=max_depth_m, dtype=dtype)
+    if not isinstance(height, HeightRule):
+        raise TypeError(f"height must be a placejax.hha.HeightRule, got {type(height).__name__}")
+    kwargs = dict(depth_scale=depth_scale, min_depth_m=min_depth_m, max_depth_m=max_depth_m, dtype=dtype, height=height)
     return _stream(iter(depths), k, int(batch_size), kwargs)
 
 

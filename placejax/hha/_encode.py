@@ -24,7 +24,9 @@ Where the time goes, stage by stage, against the machine's memory bandwidth and 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import math
 import sys
 from typing import NamedTuple
 
@@ -86,6 +88,47 @@ class HHAResult(NamedTuple):
     height_cm: jax.Array
     angle_deg: jax.Array
     valid: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class HeightRule:
+    """Where the height channel's floor is and how many centimetres one level is.
+
+    The reference (the default) takes the lowest valid point as the floor (1.3 m below the camera when that point is
+    less than 0.9 m below it) and one level per centimetre, capped at 255. Outdoors that floor is often no floor:
+    sky or far points a degree or two off the estimated gravity lie tens of metres below the camera, and most
+    heights then sit at the cap.
+
+    Attributes:
+        floor: ``"lowest"`` (the reference), ``"near"`` (the lowest valid point nearer than ``near_m``, with the
+            reference's fallback) or ``"camera"`` (``camera_height_m`` below the camera: the height prior of a robot
+            whose camera height is known).
+        near_m: the farthest depth (metres) a floor point may have, for ``floor="near"``.
+        camera_height_m: the camera's height above the floor (metres), for ``floor="camera"``.
+        cm_per_level: centimetres per level of the height channel (1 in the reference; 4 spans 10.2 m).
+    """
+
+    floor: str = "lowest"
+    near_m: float | None = None
+    camera_height_m: float | None = None
+    cm_per_level: float = 1.0
+
+    def __post_init__(self):
+        if self.floor not in ("lowest", "near", "camera"):
+            raise ValueError(f"HeightRule.floor must be 'lowest', 'near' or 'camera', got {self.floor!r}")
+        for name, needed in (("near_m", self.floor == "near"), ("camera_height_m", self.floor == "camera")):
+            value = getattr(self, name)
+            if needed and (value is None or isinstance(value, bool) or not 0 < float(value) < math.inf):
+                raise ValueError(f"HeightRule.{name} must be a positive number for floor={self.floor!r}, got {value!r}")
+            if not needed and value is not None:
+                raise ValueError(f"HeightRule.{name} applies only to floor={name.split('_')[0]!r}, got {value!r}")
+        cm = self.cm_per_level
+        if isinstance(cm, bool) or not isinstance(cm, int | float) or not 0 < float(cm) < math.inf:
+            raise ValueError(f"HeightRule.cm_per_level must be a positive number, got {cm!r}")
+
+
+REFERENCE_HEIGHT = HeightRule()
+"""The reference's height channel: the lowest point as the floor, 1 cm per level."""
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -256,7 +299,7 @@ def _planes_masked(fit_mask, camera, token):
         return _materialise(((x7, inverse_norm(x7, regular7)), (x21, inverse_norm(x21, regular21))), token)
 
 
-def _finish_one(valid, camera, x7, inv7, g, full: bool):
+def _finish_one(valid, camera, x7, inv7, g, full: bool, height_rule: HeightRule = REFERENCE_HEIGHT):
     """One image's height, angle and quantised channels from its 7×7 planes and its gravity vector: the HHA
     channels packed as ``uint32 (H, W)`` (and, if ``full``, the normals and the float channels)."""
     a_c, b_c, z, _, _ = camera
@@ -267,9 +310,14 @@ def _finish_one(valid, camera, x7, inv7, g, full: bool):
     rotate = jnp.arccos(jnp.clip(g[1], -1.0, 1.0)) > np.deg2rad(ROTATION_SKIP_DEG)
     up = jnp.where(rotate, g, jnp.array([0.0, 1.0, 0.0], dtype))  # (Rᵀp)_y = (R y0)·p = g·p, R y0 = g (Rodrigues)
     height = -z * (a_c * up[0] + b_c * up[1] + up[2])
-    y_min = jnp.min(jnp.where(valid, height, jnp.inf))
-    y_min = jnp.where(y_min > FLOOR_RULE_CM, FLOOR_FALLBACK_CM, y_min)
+    if height_rule.floor == "camera":
+        y_min = jnp.asarray(-100.0 * height_rule.camera_height_m, dtype)
+    else:
+        candidates = valid if height_rule.floor == "lowest" else valid & (z <= 100.0 * height_rule.near_m)
+        y_min = jnp.min(jnp.where(candidates, height, jnp.inf))
+        y_min = jnp.where(y_min > FLOOR_RULE_CM, FLOOR_FALLBACK_CM, y_min)
     height = height - y_min
+    levels = height if height_rule.cm_per_level == 1 else height / np.asarray(height_rule.cm_per_level, dtype)
 
     cos_angle = jnp.clip(nx * g[0] + ny * g[1] + nz * g[2], -1.0, 1.0)
     angle = jnp.where(ok_angle, jnp.degrees(_arccos(cos_angle)), ANGLE_NAN_DEG)
@@ -280,13 +328,13 @@ def _finish_one(valid, camera, x7, inv7, g, full: bool):
 
     # The three channels packed into one uint32 per pixel (bytes 0, 1, 2): one kernel writes them, and the
     # batch's (B, H, W, 3) array is then a byte view of it (_channels_last).
-    packed = quantise(disparity) | (quantise(height) << 8) | (quantise(angle + ANGLE_OFFSET) << 16)
+    packed = quantise(disparity) | (quantise(levels) << 8) | (quantise(angle + ANGLE_OFFSET) << 16)
     if not full:
         return packed
     return packed, (nx, ny, nz), ok_angle, g, jnp.where(valid, height, 0.0), angle, valid
 
 
-def _encode_one(depth_m, raw_depth_m, intrinsics, depth_range, token, full: bool):
+def _encode_one(depth_m, raw_depth_m, intrinsics, depth_range, token, full: bool, height_rule: HeightRule):
     """One ``(H, W)`` image, unbatched: a ``lax.cond`` picks the dense fits when every pixel is usable (``cond``
     runs one branch; under a caller's ``vmap`` it becomes a select of both, each image still getting its own
     branch's result)."""
@@ -295,19 +343,22 @@ def _encode_one(depth_m, raw_depth_m, intrinsics, depth_range, token, full: bool
     (x7, inv7), (x21, inv21) = jax.lax.cond(jnp.all(fit_mask), _planes_dense, _planes_masked, fit_mask, camera, token)
     g = _gravity(x21, inv21, token)
     with jax.named_scope("finish"):
-        return _finish_one(valid, camera, x7, inv7, g, full)
+        return _finish_one(valid, camera, x7, inv7, g, full, height_rule)
 
 
-@functools.partial(jax.jit, static_argnames="full")
-def _encode_batch(depth_m, intrinsics, raw_depth_m, depth_range, full: bool = True):
+@functools.partial(jax.jit, static_argnames=("full", "height_rule"))
+def _encode_batch(
+    depth_m, intrinsics, raw_depth_m, depth_range, full: bool = True, height_rule: HeightRule = REFERENCE_HEIGHT
+):
     """``depth_m (B, H, W)`` metres, ``intrinsics (B, 3, 3)``, ``raw_depth_m (B, H, W)`` metres or ``None``,
-    ``depth_range (2,)``: the inclusive valid depth range [min, max] in metres.
+    ``depth_range (2,)``: the inclusive valid depth range [min, max] in metres; ``height_rule``: the height channel's
+    floor and scale (:class:`HeightRule`).
 
     Returns the :class:`HHAResult`, or with ``full=False`` only its ``uint8 (B, H, W, 3)`` HHA images (then
     nothing else is computed into memory).
     """
     token = jnp.sum(depth_m.reshape(-1)[:1])  # any unbatched runtime scalar (see _materialise); 0 if empty
-    fn = functools.partial(_encode_one, depth_range=depth_range, token=token, full=full)
+    fn = functools.partial(_encode_one, depth_range=depth_range, token=token, full=full, height_rule=height_rule)
     out = jax.lax.map(lambda a: fn(*a), (depth_m, raw_depth_m, intrinsics))
     with jax.named_scope("channels_last"):
         if not full:
