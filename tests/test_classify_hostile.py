@@ -28,7 +28,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from placejax import hha
-from placejax.classify import ArtefactError, PlaceClassifier
+from placejax.classify import ArtefactError, PlaceClassifier, stage_hha
 from placejax.classify import _images as images
 from placejax.data import PlaceGrid
 from placejax.models import VGG16, FusionMLP, MidasSmall
@@ -265,7 +265,7 @@ def crafted_images(d: Path) -> dict[str, tuple[Path, str]]:
 
 _RUNNER = r"""
 import contextlib, io, json, resource, sys
-from placejax.classify import ArtefactError, PlaceClassifier
+from placejax.classify import ArtefactError, PlaceClassifier, stage_hha
 from placejax.classify.__main__ import main
 
 def peak():
@@ -572,7 +572,7 @@ import jax
 import numpy as np
 from hypothesis import HealthCheck, example, given, settings, strategies as st
 
-from placejax.classify import ArtefactError, PlaceClassifier
+from placejax.classify import ArtefactError, PlaceClassifier, stage_hha
 
 valid, scratch, n = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
 ref = PlaceClassifier.load(valid)
@@ -784,3 +784,32 @@ def test_a_missing_jax_platform_is_one_line_naming_the_variable(tiny, tmp_path):
         assert done.returncode == 2 and len(lines) == 1, done.stderr[-2000:]
         assert lines[0].startswith("error: JAX_PLATFORMS='cuda': JAX found no such platform") and "cuda12" in lines[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_a_height_rule_in_the_manifest_reaches_the_hha_stage_and_a_bad_one_is_refused_by_name(tiny, tmp_path):
+    rule = {"floor": "camera", "near_m": None, "camera_height_m": 1.35, "cm_per_level": 4.0}
+
+    def with_rule(value):
+        def edit(mf):
+            mf["depth"]["hha_height"] = value
+            return mf
+
+        return edit
+
+    good = PlaceClassifier.load(with_manifest(tiny, tmp_path / "rule.placejax", with_rule(rule)))
+    assert good.spec.height_rule == hha.HeightRule(floor="camera", camera_height_m=1.35, cm_per_level=4.0)
+    depth = np.full((1, 32, 32), 3.0, np.float32)
+    k = np.asarray(good.spec.intrinsics, np.float32)
+    want = hha.encode(depth, k, height=hha.HeightRule(floor="camera", camera_height_m=1.35, cm_per_level=4.0))
+    np.testing.assert_array_equal(np.asarray(stage_hha(good.spec, depth)), np.asarray(want))
+    assert not np.array_equal(np.asarray(want), np.asarray(hha.encode(depth, k)))
+    assert PlaceClassifier.load(tiny).spec.height_rule == hha.REFERENCE_HEIGHT  # none recorded: the reference's
+    for value, expect in (
+        ({**rule, "floor": "sky"}, r"'depth.hha_height' is not a height rule: HeightRule.floor must be"),
+        ({**rule, "camera_height_m": None}, r"camera_height_m must be a positive number"),
+        ({**rule, "cm_per_level": "4"}, r"'depth.hha_height.cm_per_level' is a JSON string"),
+        ({**rule, "tilt": 1}, r"'depth.hha_height' has unknown entries \['tilt'\]"),
+        ([1.35], r"'depth.hha_height' is a JSON list, expected an object"),
+    ):
+        with pytest.raises(ArtefactError, match=expect):
+            PlaceClassifier.load(with_manifest(tiny, tmp_path / "bad.placejax", with_rule(value)))

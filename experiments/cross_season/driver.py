@@ -213,7 +213,8 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
     with story.step("depth and HHA", lambda: f"depth source {source.name}"):
         with ws.timed("depth"):
             source = depth_source(c["depth"], progress=ws.progress)
-        stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, source, c["depth"].batch_size))
+        height = c["depth"].height_rule()
+        stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, source, c["depth"].batch_size, height))
     _release_memory()
     # Every net and MLP is trained once per seed (seed, seed + 1, ...); the table reports the mean over seeds.
     modalities = ("rgb", "hha", "depth1") if c["ablations"].depth1 else ("rgb", "hha")
@@ -243,7 +244,7 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
         # from their checkpoints; the HHA nets and MLPs are new).
         with story.step("rendered depth", lambda: "HHA-Net and the fusion on HHA of rendered depth"):
             true_source = depth_source(DepthSourceConfig(source="true"))
-            caches = stages.depth_and_hha(ws, sessions, true_source, c["depth"].batch_size)
+            caches = stages.depth_and_hha(ws, sessions, true_source, c["depth"].batch_size, height)
             rendered = [dataclasses.replace(s, depth=d, hha=h) for s, (d, h) in zip(sessions, caches, strict=True)]
             rendered_runs = [train_seed(rendered, seed, ("rgb", "hha")) for seed in seeds]
         _release_memory()

@@ -22,6 +22,7 @@ from placejax.classify import run_layout, unknown
 from placejax.classify._forward import _plain
 from placejax.data import PlaceGrid
 from placejax.depth import SOURCE_NAMES, DepthSource, DepthSourceConfig, depth_source
+from placejax.hha import REFERENCE_HEIGHT
 
 
 def restore_params(ckdir: Path) -> dict:
@@ -58,6 +59,9 @@ def run_meta_and_params(
     cfg = files.config
     source = run_depth_source(files)
     depth_vars, depth_meta = source.variables, source.classifier
+    height = _run_depth_config(files).height_rule()
+    if height != REFERENCE_HEIGHT:
+        depth_meta = {**depth_meta, "hha_height": dataclasses.asdict(height)}
     params = {
         "depth": jax.tree_util.tree_map(np.asarray, dict(depth_vars)),
         "rgb": restore(files.rgb_checkpoint),
@@ -136,6 +140,13 @@ def sequence_drive(training: dict | None, cfg: dict[str, Any]) -> tuple[route.Ma
 _DEPTH_BEFORE_SETTING = {"far_as_sky_m": 0.0, "flip_average": False, "shift_px": ()}
 
 
+def _run_depth_config(files: run_layout.RunFiles) -> DepthSourceConfig:
+    """The run's ``depth`` section as the library's config (settings it predates at the values it ran with)."""
+    names = {f.name for f in dataclasses.fields(DepthSourceConfig)}
+    section = {k: v for k, v in files.config["depth"].items() if k in names}
+    return DepthSourceConfig(**{**_DEPTH_BEFORE_SETTING, **section})
+
+
 def run_depth_source(files: run_layout.RunFiles) -> DepthSource:
     """The depth source a finished run's depth stage used, rebuilt from its config section ``depth`` through
     ``placejax.depth.depth_source`` (never training anything), and checked against what the run recorded.
@@ -146,8 +157,7 @@ def run_depth_source(files: run_layout.RunFiles) -> DepthSource:
         FileNotFoundError: a trained network that is neither shipped nor in its cache folder any more.
     """
     d = files.depth
-    names = {f.name for f in dataclasses.fields(DepthSourceConfig)}
-    section = {**_DEPTH_BEFORE_SETTING, **{k: v for k, v in files.config["depth"].items() if k in names}}
+    section = dataclasses.asdict(_run_depth_config(files))
     origin = d.get("classifier", {}).get("source", d)  # the index's record of where the weights came from
     if "dir" in origin:  # a network trained into a cache: the root it was trained under
         section["trained_cache"] = str(Path(origin["dir"]).parent.parent)

@@ -55,6 +55,8 @@ class ClassifierSpec:
         shifts: metric networks: and of the image shifted sideways by ±k pixels for each k.
         dav2_short_side: Depth Anything V2: the input's short side before rounding to multiples of 14, pixels
             (``depth_net_size`` is ``dav2_input_size(*image_size, dav2_short_side)``; 0 for other networks).
+        height_rule: the HHA height channel's floor and centimetres per level (the manifest's
+            ``depth.hha_height``; the reference's where it has none).
     """
 
     image_size: tuple[int, int]
@@ -73,6 +75,7 @@ class ClassifierSpec:
     flip_average: bool = False  # metric networks: mean log depth of the image and of its mirror image
     shifts: tuple[int, ...] = ()  # metric networks: and of the image shifted sideways by ±k px for each k
     dav2_short_side: int = 0  # Depth Anything V2: input short side before rounding to multiples of 14 (0: other)
+    height_rule: _hha.HeightRule = _hha.REFERENCE_HEIGHT  # the HHA height channel's floor and scale
 
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> ClassifierSpec:
@@ -113,6 +116,7 @@ class ClassifierSpec:
             flip_average=bool(d.get("flip_average", False)),
             shifts=tuple(int(k) for k in d.get("shifts", ())),
             dav2_short_side=short_side,
+            height_rule=_hha.HeightRule(**d["hha_height"]) if "hha_height" in d else _hha.REFERENCE_HEIGHT,
         )
 
 
@@ -148,8 +152,9 @@ def stage_depth(spec: ClassifierSpec, depth_vars: Any, rgb: jax.Array) -> jax.Ar
 
 
 def stage_hha(spec: ClassifierSpec, depth_m: jax.Array) -> jax.Array:
-    """Metric depth ``(N, H, W)`` → uint8 HHA ``(N, H, W, 3)`` with the training session's intrinsics."""
-    return _hha.encode(depth_m, np.asarray(spec.intrinsics, np.float32))
+    """Metric depth ``(N, H, W)`` → uint8 HHA ``(N, H, W, 3)`` with the training session's intrinsics and the run's
+    height rule."""
+    return _hha.encode(depth_m, np.asarray(spec.intrinsics, np.float32), height=spec.height_rule)
 
 
 def stage_nets(spec: ClassifierSpec, params: dict, rgb: jax.Array, hha: jax.Array) -> dict[str, jax.Array]:

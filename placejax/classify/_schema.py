@@ -56,7 +56,8 @@ _TOP = {
 }
 _OPTIONAL_TOP = {"versions", "visited_classes", "route", "sequence", "config", "source"}
 _DEPTH_REQUIRED = {"kind", "features", "encoder_width", "size", "near_m", "far_m"}
-_DEPTH_OPTIONAL = {"metric", "far_as_sky_m", "flip_average", "shifts", "source"}
+_DEPTH_OPTIONAL = {"metric", "far_as_sky_m", "flip_average", "shifts", "source", "hha_height"}
+_HEIGHT_OPTIONAL = {"floor", "near_m", "camera_height_m", "cm_per_level"}
 _DAV2_REQUIRED = {
     "kind",
     "embed_dim",
@@ -242,11 +243,29 @@ def _check_near_far(c: _Checker, d: dict) -> None:
         c.fail("depth.far_m", f"is {far}, not beyond depth.near_m = {near}")
 
 
+def _check_height(c: _Checker, d: dict) -> None:
+    """``depth.hha_height``, where present: a ``placejax.hha.HeightRule``'s fields, checked by the rule itself."""
+    if "hha_height" not in d:
+        return
+    from placejax.hha import HeightRule
+
+    rule = c.obj(d["hha_height"], "depth.hha_height", set(), _HEIGHT_OPTIONAL)
+    for key, value in rule.items():
+        if key == "floor" and type(value) is not str:
+            c.fail("depth.hha_height.floor", f"is a JSON {_json_type(value)}, expected a string")
+        if key != "floor" and value is not None and type(value) not in (int, float):
+            c.fail(f"depth.hha_height.{key}", f"is a JSON {_json_type(value)}, expected a number or null")
+    try:
+        HeightRule(**rule)
+    except ValueError as e:
+        c.fail("depth.hha_height", f"is not a height rule: {e}")
+
+
 def _check_dav2(c: _Checker, d: dict, image_size: tuple[int, int]) -> None:
     """``depth`` of kind ``"depth_anything_v2"``: the architecture, head, input short side and the mapping."""
     from placejax.models import DAV2_PATCH, dav2_input_size
 
-    c.obj(d, "depth", _DAV2_REQUIRED, {"source"})
+    c.obj(d, "depth", _DAV2_REQUIRED, {"source", "hha_height"})
     dim = c.integer(d["embed_dim"], "depth.embed_dim", 1, MAX_DAV2_EMBED)
     blocks = c.integer(d["depth"], "depth.depth", 1, MAX_DAV2_BLOCKS)
     heads = c.integer(d["num_heads"], "depth.num_heads", 1, MAX_DAV2_HEADS)
@@ -268,6 +287,7 @@ def _check_dav2(c: _Checker, d: dict, image_size: tuple[int, int]) -> None:
     _check_near_far(c, d)
     if "source" in d and type(d["source"]) is not dict:
         c.fail("depth.source", f"is a JSON {_json_type(d['source'])}, expected an object")
+    _check_height(c, d)
     net = dav2_input_size(*image_size, short)
     if max(net) > MAX_DEPTH_NET_SIDE:
         c.fail(
@@ -298,6 +318,7 @@ def _check_depth(c: _Checker, d_raw: Any, image_size: tuple[int, int]) -> None:
             c.integer(s, f"depth.shifts[{i}]", -MAX_SHIFT_PX, MAX_SHIFT_PX)
     if "source" in d and type(d["source"]) is not dict:
         c.fail("depth.source", f"is a JSON {_json_type(d['source'])}, expected an object")
+    _check_height(c, d)
     try:
         network_size(image_size, size, square=d["kind"] == "trained")
     except ValueError as e:

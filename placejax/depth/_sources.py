@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from placejax import config as _config
+from placejax.hha import HeightRule
 
 __all__ = ["SOURCE_NAMES", "DepthSource", "DepthSourceConfig", "depth_source", "register_source"]
 
@@ -68,15 +69,24 @@ class DepthSourceConfig:
         (), "metric depth nets: also average over the image shifted sideways by ±k px, each k (() = off)"
     )
     batch_size: int = _config.setting(64, "images per depth-network / HHA call")
+    hha_floor: str = _config.setting(
+        "lowest",
+        "HHA height channel's floor: 'lowest' (the lowest point, the reference), 'near' (the lowest point nearer "
+        "than hha_floor_m) or 'camera' (hha_floor_m below the camera)",
+    )
+    hha_floor_m: float = _config.setting(
+        0.0, "metres: the farthest floor point (hha_floor='near') or the camera's height (hha_floor='camera'); 0 else"
+    )
+    hha_cm_per_level: float = _config.setting(1.0, "HHA height channel: centimetres per level (1 = the reference)")
 
     def __post_init__(self):
         object.__setattr__(self, "shift_px", tuple(self.shift_px))
         _config.check(
             self,
-            choices={"source": SOURCE_NAMES},
+            choices={"source": SOURCE_NAMES, "hha_floor": ("lowest", "near", "camera")},
             positive_int=("midas_features", "batch_size"),
-            positive=("midas_encoder_width", "near_m", "far_m"),
-            nonnegative=("far_as_sky_m",),
+            positive=("midas_encoder_width", "near_m", "far_m", "hha_cm_per_level"),
+            nonnegative=("far_as_sky_m", "hha_floor_m"),
             boolean=("flip_average",),
             string=("midas_weights", "dav2_weights", "trained_preset", "trained_cache"),
             at_most={
@@ -86,6 +96,8 @@ class DepthSourceConfig:
                 "near_m": 1e4,
                 "far_m": 1e4,
                 "far_as_sky_m": 1e4,
+                "hha_floor_m": 1e4,
+                "hha_cm_per_level": 100.0,
             },
         )
         from placejax.depth._config import PRESETS
@@ -102,10 +114,24 @@ class DepthSourceConfig:
             errors.append(
                 f"dav2_short_side={_config.shown(self.dav2_short_side)}: expected an int in [14, 2048] (pixels)"
             )
+        if (self.hha_floor == "lowest") != (self.hha_floor_m == 0):
+            errors.append(
+                f"hha_floor_m={self.hha_floor_m!r}: must be 0 with hha_floor='lowest' and positive with "
+                f"hha_floor={self.hha_floor!r}"
+            )
         if self.source == "trained" and self.trained_preset not in PRESETS:
             errors.append(f"trained_preset={self.trained_preset!r}: expected one of {sorted(PRESETS)}")
         if errors:
             raise _config.ConfigError(*errors)
+
+    def height_rule(self) -> HeightRule:
+        """The HHA height channel's rule these settings describe (``placejax.hha.HeightRule``)."""
+        return HeightRule(
+            floor=self.hha_floor,
+            near_m=self.hha_floor_m if self.hha_floor == "near" else None,
+            camera_height_m=self.hha_floor_m if self.hha_floor == "camera" else None,
+            cm_per_level=float(self.hha_cm_per_level),
+        )
 
     @property
     def metric_mapping(self) -> dict[str, float]:

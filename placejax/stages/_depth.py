@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import cv2
@@ -41,10 +42,17 @@ def true_depth(s: SessionData, start: int, stop: int) -> np.ndarray:
     return d
 
 
-def depth_and_hha(ws: Workspace, sessions: list[SessionData], source: DepthSource, batch_size: int) -> list[tuple]:
+def depth_and_hha(
+    ws: Workspace,
+    sessions: list[SessionData],
+    source: DepthSource,
+    batch_size: int,
+    height: _hha.HeightRule = _hha.REFERENCE_HEIGHT,
+) -> list[tuple]:
     """``[(depth cache, HHA cache)]`` of every session for a depth source (built once, then read back).
 
-    Timed as stages ``depth`` and ``hha``. ``batch_size`` images per network / encoder call (and cache chunk).
+    Timed as stages ``depth`` and ``hha``. ``batch_size`` images per network / encoder call (and cache chunk);
+    ``height``: the HHA height channel's rule (``DepthSourceConfig.height_rule()``; the reference's by default).
     """
     depths: list[Any] = []
     hhas: list[Any] = []
@@ -76,7 +84,7 @@ def depth_and_hha(ws: Workspace, sessions: list[SessionData], source: DepthSourc
             k = np.asarray(s.cached.intrinsics)
 
             def encode(a: int, b: int, depth=depth, k=k) -> np.ndarray:
-                return map_batches(lambda d: _hha.encode(d, k), np.asarray(depth.data[a:b]), batch_size)
+                return map_batches(lambda d: _hha.encode(d, k, height=height), np.asarray(depth.data[a:b]), batch_size)
 
             hhas.append(
                 build_array_cache(
@@ -91,6 +99,8 @@ def depth_and_hha(ws: Workspace, sessions: list[SessionData], source: DepthSourc
                         "depth": depth.key,
                         "intrinsics": np.asarray(k, np.float64).tolist(),
                         "encoder": _hha.ENCODER_VERSION,
+                        # (absent for the reference's rule: caches from before the setting stay valid)
+                        **({} if height == _hha.REFERENCE_HEIGHT else {"height": dataclasses.asdict(height)}),
                     },
                     chunk=batch_size,
                     progress=ws.progress,
