@@ -37,6 +37,10 @@ def test_every_section_checks_its_ranges_and_names_the_field():
         (GridConfig, {"n": 0}, r"n=0: expected an int in \[1, "),
         (depth.DepthSourceConfig, {"source": "lidar"}, r"source='lidar': expected one of"),
         (depth.DepthSourceConfig, {"near_m": 60.0}, r"near_m=60.0 must be below far_m=50.0"),
+        (depth.DepthSourceConfig, {"hha_floor": "sky"}, r"hha_floor='sky': expected one of"),
+        (depth.DepthSourceConfig, {"hha_floor": "camera"}, r"hha_floor_m=0.0: must be 0 with hha_floor='lowest' and"),
+        (depth.DepthSourceConfig, {"hha_floor_m": 1.3}, r"hha_floor_m=1.3: must be 0 with hha_floor='lowest'"),
+        (depth.DepthSourceConfig, {"hha_cm_per_level": 0.0}, r"hha_cm_per_level=0.0"),
         (stages.VGGConfig, {"dropout": 1.0}, r"dropout=1.0: expected a number in \[0, 1\)"),
         (stages.TrainConfig, {"optimizer": "lbfgs"}, r"optimizer='lbfgs': expected one of \('sgd', 'adamw'\)"),
         (stages.TrainConfig, {"epochs": True}, r"epochs=True: expected an int in \[1, "),
@@ -50,6 +54,16 @@ def test_every_section_checks_its_ranges_and_names_the_field():
         config.build(stages.TrainConfig, {"epochs": 0}, "train")
     with pytest.raises(config.ConfigError, match=r"unknown train key\(s\) \['epoch'\]"):
         config.build(stages.TrainConfig, {"epoch": 3}, "train")
+
+
+def test_the_depth_section_states_the_hha_height_rule():
+    from placejax import hha
+
+    assert depth.DepthSourceConfig().height_rule() == hha.REFERENCE_HEIGHT
+    near = depth.DepthSourceConfig(hha_floor="near", hha_floor_m=60.0)
+    assert near.height_rule() == hha.HeightRule(floor="near", near_m=60.0)
+    camera = depth.DepthSourceConfig(hha_floor="camera", hha_floor_m=1.35, hha_cm_per_level=4.0)
+    assert camera.height_rule() == hha.HeightRule(floor="camera", camera_height_m=1.35, cm_per_level=4.0)
 
 
 def test_every_default_is_stated_once_with_its_help():
@@ -102,7 +116,7 @@ def test_workspace_times_stages_and_tells_a_listener(tmp_path):
     assert ws.peak_rss_mib["depth"] > 0 and ws.cache_root == tmp_path / "cache"
 
 
-def test_hha_caches_are_keyed_by_the_camera_and_the_encoder_version(tmp_path, monkeypatch):
+def test_hha_caches_are_keyed_by_the_camera_the_height_rule_and_the_encoder_version(tmp_path, monkeypatch):
     """The HHA cache of a depth cache is rebuilt, not reused, when the session's intrinsics or the encoder's
     version change (a folder's camera.json edited; an encoder whose outputs moved), and its images are the
     encoder's for that camera."""
@@ -124,8 +138,9 @@ def test_hha_caches_are_keyed_by_the_camera_and_the_encoder_version(tmp_path, mo
         def __len__(self):
             return 3
 
-    def build(intrinsics):
-        ((_, h),) = stages.depth_and_hha(ws, [stages.SessionData("a", Cached(intrinsics), None)], source, 8)
+    def build(intrinsics, height=hha.REFERENCE_HEIGHT):
+        sessions = [stages.SessionData("a", Cached(intrinsics), None)]
+        ((_, h),) = stages.depth_and_hha(ws, sessions, source, 8, height)
         return h
 
     first = build(k)
@@ -133,5 +148,9 @@ def test_hha_caches_are_keyed_by_the_camera_and_the_encoder_version(tmp_path, mo
     assert build(k).path == first.path  # the same camera and encoder: read back
     other_camera = build(k * np.array([[2.0], [2.0], [1.0]]))
     assert other_camera.path != first.path
+    rule = hha.HeightRule(floor="camera", camera_height_m=1.3, cm_per_level=4.0)
+    other_rule = build(k, rule)  # another height rule: another cache, encoded with it
+    assert other_rule.path not in (first.path, other_camera.path)
+    np.testing.assert_array_equal(np.asarray(other_rule.data), np.asarray(hha.encode(ramp, k, height=rule)))
     monkeypatch.setattr(hha, "ENCODER_VERSION", hha.ENCODER_VERSION + 1)
     assert build(k).path not in (first.path, other_camera.path)
