@@ -4,7 +4,7 @@
         [--baseline-shift-px 2 4]
 
 Two model sizes, both with random weights of the exact architectures (speed does not depend on the values):
-    builtin: the default SimCampus preset — 64×64 images, the placejax metric depth network (the default depth
+    builtin: the default SimCampus preset — its images (96×96), the placejax metric depth network (the default depth
         preset's: MidasSmall features 16, encoder ×0.35, run at 128×128) over the preset's views (the image and its
         mirror: two passes; ten with the copies shifted by ±2 and ±4 px of ``depth.shift_px=(2, 4)``, the default
         until 2026-12-07), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
@@ -39,34 +39,47 @@ from placejax.data import PlaceGrid
 from placejax.depth import PRESETS
 from placejax.models import cpu_compiler_options
 
-# Everything ``PlaceClassifier`` reads from a run, per size (values as the experiment's presets set them; the
-# built-in depth network's architecture and input size are the default depth preset's).
+# Everything ``PlaceClassifier`` reads from a run, per size. The built-in size is the default preset's, read from the
+# experiment's config (image size, VGG16 width, depth mapping, MLP width, depth views), so that the benchmark follows
+# it; the depth network's architecture and input size are the default depth preset's.
 _DEPTH = PRESETS["default"]
-_SIZES = {
-    "builtin": dict(
-        image=64,
+SIZES = ("builtin", "paper")
+
+
+def _default_preset():
+    from experiments.cross_season.config import get_config
+
+    return get_config("default")
+
+
+def _size(name: str) -> dict:
+    if name == "paper":
+        midas = ("midas", 64, 1.0, 256)
+        return dict(image=256, depth=midas, vgg=(1.0, True), far_m=80.0, metric=False, mlp_hidden=1024)
+    c = _default_preset()
+    h, w = c.data.image_size
+    if h != w:
+        raise SystemExit(f"the default preset's images are {h}×{w}: the built-in size expects square images")
+    return dict(
+        image=int(h),
         depth=("trained", _DEPTH.features, _DEPTH.encoder_width, _DEPTH.image_size),
-        vgg=(0.125, True),
-        far_m=80.0,
+        vgg=(float(c.vgg.width), bool(c.vgg.pretrained)),
+        far_m=float(c.depth.far_m),
         metric=True,
-    ),
-    "paper": dict(image=256, depth=("midas", 64, 1.0, 256), vgg=(1.0, True), far_m=80.0, metric=False),
-}
+        mlp_hidden=int(c.mlp.hidden),
+    )
 
 
 def _default_depth_views() -> dict:
-    """The default preset's depth views and sky step (what its classifiers run), read from the experiment's config so
-    that the benchmark follows it."""
-    from experiments.cross_season.config import get_config
-
-    d = get_config("default").depth
+    """The default preset's depth views and sky step (what its classifiers run)."""
+    d = _default_preset().depth
     return {"far_as_sky_m": d.far_as_sky_m, "flip_average": d.flip_average, "shifts": list(d.shift_px)}
 
 
 def synthetic_classifier(size: str, seed: int = 0, shifts: tuple[int, ...] | None = None) -> PlaceClassifier:
     """A classifier of the given size with random weights (He-scaled, so activations stay finite); ``shifts``
     replaces the default preset's shifted depth views (metric depth only)."""
-    s = _SIZES[size]
+    s = _size(size)
     kind, features, width, net = s["depth"]
     f = 500.0 * s["image"] / 640
     meta = {
@@ -87,7 +100,7 @@ def synthetic_classifier(size: str, seed: int = 0, shifts: tuple[int, ...] | Non
             **({"shifts": list(shifts)} if shifts is not None and s["metric"] else {}),
         },
         "vgg": {"width": s["vgg"][0], "pretrained": s["vgg"][1]},
-        "mlp_hidden": 1024,
+        "mlp_hidden": s["mlp_hidden"],
         "grid": PlaceGrid(0.0, 100.0, 0.0, 100.0, 10).to_dict(),
         "visited_classes": list(range(100)),
         "unknown": {"score": "msp", "threshold": 0.5, "target_frr": 0.05},
@@ -164,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="timed rounds (median reported)")
     parser.add_argument("--batch", type=int, default=8, help="the larger batch (besides 1)")
     parser.add_argument("--no-torch", action="store_true", help="skip the PyTorch reference rows")
-    parser.add_argument("--only", choices=tuple(_SIZES), help="time one classifier size only")
+    parser.add_argument("--only", choices=SIZES, help="time one classifier size only")
     parser.add_argument(
         "--baseline-shift-px",
         type=int,
@@ -176,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)
     rows = []
-    for size in [args.only] if args.only else list(_SIZES):
+    for size in [args.only] if args.only else list(SIZES):
         clf = synthetic_classifier(size)
         base = None
         if args.baseline_shift_px and size == "builtin":

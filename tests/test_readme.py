@@ -347,3 +347,16 @@ def test_the_readmes_hha_rows_are_the_benchmarks_record():
     assert f"{b8['baseline_over_this']:.2f}× / {b1['baseline_over_this']:.2f}×" in large
     assert f"{numpy_large['ms_per_image']:.0f} ms/image ({b8['speedup']:.0f}× / {b1['speedup']:.0f}× slower)" in large
     assert all(r.get("max_level_diff_vs_baseline", 0) == 0 for r in rec["rows"])  # the previous encoder's outputs
+
+
+def test_the_readmes_classifier_speed_row_is_its_benchmarks_record():
+    rec = json.loads((REPO / "docs" / "benchmarks" / "inference_speed_builtin.json").read_text())
+    rows = {r["batch"]: r for r in rec["rows"] if r["size"] == "builtin"}
+    (line,) = [x for x in README.read_text().splitlines() if x.startswith("| end to end, the built-in classifier")]
+    b8, b1 = rows[8], rows[1]
+    assert rows[1]["image_hw"] == [96, 96] and "(96², two depth views" in line
+    assert f"{b8['images_per_s']:.1f} / {b1['images_per_s']:.1f} images/s" in line
+    assert f"{b8['baseline_images_per_s']:.1f} / {b1['baseline_images_per_s']:.1f} images/s" in line
+    assert f"({b8['speedup']:.1f}× / {b1['speedup']:.1f}×" in line
+    shares = sorted(round(100 * r["share_depth"]) for r in rows.values())
+    assert f"depth is still {shares[0]}–{shares[-1]} % of the time" in line
