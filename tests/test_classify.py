@@ -134,9 +134,9 @@ def test_predict_matches_the_experiments_evaluation(clf, experiment_outputs, ses
     # of the convolution (another batch size, another fusion) can flip one rounding: errors are relative to the
     # logits' scale (~25–200 here). Measured on WI / SU: RGB-Net logits |Δ| ≤ 2e-5 of their scale; HHA-Net and
     # fusion (the ±1 HHA values above) ≤ 1.2e-3 of it (as before the trunk was frozen: 3.5e-3 / 13, 6e-4 / 4.5).
-    # Share of HHA values off by one: 0.125 % on WI since 2026-12-02 (the same value in CI and here), below 0.1 %
-    # before. A fresh CI run on 2026-12-05 saw one HHA-Net logit of 540 on SU off by 3.7e-3 of the scale (the
-    # nets of the smoke run are trained anew there): so all within 1e-2, and 99 % within 3e-3.
+    # Share of HHA values off by one: 0.125 % on WI (the same value in CI and here). A fresh CI run once saw one
+    # HHA-Net logit of 540 on SU off by 3.7e-3 of the scale (the nets of the smoke run are trained anew there): so
+    # all within 1e-2, and 99 % within 3e-3.
     diff = np.abs(got["hha_image"].astype(int) - ref["hha"].astype(int))
     assert diff.max() <= 1 and (diff == 0).mean() > 0.997, (diff.max(), (diff == 0).mean())
 
@@ -522,7 +522,7 @@ def test_far_predictions_become_sky_in_the_experiment_and_the_classifier(classif
     cfg, workdir, _ = classify_run
     assert clf._spec.far_as_sky_m == cfg.depth.far_as_sky_m > 0  # the run's settings reached the classifier
     assert clf._spec.flip_average is cfg.depth.flip_average is True  # (the equality tests above cover it)
-    assert clf._spec.shifts == tuple(cfg.depth.shift_px) == ()  # (no shifted views by default since 2026-12-07)
+    assert clf._spec.shifts == tuple(cfg.depth.shift_px) == ()  # (no shifted views by default)
     from placejax.depth import depth_source
 
     c = sections(cfg)

@@ -117,8 +117,8 @@ def test_ensure_trained_trains_once_and_reports(uninterrupted_dir, tmp_path, mon
 
 def test_network_depth_averages_the_shipped_trunks_views(uninterrupted_dir, tmp_path, monkeypatch):
     """``placejax.pretrain.data.network_depth("trained:<preset>")`` (the HHA trunk's pretraining depth) finds the cached
-    network and averages the views the shipped HHA trunk was pretrained with (mirror and ±2, ±4 px: the experiment's
-    default until 2026-12-07, now the image and its mirror), then puts everything from 50 m on as sky: the step the
+    network and averages the views the shipped HHA trunk was pretrained with (mirror and ±2, ±4 px, where the
+    experiment now averages the image and its mirror), then puts everything from 50 m on as sky: the step the
     shipped HHA trunk learnt with (the experiment's is 60 m)."""
     from experiments.cross_season import config as experiment_config
     from placejax.data.simcampus import SKY_DEPTH
@@ -131,7 +131,7 @@ def test_network_depth_averages_the_shipped_trunks_views(uninterrupted_dir, tmp_
     # The shipped trunk's recipe; the experiment keeps the mirror but no longer the shifted views.
     assert (_data.NETWORK_FLIP, _data.NETWORK_SHIFTS) == (True, (2, 4))
     assert (default.flip_average, tuple(default.shift_px)) == (True, ())
-    # The sky step the shipped HHA trunk was pretrained with (its recipe), not the experiment's since 2026-12-05.
+    # The sky step the shipped HHA trunk was pretrained with (its recipe), not the experiment's.
     assert _data.NETWORK_SKY_FROM_M == 50.0 and default.far_as_sky_m == 60.0
     rgb = np.random.default_rng(0).integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)
     got = _data.network_depth("trained:smoke", progress=False)(rgb)

@@ -22,8 +22,8 @@ from placejax.depth import evaluation
 from placejax.depth._config import PRESETS, DepthTrainConfig
 from placejax.depth._train import TrainedDepth, load_trained, train_network
 
-# Measured on an idle 2-core x86 CPU (placejax/depth/weights/README.md; docs/research-log.md, 2026-12-05): shown
-# to the user before a first training.
+# Measured on an idle 2-core x86 CPU (placejax/depth/weights/README.md and the research log): shown to the user
+# before a first training.
 _EXPECTED_MINUTES = {"smoke": 1, "default": 55}
 
 # Presets whose trained network ships inside the package (``placejax/depth/weights/<name>.npz``, its recipe and

@@ -56,7 +56,7 @@ class DepthSourceConfig:
     trained_cache: str = _config.setting("", "cache folder of the trained depth network ('' = its default)")
     near_m: float = _config.setting(1.0, "metric depth assigned to the 98th percentile of inverse depth (m)")
     far_m: float = _config.setting(50.0, "metric depth assigned to the 2nd percentile of inverse depth (m)")
-    # Chosen with experiments.hha_diagnose on world 1, confirmed on world 2 (docs/research-log.md, 2026-12-05).
+    # Chosen with experiments.hha_diagnose on world 1, confirmed on world 2 (docs/research-log.md).
     far_as_sky_m: float = _config.setting(
         60.0, "metric depth nets: predictions at or beyond this (m) become sky (1000 m) for HHA; 0 = off"
     )

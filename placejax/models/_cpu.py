@@ -19,7 +19,7 @@ __all__ = ["cpu_compiler_options"]
 _YNN_DOT = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
 
 # YNNPACK dots, not convolutions: the fastest of the four settings for every network measured
-# (benchmarks/models_speed.py; the per-network figures are in docs/research-log.md, 2026-12-02 and 2026-12-05).
+# (benchmarks/models_speed.py; the per-network figures are in docs/models.md and the research log).
 _KINDS: dict[str, dict[str, str]] = {"vgg16": _YNN_DOT, "midas_small": _YNN_DOT, "depth_anything_v2": _YNN_DOT}
 
 

@@ -42,10 +42,9 @@ PERTURB_FIELD_PX = 0.125  # its correlation length, as a share of the image widt
 PERTURB_BLUR_PX = (0.0, 1.5)  # log-depth blur sigma, pixels at 64 x 64 (scaled with the width)
 PERTURB_SKY_FROM_M = (40.0, 70.0)
 
-# network_depth: the depth views the experiment averaged until 2026-12-07 (mirror, shifts ±2 and ±4 px; its default is
-# now the image and its mirror, docs/depth-network.md "Fewer views"), and the sky step the shipped HHA trunk
-# was pretrained with (50 m, the experiment's depth.far_as_sky_m until 2026-12-05; the experiment's 60 m came with
-# the 4800-step depth network): kept so that the shipped trunk's recipe still makes that trunk.
+# network_depth: the depth views and the sky step the shipped HHA trunk was pretrained with (mirror and shifts ±2,
+# ±4 px; everything from 50 m on as sky), which differ from the experiment's depth stage (the image and its mirror;
+# 60 m): kept so that the shipped trunk's recipe still makes that trunk (docs/depth-network.md, "Fewer views").
 NETWORK_FLIP = True
 NETWORK_SHIFTS = (2, 4)
 NETWORK_SKY_FROM_M = 50.0

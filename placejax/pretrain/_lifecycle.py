@@ -36,7 +36,7 @@ SHIPPED_HHA_PREDICTED = "simcampus_places_hha_predicted_w0125_s64"
 """Name of the HHA net's trunk pretrained on HHA of the default depth network's predictions: the one the experiment's
 HHA net reads."""
 # The depth network its HHA images came from (its ``meta["hha_depth_network"]``): the settings in which that
-# network's recipe differs from the preset's; why not a newer one: docs/research-log.md, 2026-12-05.
+# network's recipe differs from the preset's; why not a newer one: docs/research-log.md.
 SHIPPED_HHA_PREDICTED_DEPTH = ("default", {"image_size": 96, "steps": 2400})
 """``(preset, settings)`` of the depth network :data:`SHIPPED_HHA_PREDICTED` was pretrained on."""
 _EXPECTED_MINUTES = {"smoke": 1, "default": 45}

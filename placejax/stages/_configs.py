@@ -26,7 +26,7 @@ class VGGConfig:
         True, "pretrained trunk: freeze the convs, cache their features, train fc6–fc8 only"
     )
     # The default trunks were pretrained on other SimCampus worlds (placejax.pretrain); the HHA net's on HHA of the
-    # default depth network's predictions, chosen on world 1 (docs/research-log.md, 2026-12-03).
+    # default depth network's predictions, chosen on world 1 (docs/research-log.md).
     weights: str = _config.setting(
         "shipped:simcampus_places_w0125_s64",
         "vgg16-397923af.pth path ('' = registry / download), shipped:NAME (placejax.pretrain's trunk) or an "

@@ -16,7 +16,7 @@ A session folder holds::
 Typical use::
 
     from placejax.data import folder
-    s = folder.load_session("/data/campus/2026-01-10")
+    s = folder.load_session("/data/campus/january")
     print(s.report)                # kept / dropped frame counts
     s.image(0), s.poses[0]         # upright RGB uint8 (H, W, 3); x, y (m), yaw (rad)
 

@@ -193,7 +193,7 @@ _DESIGNED: dict[str, SeasonStyle] = {
 }
 
 
-# Calibration of the benchmark (docs/research-log.md, 2026-12-02, "Calibrating SimCampus"): each season's colours,
+# Calibration of the benchmark (docs/research-log.md, "Calibrating SimCampus"): each season's colours,
 # light, haze, exposure and noise are pulled towards the mean over the four seasons, keeping this share of their
 # departure from it (1.0: as designed). Chosen against RGB-only measures (experiments.calibrate_world: RGB-Net, RGB
 # and gradient nearest-neighbour) until RGB-Net's cross-season mean lay in the paper's RGB-Net range, then frozen.
