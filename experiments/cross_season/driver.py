@@ -256,6 +256,7 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
 
     with story.step("evaluate", lambda: f"{len(scores['pairs'])} train → test pairs"):
         scores = report.evaluate(ws, config, sessions, runs, thumbs, rendered_runs=rendered_runs)
+        detectors = scores.pop("_detectors")  # for the classifier index; not part of results.json
     with story.step("route"):
         scores["route"], route_traces = report.route_columns(ws, config, sessions, runs, grid, scores["pairs"])
     ws.timings["total"] = time.perf_counter() - t_start
@@ -281,7 +282,7 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
             grid,
             stages.depth_index_entry(source, config.depth.to_dict()),
             config.to_dict(),
-            scores["unknown"]["feature_thresholds"],
+            detectors,
         )
         io.write_json(workdir / "results.json", results)
         report.write_table(results, workdir / "table.md")

@@ -16,6 +16,8 @@ Stages, in order:
         (:func:`net_outputs`) and the fusion MLPs (:func:`train_mlp`, :class:`MLPConfig`) with their logits.
     baseline_features: thumbnails for the nearest-neighbour baselines; :func:`pair_ceilings_and_baselines`.
     write_classifier_index: ``classifiers.json``, what ``placejax.PlaceClassifier.from_run`` reads.
+    fit_unseen_detectors: every unseen-place score's detector of a training session (the index's and the
+        evaluation's one fit).
 
 Example (the smoke preset's data, rendered depth, one seed)::
 
@@ -41,7 +43,7 @@ from placejax.stages._baselines import (
 from placejax.stages._configs import EvalConfig, MLPConfig, TrainConfig, VGGConfig
 from placejax.stages._depth import attach_depth, depth_and_hha, has_true_depth, true_depth
 from placejax.stages._fusion import SeedRun, fused_embedding, fusion_model, train_mlp, train_seed
-from placejax.stages._index import depth_index_entry, write_classifier_index
+from placejax.stages._index import depth_index_entry, fit_unseen_detectors, write_classifier_index
 from placejax.stages._keys import params_digest, results_only
 from placejax.stages._nets import (
     MODALITIES,
@@ -79,6 +81,7 @@ __all__ = [
     "depth_index_entry",
     "features_prepare",
     "fit_grid",
+    "fit_unseen_detectors",
     "fused_embedding",
     "fusion_model",
     "gradient_thumbnails",

@@ -36,6 +36,27 @@ def depth_index_entry(source: DepthSource, depth_section: dict[str, Any]) -> dic
     return entry
 
 
+def fit_unseen_detectors(run: SeedRun, s: SessionData) -> dict[str, tuple[Any, float] | None]:
+    """Every unseen-place score's detector for the fusion trained on session ``s``: score → ``(model, threshold)``.
+
+    Logit scores (``unknown.SCORES``): no model, the threshold on ``s``'s own (memorised) frames. Feature scores
+    (``unknown.FEATURE_SCORES``): the model on all of ``s``'s fused embeddings, the threshold on its frames held out
+    of the reference (``unknown.fit_feature_detector``); ``None`` where ``s`` is too small for the score. Both the
+    evaluation's unseen-place columns and the classifier index come from this one fit.
+    """
+    from placejax.classify import unknown
+
+    out: dict[str, tuple[Any, float] | None] = {}
+    for score in unknown.SCORES:
+        train_scores = np.asarray(unknown.unknown_score(run.fused[(s.name, s.name)], score))
+        out[score] = (None, unknown.fit_threshold(train_scores))
+    emb = fused_embedding(run.outputs, s.name, s.name)
+    for score in unknown.FEATURE_SCORES:
+        fits = unknown.can_fit_feature_detector(score, s.labels)
+        out[score] = unknown.fit_feature_detector(score, emb, s.labels) if fits else None
+    return out
+
+
 def write_classifier_index(
     ws: Workspace,
     sessions: list[SessionData],
@@ -43,7 +64,7 @@ def write_classifier_index(
     grid: PlaceGrid,
     depth: dict[str, Any],
     config: dict[str, Any],
-    feature_thresholds: dict | None = None,
+    detectors: dict[str, dict] | None = None,
 ) -> None:
     """``classifiers.json``: what ``placejax.PlaceClassifier.from_run`` needs for every training session, and each
     training session's fused embeddings (``unknown/<train>.npz``) with the unseen-place scores' thresholds.
@@ -55,33 +76,23 @@ def write_classifier_index(
         grid: the place grid.
         depth: :func:`depth_index_entry` of the run's depth source.
         config: the run's whole configuration (sections named as the library's config dataclasses).
-        feature_thresholds: session → feature score → held-out threshold, as the evaluation computed them
-            (``placejax.classify.unknown.fit_feature_detector``); computed here where missing.
+        detectors: session → :func:`fit_unseen_detectors` of it (as the evaluation fitted them); fitted here
+            where missing.
     """
     from placejax.classify import unknown
 
     index_sessions = {}
     for s in sessions:
+        fitted = (detectors or {}).get(s.name) or fit_unseen_detectors(run, s)
         thresholds = {}
-        for score in unknown.SCORES:
-            train_scores = np.asarray(unknown.unknown_score(run.fused[(s.name, s.name)], score))
-            thresholds[score] = {
-                "threshold": unknown.fit_threshold(train_scores),
-                "target_frr": unknown.DEFAULT_TARGET_FRR,
-            }
-        emb = fused_embedding(run.outputs, s.name, s.name)
-        known = (feature_thresholds or {}).get(s.name)
-        for score in unknown.FEATURE_SCORES:
-            if known is not None:
-                thr = known[score]
-            elif unknown.can_fit_feature_detector(score, s.labels):
-                thr = unknown.fit_feature_detector(score, emb, s.labels)[1]
-            else:
-                thr = None
-            if thr is None:  # too small a session for this score
+        for score in unknown.ALL_SCORES:
+            if fitted[score] is None:  # too small a session for this score
                 continue
-            held = {"folds": unknown.HELD_OUT_FOLDS, "block": unknown.HELD_OUT_BLOCK, "gap": unknown.HELD_OUT_GAP}
-            thresholds[score] = {"threshold": thr, "target_frr": unknown.DEFAULT_TARGET_FRR, "held_out": held}
+            thresholds[score] = {"threshold": float(fitted[score][1]), "target_frr": unknown.DEFAULT_TARGET_FRR}
+            if score in unknown.FEATURE_SCORES:
+                held = {"folds": unknown.HELD_OUT_FOLDS, "block": unknown.HELD_OUT_BLOCK, "gap": unknown.HELD_OUT_GAP}
+                thresholds[score]["held_out"] = held
+        emb = fused_embedding(run.outputs, s.name, s.name)
         path = Path(UNKNOWN_DIR) / f"{s.name}.npz"
         (ws.workdir / UNKNOWN_DIR).mkdir(exist_ok=True)
         # positions: the training drive the sequence matcher matches against (frames in drive order)

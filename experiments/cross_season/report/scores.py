@@ -8,8 +8,16 @@ from typing import Any
 import ml_collections
 import numpy as np
 
+from placejax.classify.unknown import FEATURE_SCORES
 from placejax.evaluation import frame_gains, gain_intervals, mean_sd, softmax, top1
-from placejax.stages import SeedRun, SessionData, Workspace, fused_embedding, pair_ceilings_and_baselines
+from placejax.stages import (
+    SeedRun,
+    SessionData,
+    Workspace,
+    fit_unseen_detectors,
+    fused_embedding,
+    pair_ceilings_and_baselines,
+)
 
 
 def evaluate(
@@ -41,7 +49,7 @@ def evaluate(
     """
     fused = runs[0].fused  # the first seed's fusion: the unseen-place columns
     with ws.timed("evaluate"):
-        detectors = {s.name: feature_detectors(runs[0].outputs, s) for s in sessions}
+        detectors = {s.name: fit_unseen_detectors(runs[0], s) for s in sessions}
         pairs = []
         for s in sessions:
             for t in sessions:
@@ -84,10 +92,11 @@ def evaluate(
             **_unknown_summary(cross),
             # Per training session, each feature score's held-out threshold (null: too small a session for it).
             "feature_thresholds": {
-                name: {k: (None if d is None else float(d[1])) for k, d in det.items()}
+                name: {k: (None if det[k] is None else float(det[k][1])) for k in FEATURE_SCORES}
                 for name, det in detectors.items()
             },
         },
+        "_detectors": detectors,  # the fitted detectors, for the classifier index (not written to results.json)
     }
 
 
@@ -176,27 +185,12 @@ def nets_modalities(nets: dict, session: str) -> list[str]:
     return [m for (s, m) in nets if s == session]
 
 
-def feature_detectors(outputs: dict, s: SessionData) -> dict[str, tuple[dict, float]]:
-    """Per feature score (``unknown.FEATURE_SCORES``), ``(model, threshold)`` of training session ``s``: the model
-    on all its frames' fused embeddings, the threshold on its frames held out (purged K-fold, docs/route.md);
-    ``None`` where the session is too small for the score."""
-    from placejax.classify import unknown
-
-    emb = fused_embedding(outputs, s.name, s.name)
-    out = {}
-    for score in unknown.FEATURE_SCORES:
-        # A session too small for it (k > the reference's frames, one frame per class): no column.
-        fits = unknown.can_fit_feature_detector(score, s.labels)
-        out[score] = unknown.fit_feature_detector(score, emb, s.labels) if fits else None
-    return out
-
-
 def _unknown_columns(fused: dict, outputs: dict, detectors: dict, s: SessionData, t: SessionData) -> dict:
     """Unseen-place detection of the fusion trained on ``s`` when tested on ``t`` (extra columns of table.md).
 
     Each score's threshold comes from ``s``'s frames only (``target_frr`` of them rejected): the logit scores' on
-    its own (memorised) frames, the feature scores' (``detectors``: :func:`feature_detectors`) on its frames held
-    out of the reference; test frames in classes ``s`` never visited are the positives. Per score:
+    its own (memorised) frames, the feature scores' on its frames held out of the reference (``detectors``:
+    ``placejax.stages.fit_unseen_detectors``); test frames in classes ``s`` never visited are the positives. Per score:
     ``unknown_<score>_auroc``, ``unknown_<score>_rejected_seen`` / ``_rejected_unseen``; for the default score
     also ``unknown_rejected_*`` and ``unknown_seen_accuracy_accepted``.
     """
@@ -219,7 +213,7 @@ def _unknown_columns(fused: dict, outputs: dict, detectors: dict, s: SessionData
             model, thr = detectors[score]
             values = unknown.feature_score(score, model, emb_t)
         else:
-            thr = unknown.fit_threshold(np.asarray(unknown.unknown_score(fused[(s.name, s.name)], score)))
+            thr = detectors[score][1]
             values = np.asarray(unknown.unknown_score(fused[(s.name, t.name)], score))
         reject = values > thr
         m = {
