@@ -6,7 +6,6 @@ import os
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
 
 import json
-import shutil
 from pathlib import Path
 
 import jax
@@ -24,6 +23,8 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
+
+from helpers import built_once, smoke_config  # noqa: E402  (after the JAX settings above)
 
 
 @pytest.fixture(scope="session")
@@ -50,69 +51,26 @@ def smoke_depth_run(tmp_path_factory) -> Path:
     classifier's). Read it only: copy it before writing to it."""
     from placejax import depth
 
-    return _built_once(
+    return built_once(
         tmp_path_factory,
         "smoke_depth_run",
         lambda folder: depth.train_network(depth.PRESETS["smoke"], folder, progress=False),
     )
 
 
-# The smoke preset as the end-to-end modules run it: on one device, as the default run does on a machine with one CPU
-# device (under the suite's two forced host devices a step costs about twice as much on 2 devices as on 1; the
-# 2-device path and 2 processes have their own test).
-SMOKE_OVERRIDES = ("devices=1", "progress=False")
-
-
-def smoke_config(*overrides: str):
-    """The smoke preset with ``SMOKE_OVERRIDES`` and then ``overrides`` (``key=value``) applied."""
-    from experiments.cross_season import apply_overrides, get_config
-
-    cfg = get_config("smoke")
-    apply_overrides(cfg, [*SMOKE_OVERRIDES, *overrides])
-    return cfg
-
-
-def _built_once(tmp_path_factory, name: str, build) -> Path:
-    """``build(folder)`` run once for the whole test run, its folder shared by every pytest-xdist worker: the first
-    worker to ask builds it under a lock, the others wait and read the finished folder (a build that failed half
-    way is started again from an empty folder)."""
-    from placejax import io
-
-    root = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        root = root.parent  # the workers' common base folder
-    lock = root / f"{name}.lock"
-    lock.mkdir(exist_ok=True)
-    folder, done = root / name, root / f"{name}.done"
-    with io.run_lock(lock, wait=True):
-        if not done.exists():
-            shutil.rmtree(folder, ignore_errors=True)
-            build(folder)
-            done.touch()
-    return folder
-
-
 @pytest.fixture(scope="session")
 def shared_smoke_run(tmp_path_factory) -> tuple[Path, dict]:
     """``(workdir, results)`` of one smoke run (``SMOKE_OVERRIDES``: the shipped depth network, four seasons), run
     once for the whole suite, for every module that needs a finished run. Read it only: a module that writes to a
-    run (the experiment's caches, a lock) works on a copy (:func:`copy_of_smoke_run`)."""
+    run (the experiment's caches, a lock) works on a copy (``helpers.copy_of_smoke_run``)."""
 
     def build(folder: Path) -> None:
         from experiments.cross_season import run
 
         run(smoke_config(), folder)
 
-    folder = _built_once(tmp_path_factory, "shared_smoke_run", build)
+    folder = built_once(tmp_path_factory, "shared_smoke_run", build)
     return folder, json.loads((folder / "results.json").read_text())
-
-
-def copy_of_smoke_run(shared_smoke_run, tmp_path_factory, name: str) -> tuple[Path, dict]:
-    """A module's own copy of :func:`shared_smoke_run` (a second of copying instead of a minute of running)."""
-    source, results = shared_smoke_run
-    workdir = tmp_path_factory.mktemp(name) / "run"
-    shutil.copytree(source, workdir, ignore=shutil.ignore_patterns(".lock"))
-    return workdir, results
 
 
 # Fixtures that train a network or run the experiment end to end (a minute or more each, built once per module or

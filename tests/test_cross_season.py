@@ -17,7 +17,7 @@ import cv2
 import jax
 import numpy as np
 import pytest
-from conftest import SMOKE_OVERRIDES, copy_of_smoke_run, smoke_config
+from helpers import SMOKE_OVERRIDES, copy_of_smoke_run, smoke_config
 
 from experiments.cross_season import apply_overrides, get_config, run
 from placejax.classify import run_layout

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import jax
 import pytest
-from conftest import SMOKE_OVERRIDES, copy_of_smoke_run
+from helpers import SMOKE_OVERRIDES, copy_of_smoke_run
 
 from placejax import progress
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from conftest import copy_of_smoke_run, smoke_config
+from helpers import copy_of_smoke_run, smoke_config
 from test_classify_hostile import tiny_meta, tiny_params
 
 from placejax import route
