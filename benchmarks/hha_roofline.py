@@ -185,7 +185,8 @@ def profile(fn, hlo_text: str, repeats: int) -> list[dict]:
                 t0 = time.perf_counter()
                 jax.block_until_ready(fn())
                 wall = time.perf_counter() - t0
-            trace = json.load(gzip.open(next(Path(tmp).rglob("perfetto_trace.json.gz"))))
+            with gzip.open(next(Path(tmp).rglob("perfetto_trace.json.gz"))) as fh:
+                trace = json.load(fh)
         events = trace["traceEvents"] if isinstance(trace, dict) else trace
         seconds = dict.fromkeys((*STAGES, "other"), 0.0)
         launches = dict.fromkeys((*STAGES, "other"), 0)

@@ -31,6 +31,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import gc
@@ -171,10 +172,8 @@ def _take_flag(args: list[str]) -> bool:
 
 def _flush() -> None:
     for stream in (sys.stdout, sys.stderr):
-        try:
+        with contextlib.suppress(OSError, ValueError):  # a closed or full stream: nothing more can be said on it
             stream.flush()
-        except (OSError, ValueError):  # a closed or full stream: nothing more can be said on it
-            pass
 
 
 def _fail(error: Exception, *, show: bool, entry: bool) -> None:

@@ -284,8 +284,7 @@ def run_lock(folder: str | os.PathLike, *, hint: str = "use another folder", wai
         RuntimeError: another process holds the lock and ``wait`` is False (the message names it).
     """
     folder = Path(folder)
-    f = open(folder / ".lock", "a+")  # held open for the whole block: closing it releases the lock
-    try:
+    with open(folder / ".lock", "a+") as f:  # held open for the whole block: closing it releases the lock
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -301,5 +300,3 @@ def run_lock(folder: str | os.PathLike, *, hint: str = "use another folder", wai
         f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
         f.flush()
         yield
-    finally:
-        f.close()

@@ -59,7 +59,8 @@ def test_dir_lists_the_surface_and_subpackages_load_lazily():
         "assert placejax.data.simcampus.load_session; print('ok')"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
-    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok", out.stderr
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         placejax.nope  # noqa: B018
 
@@ -190,7 +191,9 @@ def test_array_session_satisfies_the_protocol_caches_and_names_bad_input(tmp_pat
     poses = rng.normal(size=(5, 3))
     k = np.array([[5.0, 0, 2.0], [0, 5.0, 3.0], [0, 0, 1]])
     s = ArraySession(images, poses, k, name="mine")
-    assert isinstance(s, Session) and len(s) == 5 and s.image_shape == (6, 4)
+    assert isinstance(s, Session)
+    assert len(s) == 5
+    assert s.image_shape == (6, 4)
     np.testing.assert_array_equal(s.utimes, np.arange(5))
     cached = cache_session(s, tmp_path, progress=False)
     for i in range(len(s)):
@@ -204,7 +207,8 @@ def test_array_session_satisfies_the_protocol_caches_and_names_bad_input(tmp_pat
     edited[1, 0, 0, 0] ^= 1
     assert session_identity(ArraySession(edited, poses, k, name="mine")) != session_identity(s)
     assert session_identity(ArraySession(images.copy(), poses, k, name="mine")) == session_identity(s)
-    assert len(truncated(s, 2)) == 2 and session_identity(truncated(s, 2))["fingerprint"]["truncated"] == 2
+    assert len(truncated(s, 2)) == 2
+    assert session_identity(truncated(s, 2))["fingerprint"]["truncated"] == 2
     with pytest.raises(ValueError, match=r"images must be uint8 \(N, H, W, 3\)"):
         ArraySession(images.astype(np.float32), poses, k)
     with pytest.raises(ValueError, match=r"poses must have shape \(5, 3\)"):

@@ -63,9 +63,13 @@ def _complete_dirs(root: Path) -> list[Path]:
 def test_session_cache_contents(tmp_path):
     s = ToySession()
     c = cache_session(s, tmp_path, image_size=(6, 4), chunk=4, progress=False)
-    assert isinstance(c, CachedSession) and isinstance(c, Session)
-    assert isinstance(c.images, np.memmap) and not c.images.flags.writeable
-    assert c.name == "toy" and len(c) == 11 and c.image_shape == (6, 4)
+    assert isinstance(c, CachedSession)
+    assert isinstance(c, Session)
+    assert isinstance(c.images, np.memmap)
+    assert not c.images.flags.writeable
+    assert c.name == "toy"
+    assert len(c) == 11
+    assert c.image_shape == (6, 4)
     for i in range(len(s)):
         np.testing.assert_array_equal(c.image(i), resize_image(s.images[i], (6, 4)))
     np.testing.assert_array_equal(c.utimes, s.utimes)
@@ -83,7 +87,8 @@ def test_reused_not_rebuilt_and_keyed_by_settings(tmp_path):
     assert c2.path == c1.path
     assert s.reads == reads  # no rebuild: an ArraySession's identity hashes its frames in memory, not via image()
     c3 = cache_session(s, tmp_path, image_size=(5, 5), progress=False)
-    assert c3.path != c1.path and c3.image_shape == (5, 5)
+    assert c3.path != c1.path
+    assert c3.image_shape == (5, 5)
     # Same name and settings but other content (a regenerated session): a new cache, the old one not read.
     c4 = cache_session(ToySession(seed=1), tmp_path, image_size=(6, 4), progress=False)
     assert c4.path != c1.path
@@ -116,7 +121,8 @@ def test_interrupted_build_resumes_to_identical_cache(tmp_path):
     with pytest.raises(Boom):
         build_array_cache(root, fn=_producer(fail_after_chunks=2), **args)
     partial = [p for p in root.iterdir() if p.name.endswith(".partial")]
-    assert len(partial) == 1 and not _complete_dirs(root)
+    assert len(partial) == 1
+    assert not _complete_dirs(root)
     assert json.loads((partial[0] / "progress.json").read_text())["rows_done"] == 6
     with pytest.raises(CacheError, match="not a complete cache"):
         open_array_cache(partial[0])
@@ -173,7 +179,8 @@ def test_stale_or_tampered_cache_never_read(tmp_path):
         open_array_cache(c.path, {"user": {"k": 1}, "n": 5, "shape": [4, 5], "dtype": "<f4"})
     calls = []
     c2 = build_array_cache(tmp_path, fn=_producer(calls=calls), key={"k": 1}, **args)
-    assert calls and c2.key["user"] == {"k": 1}
+    assert calls
+    assert c2.key["user"] == {"k": 1}
     # A folder without its manifest (e.g. copied half-way) is rebuilt too.
     (c2.path / "manifest.json").unlink()
     calls.clear()
@@ -360,7 +367,8 @@ def test_release_mapped_pages_keeps_the_data_and_drops_the_resident_pages(tmp_pa
 def test_shard_rows_deal_out_whole_chunks_in_order():
     for n, chunk, count in [(17, 3, 2), (17, 3, 3), (4, 3, 3), (1, 64, 4), (64, 64, 2), (1000, 7, 16), (5, 1, 5)]:
         shares = [shard_rows(n, chunk, i, count) for i in range(count)]
-        assert shares[0][0] == 0 and shares[-1][1] == n
+        assert shares[0][0] == 0
+        assert shares[-1][1] == n
         assert all(a[1] == b[0] for a, b in itertools.pairwise(shares))  # contiguous, in process order
         assert all(lo % chunk == 0 and lo <= hi for lo, hi in shares)  # chunk-aligned, possibly empty
         sizes = [-(-(hi - lo) // chunk) for lo, hi in shares]
@@ -419,7 +427,8 @@ def test_shared_build_equals_one_process_build(tmp_path, count):
     assert _tree_bytes(root / ref.path.name) == _tree_bytes(ref.path)
     for c in caches:
         np.testing.assert_array_equal(c.data, ref.data)
-    assert all(n == names[0] for n in names) and len(names[0]) == 2
+    assert all(n == names[0] for n in names)
+    assert len(names[0]) == 2
     assert sorted(p.name for p in root.iterdir() if not p.name.startswith(".")) == [ref.path.name]
 
 
@@ -432,9 +441,11 @@ def test_shared_build_resumes_the_share_of_a_killed_process(tmp_path):
     lo1, hi1 = shard_rows(17, 3, 1, 2)  # (9, 17)
     killed = _producer(fail_after_chunks=lo1 // 3 + 1)  # raises at frame lo1 + 3
     _, errors, _ = _shared_build(root, 2, [_producer(), killed], **_SHARED)
-    assert isinstance(errors[1], Boom) and isinstance(errors[0], threading.BrokenBarrierError)
+    assert isinstance(errors[1], Boom)
+    assert isinstance(errors[0], threading.BrokenBarrierError)
     parts = {p.name.split(".")[-2]: p for p in root.iterdir() if p.name.endswith(".partial")}
-    assert set(parts) == {"shard0of2", "shard1of2"} and not _complete_dirs(root)
+    assert set(parts) == {"shard0of2", "shard1of2"}
+    assert not _complete_dirs(root)
     assert json.loads((parts["shard0of2"] / "progress.json").read_text())["rows_done"] == lo1
     assert json.loads((parts["shard1of2"] / "progress.json").read_text())["rows_done"] == 3
 
@@ -449,7 +460,8 @@ def test_shared_build_resumes_the_share_of_a_killed_process(tmp_path):
     _, errors, _ = _shared_build(other, 2, [_producer(), killed], **_SHARED)
     assert errors[1] is not None
     caches, errors, _ = _shared_build(other, 3, [_producer()] * 3, **_SHARED)
-    assert errors == [None] * 3 and _tree_bytes(caches[0].path) == _tree_bytes(ref.path)
+    assert errors == [None] * 3
+    assert _tree_bytes(caches[0].path) == _tree_bytes(ref.path)
     assert not any(p.name.endswith(".partial") for p in other.iterdir())
 
 
@@ -464,15 +476,20 @@ def test_shared_build_reuses_a_complete_cache_and_replaces_a_corrupt_one(tmp_pat
     (leftover / "data.npy").write_bytes(b"old share")
     calls = [[], []]
     caches, errors, names = _shared_build(tmp_path, 2, [_producer(calls=c) for c in calls], **_SHARED)
-    assert errors == [None, None] and calls == [[], []] and [c.path for c in caches] == [ref.path] * 2
-    assert names[0] == names[1] and len(names[0]) == 2
-    assert _tree_bytes(ref.path) == before and not leftover.exists()
+    assert errors == [None, None]
+    assert calls == [[], []]
+    assert [c.path for c in caches] == [ref.path] * 2
+    assert names[0] == names[1]
+    assert len(names[0]) == 2
+    assert _tree_bytes(ref.path) == before
+    assert not leftover.exists()
     data = ref.path / "data.npy"
     corrupt = bytearray(data.read_bytes())
     corrupt[-1] ^= 0xFF
     data.write_bytes(bytes(corrupt))
     _, errors, _ = _shared_build(tmp_path, 2, [_producer(calls=c) for c in calls], **_SHARED)
-    assert errors == [None, None] and all(calls)
+    assert errors == [None, None]
+    assert all(calls)
     assert _tree_bytes(ref.path) == before
 
 

@@ -107,7 +107,8 @@ def test_every_saved_step_is_sealed_and_verifies(finished):
             for f in (finished / str(step)).rglob("*")
             if f.is_file() and f.name != MANIFEST
         )
-        assert manifest["step"] == step and sorted(manifest["files"]) == on_disk
+        assert manifest["step"] == step
+        assert sorted(manifest["files"]) == on_disk
         assert _verify_step(finished / str(step)) is True
 
 
@@ -145,7 +146,8 @@ def test_a_damaged_last_step_is_discarded_and_the_rerun_ends_bit_for_bit_equal(
         assert _verify_step(last) is True
     else:
         assert len(warnings) == 1
-        assert str(last) in warnings[0] and "resuming from step 8" in warnings[0]
+        assert str(last) in warnings[0]
+        assert "resuming from step 8" in warnings[0]
         assert _verify_step(last) is True  # retrained from step 8 and saved again, sealed
     with Checkpointer(folder) as ck:
         assert ck.latest_step() == 12
@@ -159,7 +161,8 @@ def test_every_damaged_step_is_discarded_and_training_starts_over(finished, unin
         healed = _train(folder)
     _assert_bitwise_equal(healed, uninterrupted)
     warnings = [r.getMessage() for r in caplog.records if r.name == "placejax.training._checkpoint"]
-    assert len(warnings) == 2 and "training from scratch" in warnings[1]
+    assert len(warnings) == 2
+    assert "training from scratch" in warnings[1]
 
 
 def test_an_interrupted_run_with_a_damaged_step_resumes_from_the_one_before(uninterrupted, tmp_path, caplog):

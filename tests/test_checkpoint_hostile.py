@@ -473,7 +473,8 @@ def test_key_limits_leave_ordinary_keys_alone(tmp_path):
         ("pairs", pickle.EMPTY_SET + pickle.MARK + p_tuple(p_str("a"), p_int(1 << 60)) + pickle.ADDITEMS),
     )
     got = load(io.BytesIO(p_pickle(body)), NoHooks())
-    assert got["state"] == {k: -k for k in range(1000)} and got["pairs"] == {("a", 1 << 60)}
+    assert got["state"] == {k: -k for k in range(1000)}
+    assert got["pairs"] == {("a", 1 << 60)}
     small = PickleLimits(max_container=999)
     with pytest.raises(PickleRejected, match="a container of more than 999 items"):
         load(io.BytesIO(p_pickle(body)), NoHooks(), small)
@@ -506,14 +507,16 @@ def test_vgg16s_structure_fits_the_default_budgets():
     for i, (cin, cout) in zip((0, 3, 6), [(25088, 4096), (4096, 4096), (4096, 1000)], strict=True):
         shapes[f"classifier.{i}.weight"], shapes[f"classifier.{i}.bias"] = (cout, cin), (cout,)
     numels = {k: int(np.prod(v)) for k, v in shapes.items()}
-    assert len(shapes) == 32 and sum(numels.values()) == 138_357_544  # torchvision's VGG16 parameter count
+    assert len(shapes) == 32
+    assert sum(numels.values()) == 138_357_544
     strides = {k: tuple(int(np.prod(v[i + 1 :])) for i in range(len(v))) for k, v in shapes.items()}
     pairs = [
         (k, p_tensor(p_storage(str(n), numels[k], legacy=True), shapes[k], strides[k])) for n, k in enumerate(shapes)
     ]
     refs = {}
     state = load(io.BytesIO(p_pickle(p_odict(*pairs))), _Hooks(refs))
-    assert list(state) == list(shapes) and len(refs) == 32
+    assert list(state) == list(shapes)
+    assert len(refs) == 32
     assert 4 * sum(numels.values()) == 553_430_176 < DEFAULT_MAX_BYTES // 7
 
 
@@ -611,7 +614,8 @@ def test_big_endian_byteorder_is_honoured(tmp_path):
     path = write_zip(tmp_path / "big.pt", valid_zip_pickle(), {"0": W.astype(">f4").tobytes()}, b"big")
     got = read_torch_checkpoint(path)["w"]
     np.testing.assert_array_equal(got, W)
-    assert got.dtype == np.float32 and got.dtype.isnative
+    assert got.dtype == np.float32
+    assert got.dtype.isnative
 
 
 def test_format_detection_follows_torch(tmp_path):
@@ -667,7 +671,9 @@ def test_benign_unsupported_tensors_are_named_not_called_malicious(tmp_path, kin
     with pytest.raises(TorchCheckpointError) as err:
         read_torch_checkpoint(path)
     assert type(err.value) is TorchCheckpointError, str(err.value)
-    assert words in str(err.value) and "does not convert" in str(err.value) and "malicious" not in str(err.value)
+    assert words in str(err.value)
+    assert "does not convert" in str(err.value)
+    assert "malicious" not in str(err.value)
 
 
 _REAL_UNSUPPORTED = r"""
@@ -872,11 +878,40 @@ _GLOBALS = [
 ]
 _NO_ARG = [
     getattr(pickle, name)
-    for name in (
-        "MARK POP POP_MARK DUP NONE NEWTRUE NEWFALSE EMPTY_LIST EMPTY_TUPLE EMPTY_DICT EMPTY_SET APPEND APPENDS "
-        "LIST TUPLE TUPLE1 TUPLE2 TUPLE3 DICT SETITEM SETITEMS ADDITEMS FROZENSET REDUCE BUILD BINPERSID "
-        "STACK_GLOBAL MEMOIZE NEWOBJ NEWOBJ_EX OBJ STOP"
-    ).split()
+    for name in [
+        "MARK",
+        "POP",
+        "POP_MARK",
+        "DUP",
+        "NONE",
+        "NEWTRUE",
+        "NEWFALSE",
+        "EMPTY_LIST",
+        "EMPTY_TUPLE",
+        "EMPTY_DICT",
+        "EMPTY_SET",
+        "APPEND",
+        "APPENDS",
+        "LIST",
+        "TUPLE",
+        "TUPLE1",
+        "TUPLE2",
+        "TUPLE3",
+        "DICT",
+        "SETITEM",
+        "SETITEMS",
+        "ADDITEMS",
+        "FROZENSET",
+        "REDUCE",
+        "BUILD",
+        "BINPERSID",
+        "STACK_GLOBAL",
+        "MEMOIZE",
+        "NEWOBJ",
+        "NEWOBJ_EX",
+        "OBJ",
+        "STOP",
+    ]
 ]
 _SCALAR_OPS = st.one_of(
     st.integers(-(1 << 70), 1 << 70).map(p_int),
@@ -914,7 +949,8 @@ def _read_outcome(path: Path, sentinel) -> str:
     except TorchCheckpointError:
         outcome = "error"
     else:
-        assert isinstance(got, dict) and all(isinstance(v, np.ndarray) for v in got.values())
+        assert isinstance(got, dict)
+        assert all(isinstance(v, np.ndarray) for v in got.values())
         outcome = "loaded"
     assert not sentinel.calls, "the reader called a global from the file"
     return outcome

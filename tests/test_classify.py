@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 import shutil
 import zipfile
 from pathlib import Path
@@ -138,7 +139,8 @@ def test_predict_matches_the_experiments_evaluation(clf, experiment_outputs, ses
     # HHA-Net logit of 540 on SU off by 3.7e-3 of the scale (the nets of the smoke run are trained anew there): so
     # all within 1e-2, and 99 % within 3e-3.
     diff = np.abs(got["hha_image"].astype(int) - ref["hha"].astype(int))
-    assert diff.max() <= 1 and (diff == 0).mean() > 0.997, (diff.max(), (diff == 0).mean())
+    assert diff.max() <= 1, (diff.max(), (diff == 0).mean())
+    assert (diff == 0).mean() > 0.997, (diff.max(), (diff == 0).mean())
 
     def close(a, b, rel, most_rel=None):
         scale = np.abs(b).max()
@@ -157,14 +159,18 @@ def test_predict_matches_the_experiments_evaluation(clf, experiment_outputs, ses
 def test_prediction_fields_describe_the_cell(clf, experiment_outputs):
     images = experiment_outputs[TRAIN]["images"][:5]
     pred = clf.predict(images)
-    assert len(pred) == 5 and pred.branch == "fusion" and pred.probabilities.shape == (5, clf.grid.num_classes)
+    assert len(pred) == 5
+    assert pred.branch == "fusion"
+    assert pred.probabilities.shape == (5, clf.grid.num_classes)
     for i in range(5):
         x_lo, x_hi, y_lo, y_hi = clf.grid.cell_bounds(int(pred.label[i]))
-        assert x_lo <= pred.cell_center[i, 0] <= x_hi and y_lo <= pred.cell_center[i, 1] <= y_hi
+        assert x_lo <= pred.cell_center[i, 0] <= x_hi
+        assert y_lo <= pred.cell_center[i, 1] <= y_hi
         assert clf.grid.label(pred.cell_center[i][None])[0] == pred.label[i]
     np.testing.assert_array_equal(pred.rejected, pred.unknown_score > clf.threshold)
     rgb_only = clf.predict(images, branch="rgb")
-    assert rgb_only.branch == "rgb" and not rgb_only.rejected.any()
+    assert rgb_only.branch == "rgb"
+    assert not rgb_only.rejected.any()
     json.dumps(pred.records())
 
 
@@ -179,7 +185,8 @@ def test_batch_equals_loop_and_buckets_bound_compiles(clf, experiment_outputs):
     # by ±1, none by more), so its logits agree less tightly.
     np.testing.assert_allclose(batch["rgb"], loop["rgb"], rtol=0, atol=1e-4 * np.abs(loop["rgb"]).max())
     diff = np.abs(batch["hha_image"].astype(int) - loop["hha_image"].astype(int))
-    assert diff.max() <= 1 and (diff == 0).mean() >= 0.98, (diff.max(), (diff == 0).mean())
+    assert diff.max() <= 1, (diff.max(), (diff == 0).mean())
+    assert (diff == 0).mean() >= 0.98, (diff.max(), (diff == 0).mean())
     for branch in ("hha", "fusion"):
         np.testing.assert_allclose(batch[branch], loop[branch], rtol=0, atol=1e-2 * np.abs(loop[branch]).max())
         np.testing.assert_array_equal(batch[branch].argmax(1), loop[branch].argmax(1))
@@ -206,7 +213,8 @@ def test_public_forward_is_what_the_classifier_runs_and_jit_equals_eager(clf, ex
     images = experiment_outputs[TRAIN]["images"][:2]
     jitted = jax.jit(functools.partial(classify.forward, clf.spec))(clf.params, jnp.asarray(images))
     assert all(isinstance(v, jax.Array) for v in jitted.values())
-    assert jitted["fusion"].shape == (2, clf.grid.num_classes) and jitted["hha_image"].dtype == jnp.uint8
+    assert jitted["fusion"].shape == (2, clf.grid.num_classes)
+    assert jitted["hha_image"].dtype == jnp.uint8
     via_classifier = clf.logits(images)
     for k in ("fusion", "rgb", "hha"):
         scale = np.abs(via_classifier[k]).max()
@@ -216,7 +224,8 @@ def test_public_forward_is_what_the_classifier_runs_and_jit_equals_eager(clf, ex
     scale = np.abs(via_classifier["rgb"]).max()
     np.testing.assert_allclose(np.asarray(eager["rgb"]), np.asarray(jitted["rgb"]), rtol=0, atol=1e-3 * scale)
     diff = np.abs(np.asarray(eager["hha_image"], int) - np.asarray(jitted["hha_image"], int))
-    assert diff.max() <= 1 and (diff == 0).mean() >= 0.98
+    assert diff.max() <= 1
+    assert (diff == 0).mean() >= 0.98
 
 
 def test_other_image_sizes_are_resized_as_the_cache_does(clf, experiment_outputs):
@@ -238,10 +247,12 @@ def test_save_load_predict_is_identical(clf, experiment_outputs, tmp_path):
     assert_same_predictions(a, b)
     with zipfile.ZipFile(path) as z:
         manifest = json.loads(z.read("manifest.json"))
-    assert manifest["format"] == "placejax.PlaceClassifier" and manifest["train_session"] == TRAIN
+    assert manifest["format"] == "placejax.PlaceClassifier"
+    assert manifest["train_session"] == TRAIN
     assert {"jax", "flax", "placejax"} <= set(manifest["versions"])
     assert all(len(m["sha256"]) == 64 for m in manifest["arrays"].values())
-    assert manifest["grid"] == clf.meta["grid"] and manifest["config"]["preset"] == "smoke"
+    assert manifest["grid"] == clf.meta["grid"]
+    assert manifest["config"]["preset"] == "smoke"
 
 
 def _rewrite(src: Path, dst: Path, *, manifest=None, array_bytes=None, drop=None) -> Path:
@@ -278,7 +289,7 @@ def _flip_last_byte(data: bytes) -> bytes:
 
 
 @pytest.mark.parametrize(
-    "corrupt, message",
+    ("corrupt", "message"),
     [
         ("flip", "SHA-256"),
         ("truncate", "not a zip archive"),
@@ -379,7 +390,7 @@ def test_from_run_reads_the_shipped_depth_network(classify_run, monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "images, error, message",
+    ("images", "error", "message"),
     [
         (np.zeros((2, 32, 32, 3), np.float32), TypeError, r"dtype uint8.*\(N, H, W, 3\).*float32"),
         (np.zeros((32, 32, 3), np.uint8), ValueError, r"\(N, H, W, 3\).*\(32, 32, 3\).*images\[None\]"),
@@ -408,13 +419,17 @@ def test_command_text_json_and_figure(saved, experiment_outputs, tmp_path, capsy
     a, b = _png(tmp_path / "a.png", imgs[0]), _png(tmp_path / "b.png", imgs[len(imgs) // 2])
     assert classify_main([str(saved), str(a), str(b)]) == 0
     text = capsys.readouterr().out
-    assert "a.png: class" in text and "confidence" in text and "cell centre" in text and "place" in text
+    assert "a.png: class" in text
+    assert "confidence" in text
+    assert "cell centre" in text
+    assert "place" in text
     assert classify_main([str(saved), str(a), str(b), "--json", "--figure", str(tmp_path / "fig.png")]) == 0
     doc = json.loads(capsys.readouterr().out)
     expected = PlaceClassifier.load(saved).predict(np.stack([imgs[0], imgs[len(imgs) // 2]])).records()
     assert [r["image"] for r in doc["images"]] == [str(a), str(b)]
     for got, want in zip(doc["images"], expected, strict=True):
-        assert got["class"] == want["class"] and got["rejected"] == want["rejected"]
+        assert got["class"] == want["class"]
+        assert got["rejected"] == want["rejected"]
         assert got["confidence"] == pytest.approx(want["confidence"], abs=1e-6)
     assert cv2.imread(str(tmp_path / "fig.png")) is not None
 
@@ -434,7 +449,8 @@ def test_command_errors_name_the_file(saved, tmp_path, capsys):
     text.write_text("not an image")
     assert classify_main([str(saved), str(text)]) == 2
     err = capsys.readouterr().err
-    assert "notes.txt" in err and "not an image file" in err
+    assert "notes.txt" in err
+    assert "not an image file" in err
     assert classify_main([str(saved), str(tmp_path / "missing.png")]) == 2
     assert "missing.png: no such file" in capsys.readouterr().err
     png = _png(tmp_path / "ok.png", np.zeros((8, 8, 3), np.uint8))
@@ -474,7 +490,8 @@ def test_results_and_table_carry_the_unknown_columns(classify_run):
         assert k in pair
     table = (workdir / "table.md").read_text()
     assert "| train | test | Ours | RGB-Net | gain | HHA-Net | gain |" in table
-    assert "AUROC msp" in table and "unseen rejected" in table
+    assert "AUROC msp" in table
+    assert "unseen rejected" in table
     index = json.loads((workdir / "classifiers.json").read_text())
     assert set(index["sessions"]) == {TRAIN, TEST}
     assert jax.tree_util.tree_leaves(index["sessions"][TRAIN]["unknown"])
@@ -494,7 +511,11 @@ def test_from_run_uses_the_score_chosen_on_world_1(classify_run, clf, experiment
         np.testing.assert_array_equal(np.asarray(clf.params["unknown"][k]), v)
     # The training frames are memorised: near their own reference embedding (up to the ±1 HHA rounding), kept.
     pred = clf.predict(experiment_outputs[TRAIN]["images"][:4])
-    assert np.all(pred.unknown_score < 0.5 * clf.threshold) and not pred.rejected.any(), (
+    assert np.all(pred.unknown_score < 0.5 * clf.threshold), (
+        pred.unknown_score,
+        clf.threshold,
+    )
+    assert not pred.rejected.any(), (
         pred.unknown_score,
         clf.threshold,
     )
@@ -559,7 +580,8 @@ def test_fusion_head_options_train_on_the_copies(classify_run, tmp_path, monkeyp
     cfg = cfg.copy_and_resolve_references()
     apply_overrides(cfg, ["train.jitter_copies=1", "mlp.jittered=True", "mlp.modality_dropout=0.25"])
     c = sections(cfg)
-    assert results_only(c["mlp"])["modality_dropout"] == 0.25 and results_only(c["mlp"])["jittered"] is True
+    assert results_only(c["mlp"])["modality_dropout"] == 0.25
+    assert results_only(c["mlp"])["jittered"] is True
     ws, sessions, grid = _sessions_with_depth(cfg, tmp_path / "run")
     seen = []
     original = _fusion.train_classifier
@@ -583,7 +605,8 @@ def test_fusion_head_options_train_on_the_copies(classify_run, tmp_path, monkeyp
     tr = {s.name: s for s in sessions}[TRAIN]
     frames, labels = seen[0]
     n = len(tr)
-    assert frames.shape[0] == 2 * n and np.array_equal(labels, np.tile(tr.labels, 2))
+    assert frames.shape[0] == 2 * n
+    assert np.array_equal(labels, np.tile(tr.labels, 2))
     for half, m in enumerate(("rgb", "hha")):
         d = outputs[(TRAIN, m, TRAIN)]["fc7"].shape[1]
         cols = slice(half * d, (half + 1) * d)
@@ -618,7 +641,7 @@ def test_a_run_with_rendered_depth_is_refused_with_the_command_that_fixes_it(tmp
         visited_classes=[],
         unknown={},
     )
-    with pytest.raises(ValueError) as e:
+    with pytest.raises(ValueError, match=re.escape("used depth.source='true'")) as e:
         run_depth_source(files)
     message = str(e.value)
     assert f"the run in {tmp_path / 'run'} used depth.source='true'" in message

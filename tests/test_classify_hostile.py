@@ -378,14 +378,17 @@ def test_crafted_classifier_files_are_refused_by_name(outcomes, case):
     assert got["over_base"] < GIB, got
     assert cli[case]["code"] == 2, cli[case]
     lines = cli[case]["stderr"].splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"error: MODEL {path}") and "Traceback" not in lines[0], lines
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"error: MODEL {path}"), lines
+    assert "Traceback" not in lines[0], lines
     assert cli[case]["over_base"] < GIB
 
 
 @pytest.mark.slow
 def test_crafted_files_cover_the_issue(outcomes):
     files, imgs, *_ = outcomes
-    assert set(files) == set(CASES) and len(imgs) == 7
+    assert set(files) == set(CASES)
+    assert len(imgs) == 7
     assert all(p.stat().st_size < (2 << 20) for p, _ in files.values())  # small files, big claims
 
 
@@ -400,7 +403,9 @@ def test_crafted_images_are_refused_before_decoding(outcomes, name):
     got = cli[name]
     assert got["code"] == 2, got
     lines = got["stderr"].splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"error: IMAGE {path}: ") and expect in lines[0], lines
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"error: IMAGE {path}: "), lines
+    assert expect in lines[0], lines
     assert got["over_base"] < 256 << 20, got  # nothing near 20000² × 3 bytes
 
 
@@ -417,8 +422,10 @@ def test_the_command_prints_one_line_and_exits_2(tiny, tmp_path):
         run = subprocess.run(
             [sys.executable, "-m", "placejax.classify", *argv], capture_output=True, text=True, env=env, timeout=120
         )
-        assert run.returncode == 2 and run.stdout == "", (run.returncode, run.stdout, run.stderr)
-        assert run.stderr.count("\n") == 1 and run.stderr.startswith(f"error: {where}"), run.stderr
+        assert run.returncode == 2, (run.returncode, run.stdout, run.stderr)
+        assert run.stdout == "", (run.returncode, run.stdout, run.stderr)
+        assert run.stderr.count("\n") == 1, run.stderr
+        assert run.stderr.startswith(f"error: {where}"), run.stderr
 
 
 @pytest.mark.slow
@@ -546,7 +553,7 @@ def test_hha_unsupported_compute_dtypes_are_type_errors(dtype):
 
 
 @pytest.mark.parametrize(
-    "fx, fy, match",
+    ("fx", "fy", "match"),
     [
         (1e-40, 20.0, "normal numbers"),
         (20.0, 1e-320, "normal numbers"),
@@ -688,7 +695,8 @@ def test_random_manifests_and_byte_edits_load_identically_or_refuse(tiny, tmp_pa
     ArtefactError naming the file; never another exception, never over 1 GiB above the baseline."""
     report = json.loads(run_child(_PROPERTIES, str(tiny), str(tmp_path), "40", cpu_s=300).splitlines()[-1])
     assert report["over_base"] < GIB, report
-    assert report["refused"] > 0 and report["loaded"] > 0, report  # both outcomes were exercised
+    assert report["refused"] > 0, report
+    assert report["loaded"] > 0, report  # both outcomes were exercised
 
 
 def test_artefact_keeps_every_array_shape_and_order(tmp_path):
@@ -706,7 +714,8 @@ def test_artefact_keeps_every_array_shape_and_order(tmp_path):
     manifest, back = read_artefact(tmp_path / "a.zip")
     assert sorted(back) == sorted(arrays)
     for name, a in arrays.items():
-        assert back[name].shape == np.shape(a) and back[name].dtype == np.asarray(a).dtype, name
+        assert back[name].shape == np.shape(a), name
+        assert back[name].dtype == np.asarray(a).dtype, name
         assert manifest["arrays"][name]["shape"] == list(np.shape(a)), name
         np.testing.assert_array_equal(back[name], a)
 
@@ -781,8 +790,10 @@ def test_a_missing_jax_platform_is_one_line_naming_the_variable(tiny, tmp_path):
     ):
         done = subprocess.run([sys.executable, *argv], capture_output=True, text=True, env=env, timeout=120)
         lines = done.stderr.strip().splitlines()
-        assert done.returncode == 2 and len(lines) == 1, done.stderr[-2000:]
-        assert lines[0].startswith("error: JAX_PLATFORMS='cuda': JAX found no such platform") and "cuda12" in lines[0]
+        assert done.returncode == 2, done.stderr[-2000:]
+        assert len(lines) == 1, done.stderr[-2000:]
+        assert lines[0].startswith("error: JAX_PLATFORMS='cuda': JAX found no such platform")
+        assert "cuda12" in lines[0]
     assert not (tmp_path / "run").exists()
 
 

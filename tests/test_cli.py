@@ -67,7 +67,8 @@ def test_traceback_only_when_asked_and_the_flag_is_taken_out_before_main_parses(
     assert _failing(ValueError("bad value"), seen)(["a", "--traceback", "b", "--", "c", "--traceback"]) == 2
     assert seen == [["a", "b", "--", "c", "--traceback"]]  # after "--": another command's option
     err = capsys.readouterr().err
-    assert err.startswith("Traceback (most recent call last):") and err.endswith("error: bad value\n")
+    assert err.startswith("Traceback (most recent call last):")
+    assert err.endswith("error: bad value\n")
     monkeypatch.setenv(cli.TRACEBACK_ENV, "1")
     assert _failing(ValueError("bad value"))([]) == 2
     assert "Traceback" in capsys.readouterr().err
@@ -103,11 +104,12 @@ def test_atomic_write_names_the_file_of_a_full_disk_and_keeps_the_old_one(tmp_pa
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     monkeypatch.setattr(os, "fsync", full)
-    with pytest.raises(OSError) as info:
+    with pytest.raises(OSError, match=os.strerror(errno.ENOSPC)) as info:
         io.write_json(target, {"new": 2})
     assert (info.value.errno, info.value.filename) == (errno.ENOSPC, str(target))
     assert cli.describe(info.value) == f"ENOSPC: no space left on device while writing {target}"
-    assert target.read_text() == '{\n  "old": 1\n}\n' and sorted(p.name for p in tmp_path.iterdir()) == [target.name]
+    assert target.read_text() == '{\n  "old": 1\n}\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == [target.name]
 
 
 def test_run_lock_waits_for_the_holder_when_asked(tmp_path, capsys):
@@ -357,11 +359,15 @@ def test_every_command_fails_in_one_line_with_status_2(name, failed_runs):
     done, expected = runs[name], cases[name][2]
     lines = _shown_lines(done.stderr)
     assert done.returncode == 2, f"{name}: status {done.returncode}\n{done.stderr[-3000:]}"
-    assert "Traceback" not in done.stderr and "sys.meta_path" not in done.stderr, done.stderr[-3000:]
-    assert lines and lines[-1].startswith("error: ") and expected in lines[-1], lines
+    assert "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert "sys.meta_path" not in done.stderr, done.stderr[-3000:]
+    assert lines, lines
+    assert lines[-1].startswith("error: "), lines
+    assert expected in lines[-1], lines
     before = lines[:-1]
     if name in _ANNOUNCED:
-        assert len(before) == 1 and before[0].startswith(_ANNOUNCED[name]), lines
+        assert len(before) == 1, lines
+        assert before[0].startswith(_ANNOUNCED[name]), lines
     else:
         assert before == [], lines
 

@@ -71,7 +71,8 @@ def test_a_smoke_run_feeds_the_classifier_and_the_tracker(smoke, tmp_path):
     size = footprint(workdir)
     assert (size["bytes"], size["files"]) == (sum(p.stat().st_size for p in walked), len(walked))
     assert size["entries"]["results.json"] == {"bytes": (workdir / "results.json").stat().st_size, "files": 1}
-    assert sum(e["files"] for e in size["entries"].values()) == size["files"] and size["entries"]["nets"]["files"] > 0
+    assert sum(e["files"] for e in size["entries"].values()) == size["files"]
+    assert size["entries"]["nets"]["files"] > 0
 
 
 def _accuracies(results: dict) -> dict:
@@ -95,14 +96,17 @@ def test_smoke_table_and_results(smoke):
     assert sum(t[s] for s in stages) <= t["total"] * 1.01 + 1.0  # stages are disjoint parts of the run
     # Peak memory so far after each stage: positive, never decreasing in stage order, the total the largest.
     peak = results["peak_rss_mib"]
-    assert set(stages) <= set(peak) and peak["sessions"] > 0
+    assert set(stages) <= set(peak)
+    assert peak["sessions"] > 0
     in_order = [peak[s] for s in stages]
-    assert in_order == sorted(in_order) and peak["total"] == max(peak.values())
+    assert in_order == sorted(in_order)
+    assert peak["total"] == max(peak.values())
     text = (workdir / "table.md").read_text()
     table = text.split("\n\n")[0].splitlines()  # the paper's table (the baselines table follows)
     assert table[0].split("|")[1:8] == [" train ", " test ", " Ours ", " RGB-Net ", " gain ", " HHA-Net ", " gain "]
     rows = [r for r in table[2:] if r.startswith("|")]
-    assert len(rows) == 13 and rows[-1].startswith("| **mean**")
+    assert len(rows) == 13
+    assert rows[-1].startswith("| **mean**")
     for p, r in zip(results["pairs"], rows, strict=False):
         cells = [c.strip() for c in r.strip("|").split("|")]
         assert cells[:2] == [p["train"], p["test"]]
@@ -167,12 +171,15 @@ def test_the_paper_columns_only_beside_its_own_sessions_and_a_smoke_table_says_i
 
     _, results = smoke
     text = table_markdown(results)
-    assert "paper: Ours" in text and "WI = 2012-01-22" in text
-    assert "With 9 place classes (a smoke run" in text and "are noise" in text
+    assert "paper: Ours" in text
+    assert "WI = 2012-01-22" in text
+    assert "With 9 place classes (a smoke run" in text
+    assert "are noise" in text
     own = copy.deepcopy(results)
     own["config"]["data"]["source"] = "folder"
     text = table_markdown(own)
-    assert "paper: Ours" not in text and "2012-01-22" not in text
+    assert "paper: Ours" not in text
+    assert "2012-01-22" not in text
 
 
 def test_the_rendered_depth_ceiling_adds_columns_and_changes_none(smoke, tmp_path):
@@ -189,13 +196,16 @@ def test_the_rendered_depth_ceiling_adds_columns_and_changes_none(smoke, tmp_pat
         for m in ("ours", "rgb_net", "hha_net", "average", "depth1_net"):
             assert p[f"{m}_per_seed"] == q[f"{m}_per_seed"], m
         for m in ("ours_rendered", "hha_net_rendered", "average_rendered"):
-            assert len(q[f"{m}_per_seed"]) == 2 and 0.0 <= q[m] <= 1.0
-        assert "gain_ours_rendered_vs_hha_net_rendered" in q and "gain_ours_rendered_vs_average_rendered" in q
+            assert len(q[f"{m}_per_seed"]) == 2
+            assert 0.0 <= q[m] <= 1.0
+        assert "gain_ours_rendered_vs_hha_net_rendered" in q
+        assert "gain_ours_rendered_vs_average_rendered" in q
     assert {"ours_rendered_vs_hha_net_rendered", "ours_rendered_vs_average_rendered"} <= set(results["gains"])
     # HHA on rendered depth is another input: its nets are other nets.
     assert any(p["hha_net_rendered_per_seed"] != p["hha_net_per_seed"] for p in results["pairs"])
     table = (copy / "table.md").read_text()
-    assert "HHA-Net (rendered depth)" in table and "Ours (rendered depth)" in table
+    assert "HHA-Net (rendered depth)" in table
+    assert "Ours (rendered depth)" in table
     from experiments.cross_season.report.table import table_text
 
     assert "on rendered depth (the ceiling): HHA-Net" in table_text(results)
@@ -211,8 +221,11 @@ def test_log_linear_pools_end_at_the_two_nets(smoke, tmp_path):
     shutil.copytree(workdir, copy, ignore=shutil.ignore_patterns(".lock"))
     results = run(smoke_config("ablations.pool_weights=(0.0, 0.5, 1.0)", "figures=False"), copy)
     for p, q in zip(base["pairs"], results["pairs"], strict=True):
-        assert q["pool_1_per_seed"] == q["rgb_net_per_seed"] and q["pool_0_per_seed"] == q["hha_net_per_seed"]
-        assert 0.0 <= q["pool_0.5"] <= 1.0 and "gain_pool_0.5_vs_ours" in q and "gain_pool_0.5_vs_average" in q
+        assert q["pool_1_per_seed"] == q["rgb_net_per_seed"]
+        assert q["pool_0_per_seed"] == q["hha_net_per_seed"]
+        assert 0.0 <= q["pool_0.5"] <= 1.0
+        assert "gain_pool_0.5_vs_ours" in q
+        assert "gain_pool_0.5_vs_average" in q
         for m in ("ours", "rgb_net", "hha_net", "average"):
             assert p[f"{m}_per_seed"] == q[f"{m}_per_seed"], m
     assert "Pool(w=0.5)" in (copy / "table.md").read_text()
@@ -226,7 +239,8 @@ def test_no_builtin_preset_collapses_the_map_before_fc6(preset):
 
     cfg = get_config(preset)
     h, w = trunk_map_size(tuple(cfg.data.image_size), cfg.vgg.width)
-    assert h >= 2 and w >= 2, f"preset {preset!r}: {tuple(cfg.data.image_size)} collapses to {h} × {w} before fc6"
+    assert h >= 2, f"preset {preset!r}: {tuple(cfg.data.image_size)} collapses to {h} × {w} before fc6"
+    assert w >= 2, f"preset {preset!r}: {tuple(cfg.data.image_size)} collapses to {h} × {w} before fc6"
     assert trunk_map_size((48, 48), cfg.vgg.width) == (1, 1)  # the check can fail: 48² does collapse
 
 
@@ -373,7 +387,8 @@ def test_interrupted_and_killed_run_resumes_to_the_same_accuracies(smoke, tmp_pa
     stopped = _interrupt_when(workdir, env, 2, signal.SIGINT)
     assert stopped.returncode == 130, stopped.stderr[-2000:]
     last = stopped.stderr.strip().splitlines()[-1]
-    assert "interrupted: rerun the same command to resume" in last and str(workdir) in last
+    assert "interrupted: rerun the same command to resume" in last
+    assert str(workdir) in last
     assert "Traceback" not in stopped.stderr
     # SIGKILL later in the same stage: no handler runs at all.
     _interrupt_when(workdir, env, 3, signal.SIGKILL)
@@ -418,7 +433,8 @@ def test_paper_path_on_fake_nclt(tmp_path, midas_recipe_npz):
         ],
     )
     results = run(cfg, tmp_path / "work")
-    assert results["preset"] == "paper" and results["config"]["data"]["source"] == "nclt"
+    assert results["preset"] == "paper"
+    assert results["config"]["data"]["source"] == "nclt"
     assert sorted(p["test"] for p in results["pairs"]) == sorted(d for d in dates for _ in range(3))
     assert {s: v["frames"] for s, v in results["sessions"].items()} == {d: fake.sessions[d].n_kept for d in dates}
     work = tmp_path / "work"
@@ -452,7 +468,9 @@ def _assert_net_accuracies_recomputed(workdir: Path, results: dict, sessions, si
 def test_bool_overrides_are_bools():
     cfg = get_config("smoke")
     apply_overrides(cfg, ["figures=False", "progress=false", "ablations.depth1=True"])
-    assert cfg.figures is False and cfg.progress is False and cfg.ablations.depth1 is True
+    assert cfg.figures is False
+    assert cfg.progress is False
+    assert cfg.ablations.depth1 is True
     for bad in ("figures=0", "figures=no", "train.epochs=True"):
         with pytest.raises(ValueError, match="override"):
             apply_overrides(get_config("smoke"), [bad])
@@ -473,7 +491,7 @@ def test_whole_config_is_validated_before_any_stage(tmp_path):
             "depth.shift_px=(2, 0)",
         ],
     )
-    with pytest.raises(ValueError) as err:
+    with pytest.raises(ValueError, match=r"data\.sessions") as err:
         run(cfg, tmp_path / "never")
     msg = str(err.value)
     for key in (
@@ -514,7 +532,7 @@ def test_every_number_key_refuses_an_absurd_value_before_any_stage(tmp_path):
         for p in parents:
             target = target[p]
         target[leaf] = 10**30 if isinstance(old, int) else 1e300
-        with pytest.raises(ValueError) as err:
+        with pytest.raises(ValueError, match=re.escape(leaf)) as err:
             validate(cfg)
         msg = str(err.value)
         assert key in msg or (leaf in msg and parents[0] in msg), (key, msg[:300])  # route: "route: ….leaf"
@@ -553,7 +571,9 @@ def test_bad_overrides_are_explained():
         text=True,
         env={**os.environ, "PYTHONPATH": str(REPO)},
     )
-    assert done.returncode == 0 and "depth.source" in done.stdout and "--preset" in done.stdout
+    assert done.returncode == 0
+    assert "depth.source" in done.stdout
+    assert "--preset" in done.stdout
 
 
 def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smoke, tmp_path, monkeypatch):
@@ -562,9 +582,8 @@ def test_two_runs_cannot_share_a_work_directory_and_read_only_runs_are_read(smok
 
     workdir, _ = smoke
     cfg = smoke_config()
-    with io.run_lock(workdir):
-        with pytest.raises(RuntimeError, match=r"in use by another run \(pid \d+"):
-            run(cfg, workdir)
+    with io.run_lock(workdir), pytest.raises(RuntimeError, match=r"in use by another run \(pid \d+"):
+        run(cfg, workdir)
     # A finished run on read-only storage (simulated: this suite runs as root, which may write anywhere) is read
     # back without a single write.
     real_access = os.access
@@ -607,7 +626,8 @@ def test_two_processes_train_exactly_like_one_process_with_two_devices(smoke, tm
     assert all(a is not None for acc in _accuracies(one).values() for a in acc[:3])
     # Process 0 alone holds the work-directory lock (and writes the shared files).
     assert (workdir / ".lock").read_text().startswith("pid ")
-    assert "[process 0]" in done.stdout and "[process 1]" in done.stdout
+    assert "[process 0]" in done.stdout
+    assert "[process 1]" in done.stdout
 
 
 def test_ceilings_and_nearest_neighbour_baselines(smoke):
@@ -640,7 +660,8 @@ def test_ceilings_and_nearest_neighbour_baselines(smoke):
         "nn_hha_true",
     }
     table = (workdir / "table.md").read_text()
-    assert "ceiling: seen class and heading ±45°" in table and "1-NN HHA 16² (rendered depth)" in table
+    assert "ceiling: seen class and heading ±45°" in table
+    assert "1-NN HHA 16² (rendered depth)" in table
 
 
 def test_hha_diagnose_on_the_smoke_run_reproduces_its_rendered_depth_baseline(smoke, smoke_depth_run, capsys):
@@ -674,7 +695,8 @@ def test_hha_diagnose_on_the_smoke_run_reproduces_its_rendered_depth_baseline(sm
     )
     assert all(0.0 <= float(v) <= 100.0 for v in alone.groups())
     table = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line[:2] in SEASONS}
-    assert set(table) == set(SEASONS) and all(len(v) == 6 for v in table.values())
+    assert set(table) == set(SEASONS)
+    assert all(len(v) == 6 for v in table.values())
     assert all(np.isfinite(float(v)) for k in SEASONS for v in table[k][2:])  # ground, objects, bias, AbsRel
     with pytest.raises(SystemExit):
         hha_diagnose.main([str(workdir), "--preset", "smoke"])  # --preset describes a --network run
@@ -696,9 +718,13 @@ def test_nearest_neighbour_and_heading_ceiling_on_analytic_cases():
     rgb = np.zeros((2, 8, 8, 3), np.uint8)
     rgb[1, :, 4:] = 255
     t = baselines.thumbnails(rgb, 4)
-    assert t.shape == (2, 48) and np.allclose(np.linalg.norm(t[1]), 1.0) and np.allclose(t[0], 0.0)
+    assert t.shape == (2, 48)
+    assert np.allclose(np.linalg.norm(t[1]), 1.0)
+    assert np.allclose(t[0], 0.0)
     g = baselines.gradient_thumbnails(rgb, 4)
-    assert g.shape == (2, 16) and np.allclose(g[0], 0.0) and np.allclose(np.linalg.norm(g[1]), 1.0)
+    assert g.shape == (2, 16)
+    assert np.allclose(g[0], 0.0)
+    assert np.allclose(np.linalg.norm(g[1]), 1.0)
 
 
 def test_smoke_route_columns(smoke):
@@ -719,7 +745,8 @@ def test_smoke_route_columns(smoke):
         "seq_match_vs_ours",
         "seq_match_vs_ours_route",
     }
-    assert r["lag_frames"] == results["config"]["route"]["lag_frames"] and r["lag_m"] > 0
+    assert r["lag_frames"] == results["config"]["route"]["lag_frames"]
+    assert r["lag_m"] > 0
     grid = PlaceGrid.load(workdir / "grid.json")
     cfg = get_config("smoke")
     labels = {s: _session_labels(workdir, grid, s, "64x64") for s in SEASONS}
@@ -732,9 +759,11 @@ def test_smoke_route_columns(smoke):
             ("seq_match", "ours_route"),
         ):
             assert 0.0 <= p[m] <= p["seen_class_fraction"] + 1e-9
-            assert len(p[f"{m}_per_seed"]) == 2 and p[m] == pytest.approx(np.mean(p[f"{m}_per_seed"]))
+            assert len(p[f"{m}_per_seed"]) == 2
+            assert p[m] == pytest.approx(np.mean(p[f"{m}_per_seed"]))
             g = p[f"gain_{m}_vs_{base}"]
-            assert g["gain"] == pytest.approx(p[m] - p[base]) and g["lo"] <= g["hi"]
+            assert g["gain"] == pytest.approx(p[m] - p[base])
+            assert g["lo"] <= g["hi"]
             assert g["excludes_zero"] == (g["lo"] > 0 or g["hi"] < 0)
         # The route's unseen-place columns are defined exactly where the single-frame ones are.
         for key in ("unknown_route_auroc", "unknown_route_msp_auroc", "unknown_seq_auroc"):
@@ -768,7 +797,8 @@ def test_smoke_route_columns(smoke):
         f"| train | test | Ours | Ours + route | gain | Ours + route, lag {lag} | gain | Seq. match | gain | vs route "
         "| RGB-Net | RGB-Net + route | gain |" in table
     )
-    assert "timings_s" in results and results["timings_s"]["route"] > 0
+    assert "timings_s" in results
+    assert results["timings_s"]["route"] > 0
 
 
 def test_smoke_unknown_feature_score_columns(smoke):

@@ -45,7 +45,8 @@ def test_network_size_rejects_degenerate():
 def test_preprocess_constant_image_and_resize_rule():
     img = np.full((48, 64, 3), (0, 128, 255), np.uint8)
     x = preprocess(img)
-    assert x.shape == (192, 256, 3) and x.dtype == np.float32
+    assert x.shape == (192, 256, 3)
+    assert x.dtype == np.float32
     # Bicubic resizing keeps a constant image constant; then the ImageNet normalisation.
     want = (np.array([0, 128, 255], np.float32) / 255 - MEAN) / STD
     np.testing.assert_allclose(x, np.broadcast_to(want, x.shape), atol=1e-5)
@@ -73,7 +74,8 @@ def test_predict_matches_original_model_end_to_end():
     x, ref = io["input_nchw"], io["output"]
     images = x.transpose(0, 2, 3, 1) * STD + MEAN  # float RGB (not confined to [0, 1]: random inputs)
     depth = predict(variables, images)
-    assert depth.shape == (2, 256, 256) and depth.dtype == np.float32
+    assert depth.shape == (2, 256, 256)
+    assert depth.dtype == np.float32
     assert np.abs(depth - ref).max() <= 1e-4 * (ref.max() - ref.min())
 
 
@@ -126,11 +128,15 @@ def test_apply_matches_the_host_path_and_jit_equals_eager(small):
         host = predict(variables, images, model=model, size=64, square=square)
         fn = functools.partial(depth.apply, model=model, size=64, square=square)
         jitted = jax.jit(fn)(variables, jnp.asarray(images))
-        assert isinstance(jitted, jax.Array) and jitted.shape == (2, *hw) and jitted.dtype == jnp.float32
+        assert isinstance(jitted, jax.Array)
+        assert jitted.shape == (2, *hw)
+        assert jitted.dtype == jnp.float32
         np.testing.assert_allclose(np.asarray(jitted), host, rtol=0, atol=2e-5 * float(np.ptp(host)))
         if i == 0:
             eager = fn(variables, images)
-            assert isinstance(eager, jax.Array) and eager.shape == (2, *hw) and eager.dtype == jnp.float32
+            assert isinstance(eager, jax.Array)
+            assert eager.shape == (2, *hw)
+            assert eager.dtype == jnp.float32
             np.testing.assert_allclose(np.asarray(eager), host, rtol=0, atol=2e-5 * float(np.ptp(host)))
             np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=0, atol=1e-5 * float(np.ptp(host)))
 

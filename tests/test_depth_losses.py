@@ -180,7 +180,8 @@ def test_far_to_sky_moves_only_the_far_predictions():
 
     d = np.array([[0.5, 49.9, 50.0, 80.0, 120.0]], np.float32)
     out = L.far_to_sky(d, 50.0)
-    assert isinstance(out, np.ndarray) and out.dtype == np.float32
+    assert isinstance(out, np.ndarray)
+    assert out.dtype == np.float32
     np.testing.assert_array_equal(out, np.float32([[0.5, 49.9, MAX_DEPTH_M, MAX_DEPTH_M, MAX_DEPTH_M]]))
     np.testing.assert_array_equal(
         np.asarray(jax.jit(lambda x: L.far_to_sky(x, 50.0, 900.0))(jnp.asarray(d))),

@@ -20,7 +20,7 @@ OLD_DEFAULT_FINGERPRINT = "69a32e715f24"
 @pytest.fixture(scope="module")
 def uninterrupted_dir(smoke_depth_run):
     """The smoke preset (``CFG``) trained without interruption (the session's shared run; read-only)."""
-    assert CFG == depth.PRESETS["smoke"]
+    assert depth.PRESETS["smoke"] == CFG
     return smoke_depth_run
 
 
@@ -108,11 +108,14 @@ def test_ensure_trained_trains_once_and_reports(uninterrupted_dir, tmp_path, mon
     for season in report["per_season"].values():
         assert set(season) == {"model", "constant", "farther_toward_top"}
         for m in season.values():
-            assert 0 <= m["delta1"] <= 1 and m["abs_rel"] >= 0
-            assert 0 <= m["delta1_with_sky"] <= 1 and m["abs_rel_with_sky"] >= 0
+            assert 0 <= m["delta1"] <= 1
+            assert m["abs_rel"] >= 0
+            assert 0 <= m["delta1_with_sky"] <= 1
+            assert m["abs_rel_with_sky"] >= 0
     assert (workdir / "depth_eval.png").stat().st_size > 1000
     out = trained.predict(np.zeros((2, 40, 48, 3), np.uint8))
-    assert out.shape == (2, 40, 48) and np.all(np.isfinite(out))
+    assert out.shape == (2, 40, 48)
+    assert np.all(np.isfinite(out))
 
 
 def test_network_depth_averages_the_shipped_trunks_views(uninterrupted_dir, tmp_path, monkeypatch):
@@ -124,7 +127,7 @@ def test_network_depth_averages_the_shipped_trunks_views(uninterrupted_dir, tmp_
     from placejax.data.simcampus import SKY_DEPTH
     from placejax.pretrain import _data
 
-    assert CFG == depth.PRESETS["smoke"]
+    assert depth.PRESETS["smoke"] == CFG
     shutil.copytree(uninterrupted_dir, depth.run_dir(CFG, "smoke", tmp_path))
     monkeypatch.setenv("PLACEJAX_CACHE", str(tmp_path))
     default = experiment_config.get_config("default").depth
@@ -132,7 +135,8 @@ def test_network_depth_averages_the_shipped_trunks_views(uninterrupted_dir, tmp_
     assert (_data.NETWORK_FLIP, _data.NETWORK_SHIFTS) == (True, (2, 4))
     assert (default.flip_average, tuple(default.shift_px)) == (True, ())
     # The sky step the shipped HHA trunk was pretrained with (its recipe), not the experiment's.
-    assert _data.NETWORK_SKY_FROM_M == 50.0 and default.far_as_sky_m == 60.0
+    assert _data.NETWORK_SKY_FROM_M == 50.0
+    assert default.far_as_sky_m == 60.0
     rgb = np.random.default_rng(0).integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)
     got = _data.network_depth("trained:smoke", progress=False)(rgb)
     trained = depth.load_trained(depth.run_dir(CFG, "smoke", tmp_path), CFG)
@@ -207,9 +211,12 @@ def test_evaluation_with_and_without_sky_on_an_analytic_scene():
     sky_near = np.where(sky, 1.0 / 40.0, exact[0])[None].astype(np.float32)
     good = depth.evaluation.evaluate(lambda rgb: exact, frames)["S"]["model"]
     bad = depth.evaluation.evaluate(lambda rgb: sky_near, frames)["S"]["model"]
-    assert good["abs_rel"] < 1e-4 and good["abs_rel_with_sky"] < 1e-4 and good["delta1_with_sky"] == 1.0
+    assert good["abs_rel"] < 1e-4
+    assert good["abs_rel_with_sky"] < 1e-4
+    assert good["delta1_with_sky"] == 1.0
     assert bad["abs_rel"] < 1e-4  # the sky is not scored without it
-    assert bad["abs_rel_with_sky"] > 0.1 and bad["delta1_with_sky"] < 1.0, bad
+    assert bad["abs_rel_with_sky"] > 0.1, bad
+    assert bad["delta1_with_sky"] < 1.0, bad
 
 
 def test_camera_height_range_reaches_the_rendered_poses_and_the_fingerprint():
@@ -222,12 +229,14 @@ def test_camera_height_range_reaches_the_rendered_poses_and_the_fingerprint():
     for lo, hi in ((1.2, 1.5), (1.0, 2.0), (0.5, 0.5)):
         poses = simcampus.random_poses(world, np.random.default_rng(0), 200, (lo, hi))
         above = poses[:, 2] - world.height(poses[:, 0], poses[:, 1])
-        assert lo - 1e-9 <= above.min() and above.max() <= hi + 1e-9
+        assert lo - 1e-9 <= above.min()
+        assert above.max() <= hi + 1e-9
         assert hi == lo or above.max() - above.min() > 0.8 * (hi - lo)  # the whole range is used
     old = depth.DepthTrainConfig(target="log_metric")  # the default network before the field existed
     assert old.fingerprint() == OLD_DEFAULT_FINGERPRINT  # its cache folder is still found
     rig = train_depth.parse_overrides(old, ["camera_height_m=[1.2, 1.5]"])
-    assert rig.camera_height_m == (1.2, 1.5) and rig.fingerprint() != old.fingerprint()
+    assert rig.camera_height_m == (1.2, 1.5)
+    assert rig.fingerprint() != old.fingerprint()
     for bad in ((1.5, 1.2), (0.0, 1.0), (1.0,), (1.0, float("inf")), (True, 2.0)):
         with pytest.raises(ValueError, match="camera_height_m"):
             dataclasses.replace(CFG, camera_height_m=bad)
@@ -244,7 +253,8 @@ def test_camera_tilt_follows_the_terrain_like_the_robot_and_reaches_the_frames_a
     world = simcampus.make_world(7)
     random = simcampus.random_poses(world, np.random.default_rng(0), 400, (1.2, 1.5))
     assert np.array_equal(random, simcampus.random_poses(world, np.random.default_rng(0), 400, (1.2, 1.5), "random"))
-    assert np.abs(np.degrees(random[:, 4])).max() <= 6 and np.abs(np.degrees(random[:, 5])).max() <= 3
+    assert np.abs(np.degrees(random[:, 4])).max() <= 6
+    assert np.abs(np.degrees(random[:, 5])).max() <= 3
     terrain = simcampus.random_poses(world, np.random.default_rng(0), 400, (1.2, 1.5), "terrain")
     assert np.array_equal(terrain[:, :4], random[:, :4])  # same places, heights and headings
     gx, gy = world.height_grad(terrain[:, 0], terrain[:, 1])
@@ -254,7 +264,8 @@ def test_camera_tilt_follows_the_terrain_like_the_robot_and_reaches_the_frames_a
         "roll": np.degrees(terrain[:, 5] - np.arctan(-gx * np.sin(yaw) + gy * np.cos(yaw))),
     }
     for name, w in wobble.items():
-        assert abs(np.std(w) - 0.5) < 0.1 and np.abs(w).max() < 2.5, (name, np.std(w))
+        assert abs(np.std(w) - 0.5) < 0.1, (name, np.std(w))
+        assert np.abs(w).max() < 2.5, (name, np.std(w))
     # The slope is what moves the camera: on this world it tilts the camera by more than the wobble alone.
     assert np.std(np.degrees(terrain[:, 4])) > 1.0
     with pytest.raises(ValueError, match="tilt"):
@@ -262,13 +273,15 @@ def test_camera_tilt_follows_the_terrain_like_the_robot_and_reaches_the_frames_a
 
     assert dataclasses.replace(CFG, camera_tilt="random").fingerprint() == CFG.fingerprint()
     tilted = train_depth.parse_overrides(CFG, ["camera_tilt=terrain"])
-    assert tilted.camera_tilt == "terrain" and tilted.fingerprint() != CFG.fingerprint()
+    assert tilted.camera_tilt == "terrain"
+    assert tilted.fingerprint() != CFG.fingerprint()
     with pytest.raises(ValueError, match="camera_tilt"):
         dataclasses.replace(CFG, camera_tilt="level")
     small = dataclasses.replace(CFG, image_size=32, frames=8, n_worlds=1)
     a = depth._train.training_frames(small, progress=False)
     b = depth._train.training_frames(dataclasses.replace(small, camera_tilt="terrain"), progress=False)
-    assert a["rgb"].shape == b["rgb"].shape and not np.array_equal(a["depth"], b["depth"])
+    assert a["rgb"].shape == b["rgb"].shape
+    assert not np.array_equal(a["depth"], b["depth"])
 
 
 def _check_look_share(name: str):
@@ -313,7 +326,8 @@ def test_muted_looks_are_natural_coloured_and_reach_the_frames_and_the_fingerpri
         return rgb.max(-1) - rgb.min(-1)
 
     w, m = colours(wild), colours(muted)
-    assert m.min() >= 0.0 and m.max() <= 1.0
+    assert m.min() >= 0.0
+    assert m.max() <= 1.0
     assert saturation(m).mean() < 0.6 * saturation(w).mean()
     assert m.std(1).mean() < 0.8 * w.std(1).mean()  # surfaces of a frame share a palette
 
@@ -333,8 +347,11 @@ def test_structured_looks_share_a_colour_per_kind_of_surface_and_reach_the_frame
     world = simcampus.make_world(_depth_worlds.depth_world_seeds(0, 1)[0])
     roles = simcampus.scene_roles(_seasons.scene_tables(world, "SU"))
     box_role, cyl_role, ell_role = roles
-    assert len(box_role) == _seasons.N_BOX and (box_role == -1).any() and (box_role == W.ROLE_BUILDING).sum() >= 3
-    assert (ell_role == W.ROLE_CROWN).sum() >= 3 and (cyl_role == W.ROLE_TRUNK).sum() >= 3
+    assert len(box_role) == _seasons.N_BOX
+    assert (box_role == -1).any()
+    assert (box_role == W.ROLE_BUILDING).sum() >= 3
+    assert (ell_role == W.ROLE_CROWN).sum() >= 3
+    assert (cyl_role == W.ROLE_TRUNK).sum() >= 3
 
     keys = jax.random.split(jax.random.key(5), 64)
     wild = jax.vmap(simcampus.random_look)(keys)
@@ -346,7 +363,8 @@ def test_structured_looks_share_a_colour_per_kind_of_surface_and_reach_the_frame
     np.testing.assert_array_equal(np.asarray(wild.box)[:, kept], np.asarray(tidy.box)[:, kept])
     prop = ell_role == W.ROLE_PROP
     np.testing.assert_array_equal(np.asarray(wild.ell)[:, prop], np.asarray(tidy.ell)[:, prop])
-    assert 0.0 <= float(np.min(tidy.ground[..., :6])) and float(np.max(tidy.ground[..., :6])) <= 1.0
+    assert float(np.min(tidy.ground[..., :6])) >= 0.0
+    assert float(np.max(tidy.ground[..., :6])) <= 1.0
 
     def spread(rgb):  # (keys, objects, 3) → coefficient of variation over the objects of a look, mean over looks
         rgb = np.asarray(rgb)
@@ -411,7 +429,8 @@ def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_
     np.testing.assert_array_equal(np.take_along_axis(images, order, -1), out)
     assert (order == order[:, :1, :1]).all()  # one order per image
     counts = {tuple(o): n for o, n in zip(*np.unique(order[:, 0, 0], axis=0, return_counts=True), strict=True)}
-    assert len(counts) == 6 and min(counts.values()) > 0.8 * 3000 / 6
+    assert len(counts) == 6
+    assert min(counts.values()) > 0.8 * 3000 / 6
     np.testing.assert_array_equal(depth_train.permute_channels(images, key, 0.0), images)
     half = np.asarray(depth_train.permute_channels(images, key, 0.5))
     changed = (half != images).any((1, 2, 3)).mean()
@@ -423,7 +442,8 @@ def test_colour_augment_permutes_each_images_channels_and_reaches_the_objective_
     state = _untrained_state()
     augmented = depth.DepthObjective.of(cfg)
     plain = depth.DepthObjective.of(dataclasses.replace(cfg, colour_augment=0.0))
-    assert augmented.colour_augment == 1.0 and plain.colour_augment == 0.0
+    assert augmented.colour_augment == 1.0
+    assert plain.colour_augment == 0.0
     k_rest, k_colour = jax.random.split(key)
     permuted = {**batch, "image": depth_train.permute_channels(batch["image"], k_colour, 1.0)}
     loss_aug = _loss(augmented, state, batch, key)[0]
@@ -445,17 +465,20 @@ def test_look_consistency_pairs_each_view_in_two_looks_and_adds_their_gap_to_the
     b = next(simcampus.depth_training_batches(0, 4, (16, 16), n_worlds=1, paired_looks=True))
     for k in ("depth", "sky", "objects"):
         np.testing.assert_array_equal(b[k][0::2], b[k][1::2])
-    assert not np.array_equal(b["rgb"][0::2], b["rgb"][1::2]) and not np.array_equal(b["depth"][0], b["depth"][2])
+    assert not np.array_equal(b["rgb"][0::2], b["rgb"][1::2])
+    assert not np.array_equal(b["depth"][0], b["depth"][2])
     with pytest.raises(ValueError, match="even batch_size"):
         next(simcampus.depth_training_batches(0, 3, (16, 16), n_worlds=1, paired_looks=True))
 
     cfg = dataclasses.replace(CFG, frames=16, look_consistency=0.5)
-    assert cfg.paired and not CFG.paired
+    assert cfg.paired
+    assert not CFG.paired
     frames = depth_train.training_frames(cfg, progress=False)
     source = depth_train.training_source(cfg, frames)
     assert len(source) == 8
     batch = depth_train._prepare(train_dataset(source, batch_size=cfg.batch_size // 2, seed=0)[0])
-    assert batch["image"].shape == batch["image_b"].shape == (4, 32, 32, 3) and batch["depth"].shape == (4, 32, 32)
+    assert batch["image"].shape == batch["image_b"].shape == (4, 32, 32, 3)
+    assert batch["depth"].shape == (4, 32, 32)
 
     state = _untrained_state()
     key = jax.random.key(2)
@@ -492,7 +515,9 @@ def test_object_weight_is_checked_and_reaches_the_objective_and_the_fingerprint(
         dataclasses.replace(CFG, target="inverse", object_weight=2.0)
     frames = depth_train.training_frames(dataclasses.replace(CFG, frames=8), progress=False)
     objects, sky = frames["objects"], frames["sky"]
-    assert objects.shape == sky.shape and objects.dtype == bool and not (objects & sky).any()
+    assert objects.shape == sky.shape
+    assert objects.dtype == bool
+    assert not (objects & sky).any()
     assert 0.0 < objects.mean() < 1.0
 
 
@@ -545,7 +570,8 @@ def _shifted_views_by_hand(raw, x, shifts):
                 out, keep = out[:, :, ::-1], keep[::-1]
             total += out * keep
             count += keep
-    assert n and count.min() >= 2  # the two unshifted views count in every column
+    assert n
+    assert count.min() >= 2
     return total / count
 
 
@@ -600,7 +626,8 @@ def test_normal_weight_adds_the_window_normal_term_and_reaches_the_fingerprint()
     plain = depth.DepthObjective.of(dataclasses.replace(cfg, normal_weight=0.0))
     loss, metrics = _loss(with_normals, state, batch, key)
     loss_plain, metrics_plain = _loss(plain, state, batch, key)
-    assert "normals" not in metrics_plain and 0.0 < float(metrics["normals"]) < 2.0
+    assert "normals" not in metrics_plain
+    assert 0.0 < float(metrics["normals"]) < 2.0
     np.testing.assert_allclose(loss, loss_plain + 0.5 * metrics["normals"], rtol=1e-5)
 
     _option_keeps_old_fingerprint_and_refuses("normal_weight", 1.0, (-1.0, float("nan"), True, "on"))
@@ -624,7 +651,8 @@ def test_shipped_default_network_is_the_presets_and_reaches_its_recorded_quick_c
     for a, b in zip(jax.tree.leaves(resolved.variables), jax.tree.leaves(net.variables), strict=True):
         np.testing.assert_array_equal(a, b)
     assert meta["fingerprint"] == depth.PRESETS["default"].fingerprint() == net.fingerprint
-    assert net.config == depth.PRESETS["default"] and net.metric
+    assert net.config == depth.PRESETS["default"]
+    assert net.metric
     got = depth.quick_check(net)
     for k in ("abs_rel", "delta1"):
         assert got[k] == pytest.approx(meta["quick_check"][k], abs=2e-3), k
@@ -647,7 +675,9 @@ def test_shipped_file_round_trips_in_float16_and_a_stale_one_is_not_used(uninter
     depth.save_shipped(uninterrupted, path, {"command": "test"})
     record = weights.resolve(path)  # a path ending in .npz: a weights record
     back, meta = depth.TrainedDepth.from_record(record), record.meta
-    assert back.config == CFG and meta["command"] == "test" and meta["fingerprint"] == CFG.fingerprint()
+    assert back.config == CFG
+    assert meta["command"] == "test"
+    assert meta["fingerprint"] == CFG.fingerprint()
     assert set(meta["quick_check"]) == {"abs_rel", "delta1"}
     with np.load(path) as z:
         kinds = {k.split("/")[0]: z[k].dtype for k in z.files if k != "meta"}

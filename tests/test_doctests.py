@@ -27,7 +27,9 @@ MODULES = _modules_with_examples()
 
 
 def test_the_examples_are_found():
-    assert len(MODULES) >= 30 and "placejax.hha._api" in MODULES and "placejax.route._odometry" in MODULES
+    assert len(MODULES) >= 30
+    assert "placejax.hha._api" in MODULES
+    assert "placejax.route._odometry" in MODULES
 
 
 @pytest.mark.parametrize("name", MODULES)

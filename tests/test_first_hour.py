@@ -32,12 +32,13 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 def _one_error_line(done: subprocess.CompletedProcess) -> str:
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert done.returncode == 2, (done.returncode, done.stderr[-2000:])
-    assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr[-2000:]
+    assert len(lines) == 1, done.stderr[-2000:]
+    assert lines[0].startswith("error: "), done.stderr[-2000:]
     assert "Traceback" not in done.stderr
     return lines[0]
 
 
-@pytest.fixture()
+@pytest.fixture
 def two_sessions(tmp_path) -> Path:
     """A folder holding two session folders (a camera.json each: what marks a session folder)."""
     root = tmp_path / "recordings"
@@ -53,7 +54,8 @@ def test_data_root_without_the_folder_source_is_named(tmp_path, two_sessions):
     line = _one_error_line(
         _run("-m", "experiments.cross_season", "--preset", "smoke", f"data.root={two_sessions}", cwd=tmp_path)
     )
-    assert "data.root" in line and "add data.source=folder" in line
+    assert "data.root" in line
+    assert "add data.source=folder" in line
     assert not (tmp_path / "runs").exists()  # refused before any work
 
 
@@ -68,7 +70,8 @@ def test_default_session_names_on_own_folders_list_the_folders_there(tmp_path, t
         )
     )
     assert "no session folder 'WI', 'SP', 'SU', 'AU'" in line
-    assert "'friday', 'monday'" in line and "data.sessions=('friday','monday')" in line
+    assert "'friday', 'monday'" in line
+    assert "data.sessions=('friday','monday')" in line
     assert not (tmp_path / "run").exists()  # refused before the work directory is made
 
 
@@ -92,7 +95,8 @@ def test_a_misspelt_camera_field_is_named_with_the_field_meant(tmp_path):
     camera["f_x"] = camera.pop("fx")
     (session / "camera.json").write_text(json.dumps(camera))
     done = _run("-m", "placejax.data", "check", str(session), cwd=tmp_path)
-    assert done.returncode == 1 and "unknown camera field(s) ['f_x']" in done.stderr
+    assert done.returncode == 1
+    assert "unknown camera field(s) ['f_x']" in done.stderr
     assert "did you mean 'f_x' for 'fx'?" in done.stderr
 
 
@@ -103,12 +107,14 @@ def test_poses_in_millimetres_get_a_hint_at_units(tmp_path):
     positions = np.stack([np.arange(n) * 1000.0, np.arange(n) * 1000.0, np.full(n, 1300.0)], axis=1)  # mm
     session = _frames(tmp_path, 1_700_000_000_000_000 + np.arange(n, dtype=np.int64) * 500_000, positions)
     done = _run("-m", "placejax.data", "check", str(session), cwd=tmp_path)
-    assert done.returncode == 1 and "millimetres" in done.stderr, done.stderr
+    assert done.returncode == 1, done.stderr
+    assert "millimetres" in done.stderr, done.stderr
 
 
 def test_a_misspelt_key_gets_its_spelling(tmp_path):
     line = _one_error_line(_run("-m", "experiments.cross_season", "--preset", "smoke", "train.epoch=3", cwd=tmp_path))
-    assert "unknown config key 'train.epoch'" in line and "did you mean train.epochs?" in line
+    assert "unknown config key 'train.epoch'" in line
+    assert "did you mean train.epochs?" in line
 
 
 def _frames(tmp_path: Path, utimes, positions, name: str = "session") -> Path:
@@ -137,8 +143,11 @@ def test_frame_numbers_with_pose_times_from_the_start_of_the_log_are_refused(tmp
     done = _run("-m", "placejax.data", "check", str(session), cwd=tmp_path)
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert done.returncode == 1, (done.stdout, done.stderr[-2000:])
-    assert len(lines) == 1 and "frame numbers" in lines[0] and "images.csv" in lines[0], lines
-    assert "000000.png, 000001.png" in lines[0] and "1 µs apart" in lines[0]
+    assert len(lines) == 1, lines
+    assert "frame numbers" in lines[0], lines
+    assert "images.csv" in lines[0], lines
+    assert "000000.png, 000001.png" in lines[0]
+    assert "1 µs apart" in lines[0]
 
 
 def test_check_flags_a_session_that_never_moves(tmp_path):
@@ -175,7 +184,9 @@ def test_check_explains_names_that_are_not_timestamps(tmp_path):
     done = _run("-m", "placejax.data", "check", str(session), cwd=tmp_path)
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert done.returncode == 1, done.stderr[-2000:]
-    assert len(lines) == 1 and "images.csv" in lines[0] and "timestamp" in lines[0], done.stderr[-2000:]
+    assert len(lines) == 1, done.stderr[-2000:]
+    assert "images.csv" in lines[0], done.stderr[-2000:]
+    assert "timestamp" in lines[0], done.stderr[-2000:]
     assert not (tmp_path / "sessions_map.png").exists()  # no map without --map
 
 
@@ -193,11 +204,13 @@ def test_the_folder_that_holds_the_clone_is_no_namespace_package(tmp_path):
         "-c", "import placejax; from placejax import PlaceClassifier; print(placejax.__version__)", cwd=tmp_path
     )
     assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.strip() and "unknown location" not in done.stderr
+    assert done.stdout.strip()
+    assert "unknown location" not in done.stderr
 
 
 def test_benchmarks_run_from_any_folder_with_their_defaults_shown(tmp_path):
     done = _installed("-m", "benchmarks.hha_speed", "--help", cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     text = " ".join(done.stdout.split())
-    assert text.startswith("usage: python -m benchmarks.hha_speed ") and "(default: 5)" in text
+    assert text.startswith("usage: python -m benchmarks.hha_speed ")
+    assert "(default: 5)" in text

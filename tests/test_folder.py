@@ -57,7 +57,7 @@ def test_timestamp_text_round_trips_exactly(us):
 
 @given(st.text(max_size=12).filter(lambda s: any(c not in "0123456789.eE+" and not c.isspace() for c in s)))
 def test_timestamp_garbage_is_refused(text):
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^timestamp "):
         folder.parse_timestamp(text)
 
 
@@ -110,7 +110,8 @@ def test_image_table_names_first_unsorted_line(tmp_path_factory, stamps):
     bad = next((k for k in range(1, len(stamps)) if stamps[k] <= stamps[k - 1]), None)
     if bad is None:
         files, utimes, lines = folder.read_image_table(d / "images.csv")
-        assert files == [f"images/{k}.png" for k in range(len(stamps))] and lines.tolist()[0] == 2
+        assert files == [f"images/{k}.png" for k in range(len(stamps))]
+        assert lines.tolist()[0] == 2
         np.testing.assert_array_equal(utimes, np.array(stamps) * 1_000_000 + 500_000)
     else:
         kind = "duplicate" if stamps[bad] == stamps[bad - 1] else "unsorted"
@@ -164,16 +165,23 @@ def test_interpolation_analytic_and_exact_at_samples():
 def test_session_reads_back_what_was_written(tmp_path):
     d, images, pos, _, utimes = _session(tmp_path / "a", depth=True)
     s = folder.load_session(d, verify_images=True)
-    assert isinstance(s, Session) and s.name == "a" and len(s) == len(images) and s.image_shape == (12, 16)
+    assert isinstance(s, Session)
+    assert s.name == "a"
+    assert len(s) == len(images)
+    assert s.image_shape == (12, 16)
     np.testing.assert_array_equal(s.utimes, utimes)
     np.testing.assert_array_equal(s.positions, pos)
     np.testing.assert_array_equal(np.stack([s.image(i) for i in range(len(s))]), images)
     theta = np.linspace(0.0, 1.5, len(s))
     np.testing.assert_allclose(s.poses, np.stack([pos[:, 0], pos[:, 1], theta + np.pi / 2], -1), atol=1e-12)
-    assert s.camera_height_m == 1.3 and s.has_depth and s.depths([0, 1]).shape == (2, 12, 16)
+    assert s.camera_height_m == 1.3
+    assert s.has_depth
+    assert s.depths([0, 1]).shape == (2, 12, 16)
     assert s.report.n_kept == s.report.n_images == len(images)
     small = folder.load_session(d, image_size=(6, 8), stride=2)
-    assert len(small) == 3 and small.image(0).shape == (6, 8, 3) and small.depth(0).shape == (6, 8)
+    assert len(small) == 3
+    assert small.image(0).shape == (6, 8, 3)
+    assert small.depth(0).shape == (6, 8)
     np.testing.assert_array_equal(small.utimes, utimes[::2])
     first = folder.load_session(d, max_frames=4)
     assert (len(first), first.report.n_images, first.report.n_over_max_frames) == (4, 6, 2)
@@ -270,11 +278,13 @@ def test_odometry_interpolated(tmp_path):
     s = folder.load_session(d)
     # yaw 3.0 → −3.0 is a turn of 2π − 6 through ±π, not −6 rad: halfway is π − 0.28… wrapped.
     np.testing.assert_allclose(s.odometry[1], [1, 2, np.angle(np.exp(1j * (3.0 + (2 * np.pi - 6) / 2)))])
-    assert np.isnan(s.odometry[3]).all() and s.report.n_no_odometry == 1
+    assert np.isnan(s.odometry[3]).all()
+    assert s.report.n_no_odometry == 1
     np.testing.assert_allclose(s.travelled_m, [0, np.sqrt(5), 2 * np.sqrt(5), 2 * np.sqrt(5)])  # clamped at the end
     (d / "odometry.csv").write_text(f"timestamp,travelled_m\n{t[0]},10\n{t[1]},13\n")
     s = folder.load_session(d)
-    assert s.odometry is None and s.report.n_no_odometry == 1
+    assert s.odometry is None
+    assert s.report.n_no_odometry == 1
     np.testing.assert_array_equal(s.travelled_m, [0, 1.5, 3, 3])
     (d / "odometry.csv").write_text(f"timestamp,travelled_m\n{t[0]},10\n{t[1]},9\n")
     with pytest.raises(folder.FolderFormatError, match=r"odometry\.csv:3: travelled_m 9\.0 is below"):
@@ -429,12 +439,14 @@ def test_check_command_good_and_broken(tmp_path, capsys):
     assert data_main(["check", str(tmp_path / "data"), "--map", str(png)]) == 0
     out = capsys.readouterr().out
     assert re.search(r"^a\s+6\s+0\s+2\.5\s+14\.9\s+0\.500\s+16x12", out, re.M), out
-    assert re.search(r"^b\s+6\s", out, re.M) and f"map -> {png}" in out
+    assert re.search(r"^b\s+6\s", out, re.M)
+    assert f"map -> {png}" in out
     assert cv2.imread(str(png)) is not None
     _break(tmp_path / "data" / "b", "nan quaternion")
     assert data_main(["check", str(tmp_path / "data" / "a"), str(tmp_path / "data" / "b"), "--map", str(png)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and re.fullmatch(rf"error: {re.escape(str(tmp_path))}/data/b/poses_tum\.txt:4: .*", err[0])
+    assert len(err) == 1
+    assert re.fullmatch(rf"error: {re.escape(str(tmp_path))}/data/b/poses_tum\.txt:4: .*", err[0])
 
 
 def test_check_warns_about_a_session_elsewhere(tmp_path, capsys):
@@ -497,7 +509,8 @@ def test_trajectory_warnings_speed_and_vertical_axis():
     pos = np.column_stack([np.arange(n) * 1.2, np.arange(n) * 0.9, np.full(n, 1.1)])  # 1.5 m/s diagonally
     assert folder.trajectory_warnings("a", t, pos, level, "z") == []
     fast = folder.trajectory_warnings("a", t, pos * 1000, level, "z")
-    assert len(fast) == 1 and fast[0].startswith("a: the camera moves 1.5e+03 m/s (median), 1.5e+03 m/s (95th perc")
+    assert len(fast) == 1
+    assert fast[0].startswith("a: the camera moves 1.5e+03 m/s (median), 1.5e+03 m/s (95th perc")
     kitti = np.stack([np.eye(3)] * n)  # camera frame = world frame: looking along +z, y down
     kitti_pos = np.column_stack([np.arange(n) * 0.3, np.full(n, -1.6), np.arange(n) * 1.4])
     assert folder.trajectory_warnings("k", t, kitti_pos, kitti, "y") == []
@@ -513,7 +526,8 @@ def test_image_names_that_are_not_timestamps_say_so(tmp_path):
     with pytest.raises(folder.FolderFormatError) as e:
         folder.load_session(d)
     msg = str(e.value)
-    assert "\n" not in msg and msg.startswith(f"{d / folder.IMAGES_DIR}: image names look like frame numbers")
+    assert "\n" not in msg
+    assert msg.startswith(f"{d / folder.IMAGES_DIR}: image names look like frame numbers")
     assert re.search(
         r"read as timestamps \(000000\.png, 000001\.png, \.\.\. in name_time_unit 'us'\) they are 1 µs apart, a "
         r"camera at 1,000,000 frames/s; list 'file,timestamp' per image in images\.csv, with the times of the pose "
@@ -532,7 +546,8 @@ def test_image_names_on_another_clock_say_so(tmp_path):
     with pytest.raises(folder.FolderFormatError) as e:
         folder.load_session(d)
     msg = str(e.value)
-    assert "\n" not in msg and msg.startswith(f"{d}: no frame left")
+    assert "\n" not in msg
+    assert msg.startswith(f"{d}: no frame left")
     assert "kept 0/6 frames, dropped 6 outside the trajectory" in msg
     assert re.search(
         r"image names are read as timestamps in seconds or in name_time_unit 'us' \(0\.5\.png is 0\.5 s\), the images "
@@ -546,14 +561,18 @@ def test_command_line_help_lists_both_subcommands_and_check_writes_no_map_unaske
     with pytest.raises(SystemExit):
         data_main(["--help"])
     out = capsys.readouterr().out
-    assert "{check,nclt}" in out and "check session folders" in out and "NCLT sessions" in out
+    assert "{check,nclt}" in out
+    assert "check session folders" in out
+    assert "NCLT sessions" in out
     with pytest.raises(SystemExit) as e:
         data_main([])
-    assert e.value.code == 2 and "choose a subcommand" in capsys.readouterr().err
+    assert e.value.code == 2
+    assert "choose a subcommand" in capsys.readouterr().err
     _session(tmp_path / "data" / "a")
     monkeypatch.chdir(tmp_path)
     assert data_main(["check", "data"]) == 0
-    assert "map ->" not in capsys.readouterr().out and not (tmp_path / "sessions_map.png").exists()
+    assert "map ->" not in capsys.readouterr().out
+    assert not (tmp_path / "sessions_map.png").exists()
 
 
 def test_check_map_draws_x_rightwards_y_upwards(tmp_path, monkeypatch):
@@ -568,7 +587,9 @@ def test_check_map_draws_x_rightwards_y_upwards(tmp_path, monkeypatch):
     trajectory = next(line for line in ax.lines if line.get_label() == "a (6 frames)")
     np.testing.assert_array_equal(trajectory.get_xdata(), pos[:, 0])
     np.testing.assert_array_equal(trajectory.get_ydata(), pos[:, 1])
-    assert ax.get_xlabel() == "x (m)" and ax.get_ylabel() == "y (m)" and ax.get_aspect() == 1.0
+    assert ax.get_xlabel() == "x (m)"
+    assert ax.get_ylabel() == "y (m)"
+    assert ax.get_aspect() == 1.0
     verticals = [line for line in ax.lines if np.ptp(line.get_xdata()) == 0 and len(line.get_xdata()) == 2]
     assert len(verticals) == 4  # the grid's x edges are vertical lines
     assert sorted(v.get_xdata()[0] for v in verticals) == pytest.approx(
@@ -582,7 +603,8 @@ def test_missing_session_folders_named_in_one_error(tmp_path):
     (tmp_path / "notes").mkdir()
     with pytest.raises(folder.MissingSessionError) as e:
         folder.load_sessions(tmp_path, ["WI", "2026-01-10", "SP"])
-    assert isinstance(e.value, folder.FolderFormatError) and isinstance(e.value, FileNotFoundError)
+    assert isinstance(e.value, folder.FolderFormatError)
+    assert isinstance(e.value, FileNotFoundError)
     assert str(e.value) == (
         f"{tmp_path}: no session folder 'WI', 'SP' (data.sessions); the session folders in {tmp_path} are "
         f"'2026-01-10', '2026-03-02': set data.sessions=('2026-01-10','2026-03-02') or put the missing folders there "
@@ -614,7 +636,7 @@ def test_render_presets_match_the_experiment():
         "default": {"world_seed": 0, "image_size": (96, 96), "frame_spacing": 1.0, "max_frames": 0},
         "smoke": {"world_seed": 0, "image_size": (64, 64), "frame_spacing": 40.0, "max_frames": 0},
     }
-    assert SIMCAMPUS_RENDER_PRESETS == stated
+    assert stated == SIMCAMPUS_RENDER_PRESETS
     for preset, settings_ in stated.items():
         c = get_config(preset).data
         assert c.source == "simcampus"
@@ -776,7 +798,8 @@ def test_experiment_on_exported_simcampus_equals_direct(tmp_path):
     common = ("depth.source=true", "n_seeds=1", "ablations.depth1=False", "data.sessions=('SP','AU')")
     direct = _smoke(tmp_path / "direct", *common)
     folders = _smoke(tmp_path / "folders", *common, "data.source=folder", f"data.root={tmp_path / 'data'}")
-    assert len(direct["pairs"]) == 2 and "nn_hha_true" in direct["pairs"][0]
+    assert len(direct["pairs"]) == 2
+    assert "nn_hha_true" in direct["pairs"][0]
     _same_results(direct, folders)
     assert folders["config"]["data"]["source"] == "folder"
 
@@ -803,7 +826,8 @@ def test_experiment_with_a_depth_network_and_the_classifier_on_folders(tmp_path,
     direct = _smoke(tmp_path / "direct", *common)
     folders = _smoke(tmp_path / "folders", *common, "data.source=folder", f"data.root={tmp_path / 'data'}")
     # SimCampus renders depth, so the direct run has the baseline on HHA of true depth; these folders have no depth.
-    assert "nn_hha_true" in direct["pairs"][0] and "nn_hha_true" not in folders["pairs"][0]
+    assert "nn_hha_true" in direct["pairs"][0]
+    assert "nn_hha_true" not in folders["pairs"][0]
     _same_results(_without(direct, "nn_hha_true"), folders)
     images = folder.load_session(tmp_path / "data" / "SU").images(range(8))
     a = PlaceClassifier.from_run(tmp_path / "direct", "WI").predict(images)
@@ -855,5 +879,7 @@ def test_experiment_grid_warns_about_a_session_elsewhere(tmp_path, caplog):
     sessions.append(SimpleNamespace(name="far", cached=SimpleNamespace(poses=square + np.array([1000.0, 0, 0]))))
     with caplog.at_level("WARNING"):
         grid = fit_grid(ctx, sessions, GridConfig(n=3))
-    assert "session far shares no place cell" in caplog.text and "session a " not in caplog.text
-    assert grid.n == 3 and (tmp_path / "grid.json").is_file()
+    assert "session far shares no place cell" in caplog.text
+    assert "session a " not in caplog.text
+    assert grid.n == 3
+    assert (tmp_path / "grid.json").is_file()

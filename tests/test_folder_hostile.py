@@ -601,11 +601,16 @@ def test_every_case_costs_little_and_the_measure_sees_costs(outcomes):
     worst_rss = max(r["over_start"] for pair in got.values() for r in pair)
     worst_cpu = max(r["cpu_s"] for pair in got.values() for r in pair)
     slowest = max(got, key=lambda name: max(r["cpu_s"] for r in got[name]))
-    assert worst_rss < 64 << 20 and worst_cpu < CPU_CAP_S / 4, (worst_rss, worst_cpu, slowest)
-    assert alloc["status"] == 0 and 290 << 20 <= alloc["over_start"] < 330 << 20, alloc
-    assert spin["status"] == 0 and 0.5 <= spin["cpu_s"] < 2.0, spin
-    assert os.WIFSIGNALED(capped["status"]) and os.WTERMSIG(capped["status"]) in (signal.SIGXCPU, signal.SIGKILL)
-    assert capped["outcome"] == "no result" and capped["cpu_s"] < 2.5, capped
+    assert worst_rss < 64 << 20, (worst_rss, worst_cpu, slowest)
+    assert worst_cpu < CPU_CAP_S / 4, (worst_rss, worst_cpu, slowest)
+    assert alloc["status"] == 0, alloc
+    assert 290 << 20 <= alloc["over_start"] < 330 << 20, alloc
+    assert spin["status"] == 0, spin
+    assert 0.5 <= spin["cpu_s"] < 2.0, spin
+    assert os.WIFSIGNALED(capped["status"])
+    assert os.WTERMSIG(capped["status"]) in (signal.SIGXCPU, signal.SIGKILL)
+    assert capped["outcome"] == "no result", capped
+    assert capped["cpu_s"] < 2.5, capped
 
 
 def test_the_command_in_a_fresh_process_prints_one_line_and_exits_1(tmp_path):
@@ -621,11 +626,11 @@ def test_the_command_in_a_fresh_process_prints_one_line_and_exits_1(tmp_path):
         cwd=tmp_path,
         timeout=300,
     )
-    assert run.returncode == 1 and "Traceback" not in run.stderr, run.stderr
+    assert run.returncode == 1, run.stderr
+    assert "Traceback" not in run.stderr, run.stderr
     lines = run.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"error: {d}/poses_tum.txt:4: position (tx ty tz) = [1e+300, "), (
-        lines
-    )
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"error: {d}/poses_tum.txt:4: position (tx ty tz) = [1e+300, "), lines
     assert lines[0].endswith("m is farther than 100000 m from the origin on an axis (FolderLimits.max_coordinate_m): "
                              "not a position a robot drives to (positions are in metres: millimetres or centimetres "
                              "need dividing by 1000 or 100)"), lines  # fmt: skip
@@ -744,9 +749,14 @@ def test_random_byte_edits_load_or_are_refused_by_name(valid_folder, tmp_path_fa
             del data[k : k + 1 + byte % 8]
     (d / name).write_bytes(bytes(data))
     try:
-        s = folder.load_session(d, verify_images=True)
+        s, message = folder.load_session(d, verify_images=True), None
     except folder.FolderFormatError as e:
-        assert str(e).startswith(str(d)) and len(str(e)) < 1000, str(e)
+        s, message = None, str(e)
+    if message is not None:  # refused: by a message that names the folder, in a line or two
+        assert message.startswith(str(d)), message
+        assert len(message) < 1000, message
     else:
-        assert len(s) >= 1 and s.image(0).shape == (12, 16, 3)
-        assert np.isfinite(s.poses).all() and np.abs(s.positions).max() <= folder.MAX_COORDINATE_M
+        assert len(s) >= 1
+        assert s.image(0).shape == (12, 16, 3)
+        assert np.isfinite(s.poses).all()
+        assert np.abs(s.positions).max() <= folder.MAX_COORDINATE_M

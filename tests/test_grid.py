@@ -31,8 +31,10 @@ def test_fit_points_always_inside_including_max_edge():
     g = PlaceGrid.fit([a, b], n=7)
     for s in (a, b):
         lab = g.label(s)
-        assert lab.dtype == np.int32 and lab.shape == (len(s),)
-        assert (lab >= 0).all() and (lab < 49).all()
+        assert lab.dtype == np.int32
+        assert lab.shape == (len(s),)
+        assert (lab >= 0).all()
+        assert (lab < 49).all()
     corner = np.array([[g.x_max, g.y_max], [g.x_min, g.y_min], [g.x_max, g.y_min], [g.x_min, g.y_max]])
     assert g.label(corner).tolist() == [48, 0, 6 * 7, 6]
 
@@ -69,13 +71,17 @@ def test_edges_bounds_centers_consistent():
     g = PlaceGrid(-380.0, 140.0, -750.0, 150.0, n=10)
     xe, ye = g.edges
     assert xe.shape == ye.shape == (11,)
-    assert xe[0] == -380.0 and xe[-1] == 140.0 and ye[0] == -750.0 and ye[-1] == 150.0
+    assert xe[0] == -380.0
+    assert xe[-1] == 140.0
+    assert ye[0] == -750.0
+    assert ye[-1] == 150.0
     centers = g.cell_centers()
     assert centers.shape == (100, 2)
     np.testing.assert_array_equal(g.label(centers), np.arange(100))
     for k in (0, 9, 10, 57, 99):
         x0, x1, y0, y1 = g.cell_bounds(k)
-        assert x0 < centers[k, 0] < x1 and y0 < centers[k, 1] < y1
+        assert x0 < centers[k, 0] < x1
+        assert y0 < centers[k, 1] < y1
     with pytest.raises(ValueError, match="out of range"):
         g.cell_bounds(100)
 
@@ -128,7 +134,8 @@ def test_n_must_be_a_positive_int_whose_labels_fit_int32(n):
 def test_largest_grid_labels_fit_int32_and_numpy_n_round_trips(tmp_path):
     g = PlaceGrid(0.0, 1.0, 0.0, 1.0, n=grid_module.MAX_N)
     top = g.label(np.array([[1.0, 1.0]]))
-    assert top.dtype == np.int32 and top[0] == g.num_classes - 1 == grid_module.MAX_N**2 - 1
+    assert top.dtype == np.int32
+    assert top[0] == g.num_classes - 1 == grid_module.MAX_N**2 - 1
     g = PlaceGrid.fit([np.array([[0.0, 0.0], [1.0, 1.0]])], n=np.int64(7))
     assert type(g.n) is int
     g.save(tmp_path / "g.json")

@@ -90,12 +90,15 @@ def test_ground_and_wall_analytic(pitch, roll):
     crease = box_sum(is_ground.astype(float), 4)
     pure_ground = crease == 81
     pure_wall = crease == 0
-    assert abs(np.median(angle[pure_ground]) - 38) <= 1 and np.abs(angle[pure_ground] - 38).max() <= 2
-    assert abs(np.median(angle[pure_wall]) - 128) <= 1 and np.abs(angle[pure_wall] - 128).max() <= 2
+    assert abs(np.median(angle[pure_ground]) - 38) <= 1
+    assert np.abs(angle[pure_ground] - 38).max() <= 2
+    assert abs(np.median(angle[pure_wall]) - 128) <= 1
+    assert np.abs(angle[pure_wall] - 128).max() <= 2
     # Height: the ground is the lowest surface, so it sits at 0 up to the gravity error (≤ 0.5° over its distance).
     height = np.asarray(out.height_cm)
     slack = 2 * 100 * 1.2 * depth[pure_ground].max() * np.tan(np.deg2rad(0.5))  # ±0.5° over the farthest ground
-    assert height[pure_ground].min() >= 0 and height[pure_ground].max() <= slack
+    assert height[pure_ground].min() >= 0
+    assert height[pure_ground].max() <= slack
     assert np.median(height[pure_wall]) > 100
     # Disparity: 31000 / max(Z_cm, 100).
     np.testing.assert_array_equal(np.asarray(out.hha[..., 0]), np.rint(np.minimum(310.0 / np.maximum(depth, 1.0), 255)))
@@ -141,7 +144,8 @@ def test_centimetres_per_level_scale_the_height_channel_only():
     valid = np.asarray(out.valid)
     want = np.clip(np.rint(np.asarray(out.height_cm) / 4.0), 0, 255)
     got = np.asarray(out.hha[..., 1], float)
-    assert np.abs(got - want)[valid].max() <= 1 and (got != want)[valid].mean() < 1e-3
+    assert np.abs(got - want)[valid].max() <= 1
+    assert (got != want)[valid].mean() < 1e-3
     one = hha.encode_full(depth, k, height=hha.HeightRule(floor="camera", camera_height_m=1.3))
     np.testing.assert_array_equal(np.asarray(out.height_cm), np.asarray(one.height_cm))
     assert (np.asarray(one.hha[..., 1]) == 255).mean() > (got == 255).mean()
@@ -273,7 +277,8 @@ def test_a_repeated_smallest_eigenvalue_keeps_the_estimate_nearest_the_current_o
         np.testing.assert_allclose(np.asarray(_encode._smallest_eigenvector(a, jnp.asarray(y))), want, atol=1e-6)
     # Orthogonal to the eigenspace: one of its axes.
     got = np.abs(np.asarray(_encode._smallest_eigenvector(a, jnp.asarray([0.0, 0.0, 1.0]))))
-    assert sorted(got.round(6).tolist()) == [0.0, 0.0, 1.0] and got[2] == 0
+    assert sorted(got.round(6).tolist()) == [0.0, 0.0, 1.0]
+    assert got[2] == 0
     # A single smallest eigenvalue: its eigenvector, whatever y.
     b = jnp.diag(jnp.asarray([3.0, 1.0, 500.0]))
     got = _encode._smallest_eigenvector(b, jnp.asarray([1.0, 0, 0]))
@@ -339,7 +344,8 @@ def test_jit_equals_eager():
         eager = _encode._encode_batch(d, kk, r, depth_range)
     # Fused (jit) and op-by-op float32 arithmetic round differently: a value on a .5 boundary may move by one level.
     diff = np.abs(np.asarray(jitted.hha, int) - np.asarray(eager.hha, int))
-    assert diff.max() <= 1 and (diff == 0).mean() > 0.999
+    assert diff.max() <= 1
+    assert (diff == 0).mean() > 0.999
     np.testing.assert_allclose(np.asarray(jitted.height_cm), np.asarray(eager.height_cm), rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(np.asarray(jitted.gravity), np.asarray(eager.gravity), atol=1e-5)
 
@@ -448,7 +454,8 @@ def test_property_jit_equals_eager_and_missing_pixels_are_zero(scene):
     depth, k, missing = scene
     out = hha.encode_full(depth, k)
     img = np.asarray(out.hha)
-    assert img.dtype == np.uint8 and img.shape == (_H, _W, 3)
+    assert img.dtype == np.uint8
+    assert img.shape == (_H, _W, 3)
     np.testing.assert_array_equal(np.asarray(jax.jit(hha.encode)(depth, k)), img)
     np.testing.assert_array_equal(np.asarray(out.valid), ~missing)
     assert (img[missing] == 0).all()
@@ -497,7 +504,8 @@ def test_inverse_depth_to_metric_is_affine_invariant_and_bounded():
     metric = np.asarray(hha.inverse_depth_to_metric(inv, near_m=1.0, far_m=40.0))
     scaled = np.asarray(hha.inverse_depth_to_metric(3.0 * inv + 7.0, near_m=1.0, far_m=40.0))
     np.testing.assert_allclose(metric, scaled, rtol=1e-4)
-    assert metric.min() >= 1.0 - 1e-5 and metric.max() <= 40.0 + 1e-3
+    assert metric.min() >= 1.0 - 1e-5
+    assert metric.max() <= 40.0 + 1e-3
     # Closer (bigger inverse depth) → smaller metric depth.
     order = np.argsort(inv[0].ravel())
     assert np.all(np.diff(metric[0].ravel()[order]) <= 1e-5)
@@ -533,7 +541,8 @@ def assert_same_up_to_rounding(a, b, max_share=0.02):
     assert a.shape == b.shape
     np.testing.assert_array_equal((a == 0).all(-1), (b == 0).all(-1))
     diff = np.abs(a - b)
-    assert diff.max() <= 1 and (diff > 0).any(-1).mean() <= max_share
+    assert diff.max() <= 1
+    assert (diff > 0).any(-1).mean() <= max_share
 
 
 # A caller's jit and vmap, shared by the tests below so that each compiles once.
@@ -564,7 +573,8 @@ def test_junk_depth_outside_the_valid_range_counts_as_missing(junk):
     with_junk[12, 16], with_nan[12, 16] = junk, np.nan
     out = hha.encode_full(with_junk, k)
     np.testing.assert_array_equal(np.asarray(out.hha), np.asarray(hha.encode(with_nan, k)))
-    assert not np.asarray(out.valid)[12, 16] and (np.asarray(out.hha)[12, 16] == 0).all()
+    assert not np.asarray(out.valid)[12, 16]
+    assert (np.asarray(out.hha)[12, 16] == 0).all()
     # One missing pixel only touches its neighbourhood, not the gravity estimate of the whole image.
     changed = (np.asarray(out.hha) != np.asarray(hha.encode(depth, k))).any(-1)
     assert changed.mean() < 0.05
@@ -613,7 +623,8 @@ def test_dtype_rules_integer_depth_needs_a_unit_bool_refused():
         np.asarray(hha.encode(quarters, k, depth_scale=0.25)), np.asarray(hha.encode(quarters / 4.0, k))
     )
     mm_out = np.asarray(hha.encode(mm, k, mm, depth_scale=0.001))
-    assert mm_out.dtype == np.uint8 and (mm_out[..., 0] == np.asarray(hha.encode(mm / 1000.0, k))[..., 0]).all()
+    assert mm_out.dtype == np.uint8
+    assert (mm_out[..., 0] == np.asarray(hha.encode(mm / 1000.0, k))[..., 0]).all()
 
 
 def test_bad_intrinsics_under_jit_give_an_all_missing_image():
@@ -623,7 +634,8 @@ def test_bad_intrinsics_under_jit_give_an_all_missing_image():
         with pytest.raises(ValueError, match="intrinsics"):
             hha.encode(depth, bad)  # concrete: refused
         out = _jit_encode_full(depth, bad)  # traced: cannot raise, so the image is entirely missing
-        assert (np.asarray(out.hha) == 0).all() and not np.asarray(out.valid).any()
+        assert (np.asarray(out.hha) == 0).all()
+        assert not np.asarray(out.valid).any()
         np.testing.assert_array_equal(np.asarray(out.gravity), [0.0, 1.0, 0.0])
         for leaf in jax.tree_util.tree_leaves(out):
             assert np.isfinite(np.asarray(leaf, np.float64)).all()

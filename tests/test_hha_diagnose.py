@@ -24,7 +24,8 @@ def test_region_errors_split_sky_ground_and_objects_and_sign_the_objects_bias():
     e = hha_diagnose.region_errors(predicted, rendered, angle)
     assert e["sky"] == 0.0  # both clamped at 80 m
     assert e["ground"] == pytest.approx(-np.log(0.9), rel=1e-5)
-    assert e["objects"] == pytest.approx(0.3, rel=1e-5) and e["objects_bias"] == pytest.approx(0.3, rel=1e-5)
+    assert e["objects"] == pytest.approx(0.3, rel=1e-5)
+    assert e["objects_bias"] == pytest.approx(0.3, rel=1e-5)
     masks = hha_diagnose._regions(rendered, angle)
     assert [int(m.sum()) for m in masks.values()] == [16, 16, 32]
     ground_rel, objects_rel = 0.1, (7 * (np.exp(0.3) - 1) + (1 - np.exp(-0.1))) / 8
@@ -51,7 +52,8 @@ def test_per_channel_nn_finds_the_channel_that_carries_the_place():
     got = hha_diagnose.per_channel_nn(images, dict.fromkeys(sessions, labels))
     assert list(got) == ["disparity", "height", "angle"]
     assert got["height"] == 100.0
-    assert got["disparity"] < 60.0 and got["angle"] < 60.0
+    assert got["disparity"] < 60.0
+    assert got["angle"] < 60.0
     # The disparity figure by hand: 1-NN on the standardised 16 × 16 channel, mean over the 12 ordered pairs.
     flat = {s: images[s][..., 0].reshape(6, -1).astype(np.float64) for s in sessions}
     flat = {

@@ -29,9 +29,14 @@ def test_writes_have_umask_permissions_not_0600(tmp_path):
 def test_failure_inside_the_block_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     target = tmp_path / "table.md"
     io.write_text(target, "old\n")
-    with pytest.raises(RuntimeError, match="boom"), io.atomic_write(target, "w") as f:
-        f.write("half of the new")
-        raise RuntimeError("boom")
+
+    def half_then_fail():
+        with io.atomic_write(target, "w") as f:
+            f.write("half of the new")
+            raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        half_then_fail()
     assert target.read_text() == "old\n"
     assert [p.name for p in tmp_path.iterdir()] == ["table.md"]
 
@@ -40,9 +45,8 @@ def test_json_bytes_are_deterministic(tmp_path):
     io.write_json(tmp_path / "a.json", {"b": 1, "a": [1, 2]})
     io.write_json(tmp_path / "b.json", {"a": [1, 2], "b": 1})
     assert (tmp_path / "a.json").read_bytes() == (tmp_path / "b.json").read_bytes()
-    with pytest.raises(ValueError, match="mode"):
-        with io.atomic_write(tmp_path / "c", "a"):
-            pass
+    with pytest.raises(ValueError, match="mode"), io.atomic_write(tmp_path / "c", "a"):
+        pass
 
 
 # --- read_npz's budget: every case is refused from the zip directory and the .npy headers, before numpy allocates.
@@ -161,5 +165,7 @@ def test_commands_refuse_a_special_file_as_output_before_any_work(tmp_path, comm
             timeout=120,
         )
         lines = done.stderr.strip().splitlines()
-        assert done.returncode == 2 and len(lines) == 1, (kind, done.stderr)
-        assert lines[0].startswith("error: EEXIST: exists and is a") and str(target) in lines[0], lines
+        assert done.returncode == 2, (kind, done.stderr)
+        assert len(lines) == 1, (kind, done.stderr)
+        assert lines[0].startswith("error: EEXIST: exists and is a"), lines
+        assert str(target) in lines[0], lines

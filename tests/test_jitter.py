@@ -15,7 +15,8 @@ def _images(n=5, h=24, w=32, seed=0):
 def test_no_jitter_is_the_identity():
     images = _images()
     out = jittered_copies(images, ViewJitter(), copies=3, seed=7)
-    assert out.shape == (3, *images.shape) and out.dtype == np.uint8
+    assert out.shape == (3, *images.shape)
+    assert out.dtype == np.uint8
     for c in range(3):
         np.testing.assert_array_equal(out[c], images)
 
@@ -50,7 +51,8 @@ def test_colour_leaves_grey_grey_and_geometry_leaves_colour():
     out = jittered_view(grey, ViewJitter(saturation=0.5, contrast=0.5), np.random.default_rng(0))
     np.testing.assert_array_equal(out, grey)  # no saturation or contrast in a flat grey image
     bright = jittered_view(grey, ViewJitter(brightness=0.2), np.random.default_rng(0))
-    assert np.all(bright == bright[0, 0, 0]) and abs(int(bright[0, 0, 0]) - 100) <= 51
+    assert np.all(bright == bright[0, 0, 0])
+    assert abs(int(bright[0, 0, 0]) - 100) <= 51
     flat = np.full((16, 16, 3), (10, 200, 30), np.uint8)
     np.testing.assert_array_equal(jittered_view(flat, ViewJitter(shift=0.2, zoom=0.3), np.random.default_rng(1)), flat)
 
@@ -76,7 +78,8 @@ def test_experiment_settings():
     train = sections(c)["train"]
     assert results_only(train)["jitter_shift"] == c.train.jitter_shift
     # Colour for RGB only: an HHA pixel's channels are measurements.
-    assert modality_jitter(train, "rgb").colour and not modality_jitter(train, "hha").colour
+    assert modality_jitter(train, "rgb").colour
+    assert not modality_jitter(train, "hha").colour
     assert modality_jitter(train, "hha").geometric
     validate(c)
     apply_overrides(c, ["vgg.pretrained=False", "vgg.hha_weights=''"])
@@ -96,11 +99,14 @@ def test_large_is_the_default_with_three_times_the_steps():
     validate(large)
     differ = {k for k in leaf_keys(default) if get(default, k) != get(large, k)}
     assert differ == {"preset", "train.epochs", "ablations.rendered"}
-    assert large.ablations.rendered and not default.ablations.rendered
+    assert large.ablations.rendered
+    assert not default.ablations.rendered
     assert large.train.epochs == 3 * default.train.epochs
-    assert default.train.jitter_copies == 2 and default.mlp.input_dropout == 0.5
+    assert default.train.jitter_copies == 2
+    assert default.mlp.input_dropout == 0.5
     # The paper's recipe has neither.
-    assert paper.train.jitter_copies == 0 and paper.mlp.input_dropout == 0.0
+    assert paper.train.jitter_copies == 0
+    assert paper.mlp.input_dropout == 0.0
 
 
 def test_fusion_head_settings_are_checked():

@@ -61,7 +61,8 @@ def test_every_process_gets_its_id_and_the_same_coordinator(tmp_path):
     done = _launch(tmp_path, "ok", 0.2)
     assert done.returncode == 0, done.stderr
     envs = [(tmp_path / f"env{k}").read_text().split() for k in range(3)]
-    assert len({e[0] for e in envs}) == 1 and envs[0][0].startswith("127.0.0.1:")
+    assert len({e[0] for e in envs}) == 1
+    assert envs[0][0].startswith("127.0.0.1:")
     assert all(e[1] == "3" and "--xla_force_host_platform_device_count=1" in e[2:] for e in envs)
     assert all((tmp_path / f"done{k}").exists() for k in range(3))
     for k in range(3):
@@ -210,9 +211,11 @@ def test_two_processes_build_every_per_frame_cache_as_one_process_does(tmp_path)
         text=True,
         timeout=900,
     )
-    assert killed.returncode != 0 and "launch: process 1 exited with code 137" in killed.stderr, killed.stderr[-4000:]
+    assert killed.returncode != 0, killed.stderr[-4000:]
+    assert "launch: process 1 exited with code 137" in killed.stderr, killed.stderr[-4000:]
     before = [set(_calls(two, k)) for k in range(2)]
-    assert (hha, lo1, lo1 + 8) in before[1] and not any(c[0] == hha and c[1] >= lo1 + 8 for c in before[1])
+    assert (hha, lo1, lo1 + 8) in before[1]
+    assert not any(c[0] == hha and c[1] >= lo1 + 8 for c in before[1])
     rerun = subprocess.run(
         [*cmd, sys.executable, str(script), str(two), ""],
         cwd=REPO,
@@ -227,13 +230,17 @@ def test_two_processes_build_every_per_frame_cache_as_one_process_does(tmp_path)
     both = [before[k] | after[k] for k in range(2)]
     ones = set(_calls(one, 0))
     # Every chunk of the 1-process build computed by exactly one process, none of them twice; none elsewhere.
-    assert both[0] | both[1] == ones and not both[0] & both[1]
+    assert both[0] | both[1] == ones
+    assert not both[0] & both[1]
     # Process 1 killed itself before its chunk; process 0, stopped by the launcher, may have been between logging a
     # chunk and committing it.
-    assert not before[1] & after[1] and len(before[0] & after[0]) <= 1
+    assert not before[1] & after[1]
+    assert len(before[0] & after[0]) <= 1
     names = {c[0] for c in ones}
     shared = {name for name in names if all(any(c[0] == name for c in both[k]) for k in range(2))}
-    assert any(n.startswith("WI-rgb") for n in shared) and any("convfeat" in n for n in shared) and hha in shared
+    assert any(n.startswith("WI-rgb") for n in shared)
+    assert any("convfeat" in n for n in shared)
+    assert hha in shared
     assert (hha, lo1 + 8, lo1 + 16) in after[1]  # the killed share resumed after its committed chunk
 
     files = _cache_files(two)
@@ -283,7 +290,8 @@ def test_sigterm_and_sighup_stop_every_child(tmp_path, signum):
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while not all((tmp_path / f"pid{k}").exists() for k in range(2)):
-        assert time.monotonic() < deadline and proc.poll() is None, proc.stderr.read() if proc.poll() else ""
+        assert time.monotonic() < deadline, proc.stderr.read() if proc.poll() else ""
+        assert proc.poll() is None, proc.stderr.read() if proc.poll() else ""
         time.sleep(0.1)
     pids = [int((tmp_path / f"pid{k}").read_text()) for k in range(2)]
     proc.send_signal(signum)
@@ -324,7 +332,8 @@ def test_out_of_range_options_start_nothing(tmp_path, args, message):
         text=True,
         timeout=60,
     )
-    assert done.returncode == 2 and message in done.stderr, done.stderr
+    assert done.returncode == 2, done.stderr
+    assert message in done.stderr, done.stderr
     assert not marker.exists()
 
 
@@ -347,7 +356,8 @@ def test_a_failed_start_stops_the_children_already_started(tmp_path, monkeypatch
     monkeypatch.setattr(launch_module.subprocess, "Popen", popen)
     with pytest.raises(OSError, match="Cannot allocate memory"):
         launch_module.launch([sys.executable, str(script), str(tmp_path)], 2)
-    assert started and started[0].poll() is not None  # stopped and reaped
+    assert started
+    assert started[0].poll() is not None
 
 
 def test_a_child_line_without_newline_is_forwarded_in_bounded_pieces(tmp_path):

@@ -177,7 +177,8 @@ else:
     found = _imports_of(source, "placejax.data")
     assert ("placejax.io", None) in found
     assert ("placejax.data.grid", None) in found  # a module
-    assert ("placejax.hha._encode", None) in found and ("placejax.hha", "encode") in found  # a module; a name
+    assert ("placejax.hha._encode", None) in found
+    assert ("placejax.hha", "encode") in found
     assert ("placejax.route._lag", None) in found  # function-level imports count
     assert ("placejax.models", "vgg") in found  # the else branch of a program block counts
     assert not any(m.startswith(("placejax.stages", "placejax.data.export")) for m, _ in found)

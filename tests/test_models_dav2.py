@@ -80,7 +80,8 @@ def test_parity_two_sizes_layer_by_layer(refs, case):
         if model.head == "relative":
             assert float(out.min()) >= 0.0
         else:
-            assert 0.0 <= float(out.min()) and float(out.max()) <= model.max_depth
+            assert float(out.min()) >= 0.0
+            assert float(out.max()) <= model.max_depth
 
 
 @pytest.mark.slow
@@ -91,7 +92,8 @@ def test_parity_released_small_architecture(refs):
     with np.load(refs / "small_metric.npz") as f:
         x, want = f["input_42x56"], f["depth_42x56"]
     out = jax.jit(MODELS["small_metric"].apply)(variables, jnp.asarray(x))
-    assert out.shape == want.shape == (1, 42, 56) and np.ptp(want) > 1.0
+    assert out.shape == want.shape == (1, 42, 56)
+    assert np.ptp(want) > 1.0
     assert _rel(out, want) <= 1e-4
     # 24.8 M parameters (the official README), counting the two tensors the converter drops on purpose.
     n = sum(int(np.prod(a.shape)) for a in jax.tree.leaves(variables))
@@ -109,10 +111,13 @@ def test_registry_loads_official_format_and_refuses_truncated(refs, tmp_path, mo
     ):
         entry = REGISTRY[name]  # the addresses of the official READMEs' download links
         assert entry.url == f"https://huggingface.co/depth-anything/{repo}/resolve/main/{name}.pth"
-        assert entry.filename == f"{name}.pth" and entry.size_bytes == 99_200_000
-        assert entry.preprocessing.input_size == (518, 518) and entry.preprocessing.mean == (0.485, 0.456, 0.406)
+        assert entry.filename == f"{name}.pth"
+        assert entry.size_bytes == 99_200_000
+        assert entry.preprocessing.input_size == (518, 518)
+        assert entry.preprocessing.mean == (0.485, 0.456, 0.406)
         model = DepthAnythingV2.from_encoder(**entry.model_kwargs)
-        assert model.head == head and (max_depth is None or model.max_depth == max_depth)
+        assert model.head == head
+        assert max_depth is None or model.max_depth == max_depth
     # load() with an explicit file of the official layout: reader → converter → converted cache.
     variables = load("depth_anything_v2_metric_vkitti_vits", refs / "small_metric.pth")
     again = load("depth_anything_v2_metric_vkitti_vits", refs / "small_metric.pth")  # from the converted cache
@@ -132,12 +137,13 @@ def test_converter_fails_loudly(refs):
     del sd["pretrained.blocks.1.attn.qkv.weight"]
     sd["depth_head.scratch.layer5_rn.weight"] = np.zeros((8, 32, 3, 3), np.float32)
     sd["depth_head.projects.0.bias"] = np.zeros((5,), np.float32)
-    with pytest.raises(ValueError) as err:
+    with pytest.raises(ValueError, match="has no checkpoint entry") as err:
         convert_depth_anything_v2(sd, MODELS["tiny_relative"])
     msg = str(err.value)
     assert "pretrained/blocks_1/attn/qkv/kernel has no checkpoint entry" in msg
     assert "depth_head.scratch.layer5_rn.weight" in msg
-    assert "depth_head.projects.0.bias" in msg and "(4,)" in msg
+    assert "depth_head.projects.0.bias" in msg
+    assert "(4,)" in msg
     with pytest.raises(ValueError, match=r"pretrained\.cls_token"):
         convert_depth_anything_v2({"a.weight": np.zeros((2, 2), np.float32)})
 
@@ -174,7 +180,8 @@ def test_dav2_apply_is_the_official_pipeline(refs):
     variables, _ = _load(refs, "tiny_metric")
     rgb = np.random.default_rng(5).integers(0, 256, (3, 30, 45, 3), dtype=np.uint8)
     got = jax.jit(lambda v, x: dav2_apply(v, x, model=model, short_side=56))(variables, jnp.asarray(rgb))
-    assert got.shape == (3, 30, 45) and got.dtype == jnp.float32
+    assert got.shape == (3, 30, 45)
+    assert got.dtype == jnp.float32
     h, w = dav2_input_size(30, 45, 56)
     assert (h, w) == (56, 84)
     x = REGISTRY["depth_anything_v2_metric_vkitti_vits"].preprocessing.normalise(rgb)  # NumPy, the registry's
@@ -205,7 +212,8 @@ def test_input_size_follows_official_resize():
     assert dav2_input_size(518, 518) == (518, 518)
     assert dav2_input_size(64, 64) == (518, 518)
     h, w = dav2_input_size(1000, 333)  # short side 333 → 518; long side 1555.6 rounds to 1554
-    assert (h, w) == (1554, 518) and h % 14 == 0
+    assert (h, w) == (1554, 518)
+    assert h % 14 == 0
 
 
 @pytest.mark.parametrize("shape", [(1, 56, 56), (1, 56, 57, 3), (1, 14, 56, 3)])
@@ -240,7 +248,8 @@ def test_experiment_depth_source(refs, source):
     key = src.key
     rgb = np.random.default_rng(6).integers(0, 256, (3, 24, 32, 3), dtype=np.uint8)
     got = src.predict(rgb)
-    assert got.shape == (3, 24, 32) and got.dtype == np.float32
+    assert got.shape == (3, 24, 32)
+    assert got.dtype == np.float32
     metric = source.endswith("metric")
     model = DepthAnythingV2.from_encoder("vits", head="metric" if metric else "relative", max_depth=80.0)
     variables = convert_depth_anything_v2(read_torch_checkpoint(refs / "small_metric.pth"), model)
@@ -249,7 +258,9 @@ def test_experiment_depth_source(refs, source):
     # The stage runs jitted with YNNPACK dots, in padded batches of 2: float rounding, which the relative case's
     # 1/x mapping to metres magnifies near the far end (measured 6e-5 relative).
     np.testing.assert_allclose(got, want, rtol=1e-5 if metric else 5e-4, atol=1e-5 * float(np.ptp(want)))
-    assert ("near_m" in key) != metric and key["short_side"] == 28 and key["source"] == source
+    assert ("near_m" in key) != metric
+    assert key["short_side"] == 28
+    assert key["source"] == source
     c.depth.dav2_short_side = 10
     with pytest.raises(ValueError, match="dav2_short_side"):
         xconfig.validate(c)
@@ -327,18 +338,22 @@ def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
     monkeypatch.setattr(_classifier, "_restore_params", lambda ckdir: nets[Path(ckdir).name])
     clf = PlaceClassifier.from_run(tmp_path, "WI")
     d = clf.meta["depth"]
-    assert d["kind"] == "depth_anything_v2" and d["head"] == ("metric" if metric else "relative")
+    assert d["kind"] == "depth_anything_v2"
+    assert d["head"] == ("metric" if metric else "relative")
     assert (d["embed_dim"], d["depth"], d["layers"], d["short_side"]) == (384, 12, [2, 5, 8, 11], 28)
 
     depth = np.asarray(jax.jit(functools.partial(_classifier.stage_depth, clf.spec))(clf.params["depth"], rgb))
     np.testing.assert_allclose(depth, exp_depth, rtol=1e-5 if metric else 5e-4, atol=1e-5 * float(np.ptp(exp_depth)))
     if metric:  # metres as the network gives them, not squeezed into [near_m, far_m] = [1, 6]
-        assert depth.max() > 2 * c.depth.far_m and 0.0 < depth.min()
+        assert depth.max() > 2 * c.depth.far_m
+        assert depth.min() > 0.0
     else:
-        assert c.depth.near_m - 1e-4 <= depth.min() and depth.max() <= c.depth.far_m + 1e-4
+        assert c.depth.near_m - 1e-4 <= depth.min()
+        assert depth.max() <= c.depth.far_m + 1e-4
     out = clf.logits(rgb)
     diff = np.abs(out["hha_image"].astype(int) - exp_hha.astype(int))
-    assert diff.max() <= 1 and (diff == 0).mean() > 0.99, (diff.max(), (diff == 0).mean())
+    assert diff.max() <= 1, (diff.max(), (diff == 0).mean())
+    assert (diff == 0).mean() > 0.99, (diff.max(), (diff == 0).mean())
     # The nets on the experiment's HHA give the classifier's logits (up to those ±1 HHA values).
     ref = _classifier.stage_nets(clf.spec, clf.params, jnp.asarray(rgb), jnp.asarray(exp_hha))
     fused = np.asarray(_classifier.stage_mlp(clf.spec, clf.params, ref))
@@ -380,7 +395,9 @@ def test_paper_dav2_preset_is_the_paper_with_metric_dav2():
     xconfig.validate(paper)
     changed = {k for k in xconfig.leaf_keys(c) if xconfig.get(c, k) != xconfig.get(paper, k)}
     assert changed == {"preset", "depth.source", "depth.batch_size"}
-    assert c.depth.source == "depth_anything_v2_metric" and c.depth.dav2_short_side == 518
-    assert paper.depth.source == "midas" and "paper_dav2" in xconfig.PRESETS
+    assert c.depth.source == "depth_anything_v2_metric"
+    assert c.depth.dav2_short_side == 518
+    assert paper.depth.source == "midas"
+    assert "paper_dav2" in xconfig.PRESETS
     xconfig.apply_overrides(c, ["depth.source=depth_anything_v2"])  # the relative variant, as documented
     xconfig.validate(c)

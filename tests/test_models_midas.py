@@ -100,10 +100,12 @@ def test_folded_batch_norm_parity(fixture_io, fixture_variables):
         ref = fixture_io[f"output{key}"]
         for fn in (jax.jit(model.apply), fast):
             out = fn(folded, x)
-            assert out.shape == ref.shape and float(out.min()) >= 0.0
+            assert out.shape == ref.shape
+            assert float(out.min()) >= 0.0
             assert _rel_err(out, ref) <= 1e-4
     # fold_batch_norm is pure: the input keeps its BatchNorms.
-    assert "batch_stats" in fixture_variables and "bn1" in fixture_variables["params"]["encoder"]["blocks_1_0"]
+    assert "batch_stats" in fixture_variables
+    assert "bn1" in fixture_variables["params"]["encoder"]["blocks_1_0"]
 
 
 @pytest.mark.slow
@@ -144,12 +146,13 @@ def test_converter_fails_loudly(fixture_state_dict):
     del sd["pretrained.layer2.0.1.conv_dw.weight"]
     sd["scratch.layer5_rn.weight"] = np.zeros((3, 3, 3, 3), np.float32)
     sd["scratch.output_conv.0.bias"] = np.zeros((31,), np.float32)
-    with pytest.raises(ValueError) as err:
+    with pytest.raises(ValueError, match="has no checkpoint entry") as err:
         convert_midas_small(sd)
     msg = str(err.value)
     assert "encoder/blocks_2_1/conv_dw/kernel has no checkpoint entry" in msg
     assert "scratch.layer5_rn.weight" in msg
-    assert "scratch.output_conv.0.bias" in msg and "(32,)" in msg
+    assert "scratch.output_conv.0.bias" in msg
+    assert "(32,)" in msg
 
 
 @pytest.mark.slow

@@ -39,13 +39,16 @@ def vgg16_reference(tmp_path_factory):
 def test_parity_with_torch_vgg16_file(vgg16_reference):
     path, ref = vgg16_reference
     state_dict = read_torch_checkpoint(path)
-    assert len(state_dict) == 32 and state_dict["classifier.0.weight"].shape == (4096, 25088)
+    assert len(state_dict) == 32
+    assert state_dict["classifier.0.weight"].shape == (4096, 25088)
     variables = convert_vgg16(state_dict)
     del state_dict
     x = jnp.asarray(ref["input_nchw"].transpose(0, 2, 3, 1))
     logits, feats = jax.jit(VGG16(num_classes=1000).apply)(variables, x)
     scale = np.abs(ref["logits"]).max()
-    assert logits.shape == (2, 1000) and feats["fc7"].shape == (2, 4096) and feats["fc6"].shape == (2, 4096)
+    assert logits.shape == (2, 1000)
+    assert feats["fc7"].shape == (2, 4096)
+    assert feats["fc6"].shape == (2, 4096)
     np.testing.assert_allclose(logits, ref["logits"], atol=1e-5 * scale)
     np.testing.assert_allclose(feats["fc7"], ref["fc7"], atol=1e-5 * np.abs(ref["fc7"]).max())
     assert float(feats["fc6"].min()) >= 0.0  # post-ReLU
@@ -118,12 +121,13 @@ def test_converter_reports_every_problem():
     del broken["features.28.bias"]
     broken["classifier.9.weight"] = np.zeros((2, 2), np.float32)
     broken["features.0.weight"] = np.zeros((5, 3, 3, 3), np.float32)  # model has 4 filters
-    with pytest.raises(ValueError) as err:
+    with pytest.raises(ValueError, match="has no checkpoint entry") as err:
         convert_vgg16(broken, model)
     msg = str(err.value)
     assert "trunk/conv5_3/bias has no checkpoint entry" in msg
     assert "'classifier.9.weight'" in msg
-    assert "'features.0.weight'" in msg and "model expects" in msg
+    assert "'features.0.weight'" in msg
+    assert "model expects" in msg
 
 
 def _conv_order(name: str) -> tuple[int, int]:
@@ -206,10 +210,12 @@ def test_fusion_mlp_matches_numpy_and_dropout():
     np.testing.assert_allclose(model.apply(variables, x), want, rtol=1e-5, atol=1e-5)
     assert p["hidden"]["kernel"].shape == (24, 16)
     t = model.apply(variables, x, train=True, rngs={"dropout": jax.random.key(2)})
-    assert t.shape == (3, 7) and not np.allclose(t, want)
+    assert t.shape == (3, 7)
+    assert not np.allclose(t, want)
     defaults = FusionMLP()
     shapes = jax.eval_shape(defaults.init, jax.random.key(0), jnp.zeros((1, 8192)))["params"]
-    assert shapes["hidden"]["kernel"].shape == (8192, 1024) and shapes["out"]["kernel"].shape == (1024, 100)
+    assert shapes["hidden"]["kernel"].shape == (8192, 1024)
+    assert shapes["out"]["kernel"].shape == (1024, 100)
     with pytest.raises(ValueError, match=r"\(N, D\)"):
         model.apply(variables, jnp.zeros((3, 4, 6)))
 
@@ -235,7 +241,8 @@ def test_fusion_mlp_modality_dropout_drops_at_most_one_block_and_rescales():
     for rows, keep in ((first, slice(2, 6)), (second, slice(0, 2)), (~first & ~second, slice(0, 6))):
         np.testing.assert_allclose(y[rows][:, keep], scaled[rows][:, keep], rtol=1e-5)
     sd = np.sqrt(p * (1 - p) / n)
-    assert abs(first.mean() - p) < 4 * sd and abs(second.mean() - p) < 4 * sd
+    assert abs(first.mean() - p) < 4 * sd
+    assert abs(second.mean() - p) < 4 * sd
     with pytest.raises(ValueError, match="do not add up"):
         FusionMLP(num_classes=6, hidden=6, modality_sizes=(2, 3), modality_dropout=p).apply(
             variables, x, train=True, rngs={"dropout": jax.random.key(2)}

@@ -22,25 +22,31 @@ def test_session_matches_truth(fake):
     truth = fake.sessions[DATE]
     s = nclt.load_session(fake.root, DATE)
     assert isinstance(s, Session)
-    assert s.name == DATE and len(s) == truth.n_kept == 6
+    assert s.name == DATE
+    assert len(s) == truth.n_kept == 6
     np.testing.assert_array_equal(s.utimes, truth.utimes[truth.kept])
     assert s.utimes.dtype == np.int64
     np.testing.assert_array_equal(s.poses, truth.poses)  # exact: nearest row, values round-trip through repr
-    assert s.poses.shape == (6, 3) and s.poses.dtype == np.float64
+    assert s.poses.shape == (6, 3)
+    assert s.poses.dtype == np.float64
     r = s.report
     assert (r.n_images, r.n_kept, r.n_outside_ground_truth, r.n_no_pose, r.n_bad_images) == (9, 6, 2, 1, 0)
-    assert r.n_ground_truth_rows == truth.n_gt_rows and r.n_ground_truth_nan_rows == 1
-    assert r.n_dropped == 3 and "kept 6/9" in str(r)
+    assert r.n_ground_truth_rows == truth.n_gt_rows
+    assert r.n_ground_truth_nan_rows == 1
+    assert r.n_dropped == 3
+    assert "kept 6/9" in str(r)
 
 
 def test_images_are_upright_rgb(fake):
     truth = fake.sessions[DATE]
     s = nclt.load_session(fake.root, DATE)
-    assert s.raw_shape == (12, 16) and s.image_shape == (16, 12)
+    assert s.raw_shape == (12, 16)
+    assert s.image_shape == (16, 12)
     kept = np.flatnonzero(truth.kept)
     for i in range(len(s)):
         img = s.image(i)
-        assert img.dtype == np.uint8 and img.shape == (16, 12, 3)
+        assert img.dtype == np.uint8
+        assert img.shape == (16, 12, 3)
         np.testing.assert_array_equal(img, truth.upright[kept[i]])
 
 
@@ -69,7 +75,8 @@ def test_u2d_parse_any_size(tmp_path):
     lines = [f"{i} {j} {i + 0.5} {j + 0.25}" for i in range(2) for j in range(3)]
     p.write_text("\n".join(["width/cols = 3 , height/rows = 2", *lines]) + "\n")
     mapu, mapv = nclt.read_u2d_map(p)
-    assert mapu.shape == (2, 3) and mapu.dtype == np.float32
+    assert mapu.shape == (2, 3)
+    assert mapu.dtype == np.float32
     assert (mapu[0, 0], mapv[0, 0], mapu[1, 2], mapv[1, 2]) == (0.25, 0.5, 2.25, 1.5)
     p.write_text("width/cols = 3 , height/rows = 2\n0 0 0.5 1.25\n2 0 0 0\n" + "0 1 0 0\n" * 6)
     with pytest.raises(nclt.NcltFormatError, match=r"U2D_Cam5_3X2\.txt: pixel line 2 \(2 0\).*inside"):
@@ -155,7 +162,8 @@ def test_intrinsics_resize_matches_opencv():
 
 def test_resize_option(fake):
     s = nclt.load_session(fake.root, DATE, image_size=(8, 6))
-    assert s.image_shape == (8, 6) and s.image(0).shape == (8, 6, 3)
+    assert s.image_shape == (8, 6)
+    assert s.image(0).shape == (8, 6, 3)
     k_full = nclt.load_session(fake.root, DATE).intrinsics
     np.testing.assert_allclose(s.intrinsics, resize_intrinsics(k_full, (16, 12), (8, 6)))
 
@@ -181,14 +189,17 @@ def test_tolerance_and_matching():
     assert too_far.tolist() == [False, False, False, False, True, False, False]
     assert index[1:6].tolist() == [0, 1, 2, 2, 3]  # 600: nearest row 300 (dist 300), too far anyway
     index, outside, too_far = nclt.match_nearest(np.array([100, 90, 150]), np.array([100]), tolerance_us=50)
-    assert index.tolist() == [0, 0, 0] and outside.tolist() == [False, True, True] and not too_far.any()
+    assert index.tolist() == [0, 0, 0]
+    assert outside.tolist() == [False, True, True]
+    assert not too_far.any()
 
 
 def test_tolerance_option(fake):
     with pytest.raises(nclt.NcltFormatError, match="no frame left"):
         nclt.load_session(fake.root, DATE, tolerance_s=0.002)  # every frame is 3 ms from the ground truth
     s = nclt.load_session(fake.root, DATE, tolerance_s=0.2)  # the 150 ms hole no longer drops its frame
-    assert len(s) == 7 and s.report.n_no_pose == 0
+    assert len(s) == 7
+    assert s.report.n_no_pose == 0
 
 
 def test_missing_files_named(fake):
@@ -245,7 +256,9 @@ def test_empty_image_caught_at_load(fake):
     with pytest.raises(nclt.NcltFormatError, match=rf"{path.name}: empty image file"):
         nclt.load_session(fake.root, DATE)
     s = nclt.load_session(fake.root, DATE, skip_bad_frames=True)
-    assert len(s) == 5 and s.report.n_bad_images == 1 and s.report.bad_images == (str(path),)
+    assert len(s) == 5
+    assert s.report.n_bad_images == 1
+    assert s.report.bad_images == (str(path),)
     assert path not in s.files
 
 
@@ -260,7 +273,9 @@ def test_unreadable_image_named_or_counted(fake, how):
     with pytest.raises(nclt.NcltFormatError, match=rf"{path.name}: unreadable"):
         nclt.load_session(fake.root, DATE, verify_images=True, progress=False)
     s = nclt.load_session(fake.root, DATE, verify_images=True, skip_bad_frames=True, progress=False)
-    assert len(s) == 5 and s.report.n_bad_images == 1 and path not in s.files
+    assert len(s) == 5
+    assert s.report.n_bad_images == 1
+    assert path not in s.files
     for i in range(len(s)):
         s.image(i)
 
@@ -269,7 +284,8 @@ def test_first_image_bad_probe_moves_on(fake):
     truth = fake.sessions[DATE]
     path = _corrupt(fake, int(np.flatnonzero(truth.kept)[0]), "garbage")
     s = nclt.load_session(fake.root, DATE, skip_bad_frames=True)
-    assert s.raw_shape == (12, 16) and s.report.bad_images == (str(path),)
+    assert s.raw_shape == (12, 16)
+    assert s.report.bad_images == (str(path),)
 
 
 def test_wrong_size_image_named(fake):
@@ -305,7 +321,8 @@ def test_command_line_report_grid_and_cache(fake, tmp_path, capsys):
     grid = PlaceGrid.load(grid_path)
     assert grid == PlaceGrid.fit([fake.sessions[d].poses for d in (DATE, "2012-03-31")])
     caches = sorted(p for p in (tmp_path / "c").iterdir() if p.is_dir())
-    assert len(caches) == 2 and open_session_cache(caches[0]).image_shape == (8, 6)
+    assert len(caches) == 2
+    assert open_session_cache(caches[0]).image_shape == (8, 6)
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -324,10 +341,12 @@ def test_conflicting_duplicate_ground_truth_rows_dropped_and_counted(fake):
     conflict = ",".join([t, str(float(pose[0]) + 5.0), *pose[1:]])
     csv.write_text("\n".join([*lines, conflict, lines[20]]) + "\n")
     truth = nclt.read_ground_truth(csv)
-    assert truth.n_conflicting_rows == 2 and int(t) not in truth.utimes
+    assert truth.n_conflicting_rows == 2
+    assert int(t) not in truth.utimes
     assert len(np.unique(truth.utimes)) == len(truth.utimes) == len(lines) - 1 - 1  # NaN row, conflicting utime
     s = nclt.load_session(fake.root, DATE)
-    assert s.report.n_ground_truth_conflicting_rows == 2 and "2 rows with conflicting" in str(s.report)
+    assert s.report.n_ground_truth_conflicting_rows == 2
+    assert "2 rows with conflicting" in str(s.report)
     assert len(s) == fake.sessions[DATE].n_kept  # neighbouring rows (10 ms apart) still give every frame a pose
 
 

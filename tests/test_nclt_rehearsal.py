@@ -50,12 +50,15 @@ def test_real_size_tree_reads_back(tmp_path):
     assert fake.u2d_file.name == "U2D_Cam5_1616X1232.txt"
     assert fake.u2d_file.read_text()[:80].startswith("width/cols = 1616 , height/rows = 1232\n0 0 0.000000 0.000000\n")
     s = nclt.load_session(tmp_path, date, undistort=True, progress=False)
-    assert s.raw_shape == (1232, 1616) and s.image_shape == (1616, 1232) and len(s) == 2
+    assert s.raw_shape == (1232, 1616)
+    assert s.image_shape == (1616, 1232)
+    assert len(s) == 2
     np.testing.assert_array_equal(s.poses, truth.poses)
     np.testing.assert_array_equal(s.utimes, truth.utimes)
     for i in range(2):
         img = s.image(i)
-        assert img.shape == (1616, 1232, 3) and img.dtype == np.uint8
+        assert img.shape == (1616, 1232, 3)
+        assert img.dtype == np.uint8
         np.testing.assert_array_equal(img, truth.upright[i])
         assert img.std() > 10  # structured, not constant
     assert not np.array_equal(truth.upright[0], truth.upright[1])
@@ -148,8 +151,10 @@ def test_check_batch_sizes_matches_what_training_accepts():
     assert problem.startswith("train.batch_size=7 ")
     # The paper preset (nets: batch 64 × 10 epochs; MLP: batch 128 × 30 epochs) at --frames 4 (2 kept).
     train, mlp = check_batch_sizes(_batches(64, 10, 128, 30), 4 - DROPPED_FRAMES)
-    assert "--frames 9 or more (keeping 7)" in train and "at most 20" in train
-    assert "--frames 7 or more (keeping 5)" in mlp and "at most 60" in mlp
+    assert "--frames 9 or more (keeping 7)" in train
+    assert "at most 20" in train
+    assert "--frames 7 or more (keeping 5)" in mlp
+    assert "at most 60" in mlp
 
 
 def _script_env(root: Path) -> dict:
@@ -205,7 +210,9 @@ def test_quick_run_end_to_end(bench_copy):
     out = done.stdout
     assert out.count(QUICK_NOTE) >= 3  # before the run, above the projection, after the last line
     record = json.loads((bench_copy / "benchmarks" / "results" / "nclt_rehearsal_quick.json").read_text())
-    assert record["quick"] is True and record["note"] == QUICK_NOTE and record["preset"] == "paper"
+    assert record["quick"] is True
+    assert record["note"] == QUICK_NOTE
+    assert record["preset"] == "paper"
     assert not (bench_copy / "benchmarks" / "results" / "nclt_rehearsal.json").exists()
 
     sizes = record["sizes"]
@@ -213,13 +220,16 @@ def test_quick_run_end_to_end(bench_copy):
     assert [r["frames"] for r in sizes] == [n - DROPPED_FRAMES for n in QUICK_DEFAULTS["frames"]]
     for r in sizes:
         assert r["overrides"][-len(QUICK_OVERRIDES) :] == list(QUICK_OVERRIDES)
-        assert r["config"]["data"]["image_size"] == [32, 32] and r["config"]["data"]["undistort"] is True
+        assert r["config"]["data"]["image_size"] == [32, 32]
+        assert r["config"]["data"]["undistort"] is True
         assert len(r["sessions"]) == QUICK_DEFAULTS["sessions"]
         assert {v["frames"] for v in r["sessions"].values()} == {r["frames"]}
         for stage in [*STAGES, "total"]:
-            assert math.isfinite(r["timings_s"][stage]) and r["timings_s"][stage] >= 0, stage
+            assert math.isfinite(r["timings_s"][stage]), stage
+            assert r["timings_s"][stage] >= 0, stage
         for key in ("peak_rss_mb", "peak_anon_mb", "cache_mb", "workdir_mb", "tree_mb", "wall_s"):
-            assert math.isfinite(r[key]) and r[key] > 0, key
+            assert math.isfinite(r[key]), key
+            assert r[key] > 0, key
 
     # The stage table: seconds as measured, images/s = images per frame × sessions × frames / seconds.
     cfg = sizes[-1]["config"]
@@ -237,14 +247,16 @@ def test_quick_run_end_to_end(bench_copy):
     p = record["projection"]
     n_sessions, largest, target = len(cfg["data"]["sessions"]), sizes[-1]["frames"], p["target_frames"]
     nn_at_largest = (n_sessions**2) * record["nn_pair_s"] * (largest / record["nn_frames"]) ** 2
-    assert record["nn_frames"] == QUICK_DEFAULTS["nn_frames"] and record["nn_pair_s"] > 0
+    assert record["nn_frames"] == QUICK_DEFAULTS["nn_frames"]
+    assert record["nn_pair_s"] > 0
     keys = ("frames", "peak_rss_mb", "peak_anon_mb")
     again = project(
         [{**{k: r[k] for k in keys}, "stages": r["timings_s"]} for r in sizes],
         target,
         quadratic={"evaluate": nn_at_largest},
     )
-    assert set(p["stages"]) == set(again["stages"]) and set(STAGES) <= set(p["stages"])
+    assert set(p["stages"]) == set(again["stages"])
+    assert set(STAGES) <= set(p["stages"])
     for stage, q in p["stages"].items():
         for key, value in q.items():
             assert value == (
@@ -253,7 +265,8 @@ def test_quick_run_end_to_end(bench_copy):
         assert all(math.isfinite(v) for v in q.values() if not isinstance(v, str))
         assert q["projected"] == pytest.approx(q["fixed"] + q["per_frame"] * target + q.get("quadratic_extra", 0.0))
     assert p["total_s"] == pytest.approx(sum(q["projected"] for q in p["stages"].values()))
-    assert p["total_h"] == pytest.approx(p["total_s"] / 3600) and math.isfinite(p["total_s"])
+    assert p["total_h"] == pytest.approx(p["total_s"] / 3600)
+    assert math.isfinite(p["total_s"])
     assert set(p["memory"]) == {"peak_rss_mb", "peak_anon_mb"}
     assert all(math.isfinite(v) for m in p["memory"].values() for k, v in m.items())
     assert f"total ≈ {p['total_s']:.0f} s = {p['total_h']:.1f} h" in out

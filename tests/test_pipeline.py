@@ -40,8 +40,11 @@ def test_batches_hold_the_right_frames(cached):
     batches = list(train_dataset(c, labels, batch_size=4, seed=0, drop_remainder=False))
     assert [len(b["index"]) for b in batches] == [4, 4, 4, 4, 4, 3]
     b = batches[0]
-    assert b["image"].dtype == np.uint8 and b["image"].shape == (4, 10, 8, 3)
-    assert b["label"].dtype == np.int32 and b["index"].dtype == np.int64 and b["valid"].all()
+    assert b["image"].dtype == np.uint8
+    assert b["image"].shape == (4, 10, 8, 3)
+    assert b["label"].dtype == np.int32
+    assert b["index"].dtype == np.int64
+    assert b["valid"].all()
     for batch in batches:  # batch == loop over single frames
         for k, i in enumerate(batch["index"]):
             np.testing.assert_array_equal(batch["image"][k], s.image(i))
@@ -67,7 +70,8 @@ def test_each_epoch_is_a_fresh_permutation(cached):
     epochs = idx.reshape(3, 23)
     for e in epochs:
         assert sorted(e.tolist()) == list(range(23))
-    assert not np.array_equal(epochs[0], epochs[1]) and not np.array_equal(epochs[1], epochs[2])
+    assert not np.array_equal(epochs[0], epochs[1])
+    assert not np.array_equal(epochs[1], epochs[2])
     assert not np.array_equal(epochs[0], np.arange(23))
 
 
@@ -92,10 +96,12 @@ def test_shards_read_exactly_the_global_batches_of_one_process(cached):
 def test_drop_remainder(cached):
     _, c, labels = cached
     ds = train_dataset(c, labels, batch_size=5, seed=0, num_epochs=2)
-    assert len(ds) == 9 and all(len(b["index"]) == 5 for b in ds)
+    assert len(ds) == 9
+    assert all(len(b["index"]) == 5 for b in ds)
     # Batches span epoch boundaries: batch 4 holds the last 3 frames of epoch 0 and the first 2 of epoch 1.
     idx = _indices(list(ds))
-    assert sorted(idx[:23].tolist()) == list(range(23)) and len(set(idx[23:45].tolist())) == 22
+    assert sorted(idx[:23].tolist()) == list(range(23))
+    assert len(set(idx[23:45].tolist())) == 22
     # Random access: batch k read alone equals batch k of the iteration (what a resumed run reads).
     np.testing.assert_array_equal(ds[6]["index"], list(ds)[6]["index"])
     with pytest.raises(ValueError, match="exceeds"):
@@ -125,7 +131,8 @@ def test_augmentation(cached):
     b = next(iter(train_dataset(c, labels, batch_size=23, seed=0, augment=jitter)))
     ref = np.stack([s.image(i) for i in b["index"]]).astype(np.int32)
     diff = b["image"].astype(np.int32) - ref
-    assert np.abs(diff).max() <= 128 and np.abs(diff).mean() > 5
+    assert np.abs(diff).max() <= 128
+    assert np.abs(diff).mean() > 5
     with pytest.raises(ValueError, match="larger than the image"):
         Augment(crop_hw=(20, 5))({"image": s.image(0)}, np.random.default_rng(0))
 
@@ -140,7 +147,8 @@ def test_eval_covers_every_frame_once_with_padding(cached):
             n_batches.add(len(batches))
             for b in batches:
                 assert b["image"].shape == (4, 6, 6, 3)  # static shape, padding included
-                assert (b["index"][~b["valid"]] == -1).all() and (b["label"][~b["valid"]] == -1).all()
+                assert (b["index"][~b["valid"]] == -1).all()
+                assert (b["label"][~b["valid"]] == -1).all()
                 for k in np.flatnonzero(b["valid"]):
                     idx = b["index"][k]
                     np.testing.assert_array_equal(b["image"][k], s.image(idx)[2:8, 1:7])
@@ -183,7 +191,8 @@ def test_photometric_jitter_matches_float_formula():
     a, b = rng.uniform(0.6, 1.4), rng.uniform(-0.3, 0.3) * 255.0
     x = img.astype(np.float64)
     expected = np.clip(np.rint((x - x.mean()) * a + x.mean() + b), 0, 255)
-    assert out.dtype == np.uint8 and out.shape == img.shape
+    assert out.dtype == np.uint8
+    assert out.shape == img.shape
     assert np.abs(out.astype(np.float64) - expected).max() <= 1.0
 
 
@@ -204,16 +213,20 @@ def test_array_caches_and_paired_extras(cached, tmp_path):
     src = FrameSource(c, labels, extras={"depth": depth, "feat": np.arange(n * 4, dtype=np.float32).reshape(n, 4)})
     clone = pickle.loads(pickle.dumps(src))
     for batch in eval_dataset(clone, batch_size=4, shard=_shard(1, 2)):
-        assert batch["depth"].shape == (4, 3, 2) and batch["feat"].shape == (4, 4)
+        assert batch["depth"].shape == (4, 3, 2)
+        assert batch["feat"].shape == (4, 4)
         for k, i in enumerate(batch["index"]):
             if batch["valid"][k]:
-                assert (batch["depth"][k] == i).all() and (batch["feat"][k] == np.arange(4 * i, 4 * i + 4)).all()
+                assert (batch["depth"][k] == i).all()
+                assert (batch["feat"][k] == np.arange(4 * i, 4 * i + 4)).all()
                 np.testing.assert_array_equal(batch["image"][k], s.image(i))
             else:
-                assert (batch["depth"][k] == 0).all() and (batch["image"][k] == 0).all()
+                assert (batch["depth"][k] == 0).all()
+                assert (batch["image"][k] == 0).all()
     # An ArrayCache as the image column (e.g. HHA-Net training on cached HHA images).
     b = next(iter(train_dataset(depth, labels, batch_size=5, seed=0)))
-    assert b["image"].dtype == np.float32 and (b["image"][:, 0, 0] == b["index"]).all()
+    assert b["image"].dtype == np.float32
+    assert (b["image"][:, 0, 0] == b["index"]).all()
     # A memmap *slice* is not mistaken for its whole file.
     part = FrameSource(c.images[3:9])
     assert len(part) == 6
@@ -278,7 +291,7 @@ def test_unpickled_memmaps_are_reopened_one_at_a_time(cached, monkeypatch):
             np.testing.assert_array_equal(example[key], value)
 
 
-@pytest.mark.parametrize("shard_count, drop", [(1, True), (1, False), (2, True)])
+@pytest.mark.parametrize(("shard_count", "drop"), [(1, True), (1, False), (2, True)])
 def test_batches_are_the_stacked_rows(shard_count, drop):
     """A training batch is gathered at once; it is exactly what stacking its rows one by one gives (grain's
     ``batch`` over the per-row source, the earlier implementation): same keys, dtypes and values, every batch."""
@@ -301,4 +314,5 @@ def test_batches_are_the_stacked_rows(shard_count, drop):
             a, b = new[k], old[k]
             assert a.keys() == b.keys()
             for key in a:
-                assert a[key].dtype == b[key].dtype and np.array_equal(a[key], b[key]), (k, key)
+                assert a[key].dtype == b[key].dtype, (k, key)
+                assert np.array_equal(a[key], b[key]), (k, key)

@@ -152,7 +152,7 @@ def test_cli_overrides_are_typed_and_cache_folder_follows_the_config(tmp_path):
 
     cfg = pretrain_trunk.parse_overrides(pretrain.PRESETS["smoke"], ["steps=7", "pair_weight=0"])
     assert (cfg.steps, cfg.pair_weight) == (7, 0.0)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="unknown config key 'no_such_key'"):
         pretrain_trunk.parse_overrides(pretrain.PRESETS["smoke"], ["no_such_key=1"])
     a = pretrain.run_dir(cfg, "smoke", tmp_path)
     assert a == pretrain.run_dir(dataclasses.replace(cfg, checkpoint_every=3), "smoke", tmp_path)
@@ -177,7 +177,8 @@ def test_experiment_reads_the_shipped_trunk_as_pretrained_weights(tmp_path):
     assert set(params) == {"trunk"}
     assert jax.tree.map(lambda a: a.shape, params["trunk"]) == jax.tree.map(lambda a: a.shape, want["params"]["trunk"])
     ident = identity(vgg.weights, default="registry:vgg16_imagenet")
-    assert ident["shipped"] == vgg.weights and len(ident["sha256"]) == 64
+    assert ident["shipped"] == vgg.weights
+    assert len(ident["sha256"]) == 64
     with pytest.raises(ValueError, match=r"width-0\.125 trunk"):
         pretrained_vgg(dataclasses.replace(vgg, width=0.25), vgg.weights)
 
@@ -198,7 +199,8 @@ def test_hha_depth_field_keeps_the_shipped_hha_trunks_hash_and_is_validated():
     _, meta = weights.resolve(f"shipped:{pretrain.SHIPPED_HHA}")
     recorded = {k: v for k, v in meta["config"].items() if k != "hha_depth"}
     cfg = pretrain.PretrainConfig(**recorded)
-    assert cfg.hha_depth == "perturbed" and cfg.fingerprint() == meta["fingerprint"]
+    assert cfg.hha_depth == "perturbed"
+    assert cfg.fingerprint() == meta["fingerprint"]
     network = dataclasses.replace(cfg, hha_depth="trained:default").fingerprint()
     assert network != cfg.fingerprint()
     # The named depth network's recipe is part of the hash: another default depth preset is another run.
@@ -246,7 +248,8 @@ def test_hha_views_from_a_depth_function_encode_its_prediction_of_each_random_lo
     rng = np.random.default_rng(5)
     a = _data.hha_views(8_000_000, poses, hw, rng, "SU", depth_fn)
     b = _data.hha_views(8_000_000, poses, hw, rng, "SU", depth_fn)
-    assert [x.shape for x in seen] == [(3, 32, 32, 3)] * 2 and all(x.dtype == np.uint8 for x in seen)
+    assert [x.shape for x in seen] == [(3, 32, 32, 3)] * 2
+    assert all(x.dtype == np.uint8 for x in seen)
     assert np.abs(seen[0].astype(int) - seen[1]).mean() > 5  # two independent looks of the same views
     k = simcampus.intrinsics(hw)
     np.testing.assert_array_equal(a, np.asarray(hha.encode(depth_fn(seen[0]), k)))
@@ -265,11 +268,13 @@ def test_perturbed_depth_has_only_near_surfaces_and_sky():
     depth[:, :4] = SKY_DEPTH
     out = _data.perturb_depth(depth, np.random.default_rng(1))
     np.testing.assert_array_equal(out, _data.perturb_depth(depth, np.random.default_rng(1)))
-    assert out.shape == depth.shape and out.dtype == np.float32
+    assert out.shape == depth.shape
+    assert out.dtype == np.float32
     assert np.all((out < _data.PERTURB_SKY_FROM_M[1]) | (out == SKY_DEPTH))
     near = depth < 10.0
     ratio = np.abs(np.log(out[near] / depth[near]))
-    assert np.median(ratio) < 2 * _data.PERTURB_LOG_SCALE and ratio.max() < 6 * _data.PERTURB_LOG_SCALE
+    assert np.median(ratio) < 2 * _data.PERTURB_LOG_SCALE
+    assert ratio.max() < 6 * _data.PERTURB_LOG_SCALE
     assert np.mean(out[:, :4] == SKY_DEPTH) > 0.5  # most of the sky stays sky
 
 

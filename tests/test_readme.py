@@ -97,7 +97,9 @@ def _run(code: str, env: dict[str, str], cwd: Path) -> None:
 
 
 def test_readme_has_python_blocks():
-    assert len(_blocks("python", [README])) >= 1 and len(PYTHON_BLOCKS) >= 3 and BASH_BLOCKS
+    assert len(_blocks("python", [README])) >= 1
+    assert len(PYTHON_BLOCKS) >= 3
+    assert BASH_BLOCKS
     # A fragment must say why it is not run, and still be valid Python.
     for code in FRAGMENTS:
         assert len(code.splitlines()[0]) > len(_NOT_RUN) + 3, code
@@ -229,7 +231,8 @@ def test_the_test_command_keeps_a_group_on_one_worker(tmp_path):
     )
     assert out.returncode == 0, out.stdout + out.stderr
     workers = re.findall(r"^WORKER (gw\d+)$", out.stdout, re.MULTILINE)
-    assert len(workers) == 6 and len(set(workers)) == 1, out.stdout
+    assert len(workers) == 6, out.stdout
+    assert len(set(workers)) == 1, out.stdout
 
 
 RECORD = REPO / "docs" / "cross_season" / "results.json"
@@ -243,7 +246,9 @@ def test_the_readme_quotes_the_committed_record_of_its_default_run():
 
     rec = json.loads(RECORD.read_text())
     text = README.read_text()
-    assert rec["preset"] == "default" and rec["record"]["command"] and rec["record"]["commit"]
+    assert rec["preset"] == "default"
+    assert rec["record"]["command"]
+    assert rec["record"]["commit"]
     pct = lambda x: f"{100 * x:.1f}"
     acc = lambda r, m, sd: f"{pct(r[m])} ± {pct(sd)}"
 
@@ -336,7 +341,8 @@ def test_the_readmes_hha_rows_are_the_benchmarks_record():
         f"encoder {r['this_images_per_s']:,.0f} against the previous encoder's {r['baseline_images_per_s']:.0f}"
         in small
     )
-    assert f"{r['baseline_over_this']:.2f}×" in small and f"{r['speedup']:.0f}× slower" in small
+    assert f"{r['baseline_over_this']:.2f}×" in small
+    assert f"{r['speedup']:.0f}× slower" in small
     assert numpy_small["impl"] == "numpy float64 (baseline)"
     b8, b1 = rows[("480x640", False, 8)], rows[("480x640", False, 1)]
     numpy_large = rows[("480x640", True, 1)]
@@ -354,7 +360,8 @@ def test_the_readmes_classifier_speed_row_is_its_benchmarks_record():
     rows = {r["batch"]: r for r in rec["rows"] if r["size"] == "builtin"}
     (line,) = [x for x in README.read_text().splitlines() if x.startswith("| end to end, the built-in classifier")]
     b8, b1 = rows[8], rows[1]
-    assert rows[1]["image_hw"] == [96, 96] and "(96², two depth views" in line
+    assert rows[1]["image_hw"] == [96, 96]
+    assert "(96², two depth views" in line
     assert f"{b8['images_per_s']:.1f} / {b1['images_per_s']:.1f} images/s" in line
     assert f"{b8['baseline_images_per_s']:.1f} / {b1['baseline_images_per_s']:.1f} images/s" in line
     assert f"({b8['speedup']:.1f}× / {b1['speedup']:.1f}×" in line

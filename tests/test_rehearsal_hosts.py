@@ -39,11 +39,16 @@ def test_project_hosts_arithmetic():
     p = project_hosts(projection, cfg, (1, 4), cache_mb=1000.0, copy_mb_s=500.0, hash_mb_s=250.0, overhead_s=60.0)
     one, four = p["rows"]
     # One host: the projection itself.
-    assert one["total_s"] == pytest.approx(2010 + 1005 + 600 + 50) and one["assembly_s"] == one["overhead_s"] == 0
+    assert one["total_s"] == pytest.approx(2010 + 1005 + 600 + 50)
+    assert one["assembly_s"] == one["overhead_s"] == 0
     # Four hosts: depth 20 chunks of 50 → 5 each; features 40 chunks of 25 → 10 each; nets, evaluate as they were.
     assert four["sharded_s"] == pytest.approx(10 + 2.0 * 250 + 5 + 1.0 * 250)
     assert four["other_s"] == pytest.approx(650.0)
-    assert four["assembly_s"] == pytest.approx(1000 / 500 + 1000 / 250) and four["overhead_s"] == 60.0
-    assert four["total_s"] == pytest.approx(765 + 650 + 6 + 60) and four["total_h"] == pytest.approx(1481 / 3600)
-    assert four["speedup"] == pytest.approx(one["total_s"] / four["total_s"]) and one["speedup"] == 1.0
-    assert p["gpu"] == GPU_ROW and "not run here" in GPU_ROW["status"]
+    assert four["assembly_s"] == pytest.approx(1000 / 500 + 1000 / 250)
+    assert four["overhead_s"] == 60.0
+    assert four["total_s"] == pytest.approx(765 + 650 + 6 + 60)
+    assert four["total_h"] == pytest.approx(1481 / 3600)
+    assert four["speedup"] == pytest.approx(one["total_s"] / four["total_s"])
+    assert one["speedup"] == 1.0
+    assert p["gpu"] == GPU_ROW
+    assert "not run here" in GPU_ROW["status"]

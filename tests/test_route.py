@@ -242,10 +242,12 @@ def test_unknown_state_rises_off_the_map_and_falls_back_on_it():
         # 40 m where the images fit no known cell: a flat output with weak peaks that jump about.
         probs[60:100] = _classifier(rng.integers(0, 25, 40), 25, rng, correct=1.0, peak=0.08)
         _, unknown = route.place_belief(route.forward(probs, np.ones(len(labels)), GRID, cfg), 25)
-        assert unknown[20:60].mean() < 0.1 and unknown[120:].mean() < 0.1  # on the map (measured ≤ 0.07)
+        assert unknown[20:60].mean() < 0.1
+        assert unknown[120:].mean() < 0.1
         assert unknown[75:100].min() > 0.8  # off it (measured ≥ 0.89)
         # Entered within 10 m of leaving the map, left within 10 m of coming back (measured ≤ 7 and ≤ 5).
-        assert np.argmax(unknown[60:] > 0.5) < 10 and np.argmax(unknown[100:] < 0.5) < 10
+        assert np.argmax(unknown[60:] > 0.5) < 10
+        assert np.argmax(unknown[100:] < 0.5) < 10
 
 
 def test_fit_temperature_recovers_the_generating_temperature():
@@ -299,7 +301,8 @@ def test_simcampus_odometry_is_the_true_path_with_its_documented_noise():
     # 1 + scale · a + step · b_i: the per-step spread and the session's scale error, within sampling error.
     assert abs(ratio.std() - _trajectory.ODOMETRY_STEP_SD) < 0.2 * _trajectory.ODOMETRY_STEP_SD
     assert abs(ratio.mean() - 1.0) < 3 * _trajectory.ODOMETRY_SCALE_SD + 0.01
-    assert full.travelled_m[0] == 0.0 and (np.diff(full.travelled_m) >= 0).all()
+    assert full.travelled_m[0] == 0.0
+    assert (np.diff(full.travelled_m) >= 0).all()
     other = simcampus.load_session("SU", image_size=(8, 8), max_frames=50)
     assert not np.allclose(
         np.diff(other.travelled_m) / np.linalg.norm(np.diff(other.poses[:, :2], axis=0), axis=1), ratio[:49]
@@ -324,7 +327,8 @@ def test_nclt_odometry_reader_on_a_generated_csv(tmp_path):
     csv = tmp_path / "odometry_mu_100hz.csv"
     _write_odometry(csv, rows)
     odo = nclt.read_odometry(csv)
-    assert odo.utimes.shape == (2001,) and (np.diff(odo.utimes) > 0).all()
+    assert odo.utimes.shape == (2001,)
+    assert (np.diff(odo.utimes) > 0).all()
     frames = t0 + np.array([0, 2_500_000, 5_000_000, 10_000_000, 20_000_000])  # 5 Hz-like image times
     travelled = nclt.travelled_at(odo, frames)
     arc = 2 * np.pi * 5 * (frames - t0) / 20e6
@@ -410,11 +414,12 @@ def test_filter_config_is_the_one_owner_of_the_settings():
     ]
     assert [(f.name, f.default) for f in dataclasses.fields(route.FilterConfig)] == want
     cfg = route.FilterConfig()
-    assert route.FilterConfig(**cfg.to_dict()) == cfg and list(cfg.to_dict()) == [k for k, _ in want]
+    assert route.FilterConfig(**cfg.to_dict()) == cfg
+    assert list(cfg.to_dict()) == [k for k, _ in want]
 
 
 @pytest.mark.parametrize(
-    "field, value",
+    ("field", "value"),
     [
         ("temperature", 0.0),
         ("temperature", -1.0),
@@ -486,7 +491,9 @@ def test_batch_filter_refuses_probabilities_outside_0_1(bad):
         route.forward(probs, moved, GRID)
 
 
-@pytest.mark.parametrize("bad, message", [(np.nan, "nan"), (np.inf, "inf"), (-0.5, r"-0\.5"), (1e8, r"100000000\.0")])
+@pytest.mark.parametrize(
+    ("bad", "message"), [(np.nan, "nan"), (np.inf, "inf"), (-0.5, r"-0\.5"), (1e8, r"100000000\.0")]
+)
 def test_distances_are_refused_naming_the_frame(bad, message):
     probs, moved = _probs()
     moved[2] = bad
@@ -506,7 +513,7 @@ def test_distances_are_refused_naming_the_frame(bad, message):
 
 
 @pytest.mark.parametrize(
-    "edit, message",
+    ("edit", "message"),
     [
         (lambda p: p.__setitem__(4, np.nan), r"prior: state 4 is nan"),
         (lambda p: p.__setitem__(5, np.inf), r"prior: state 5 is inf"),
@@ -624,8 +631,13 @@ def test_tracker_reports_a_broken_frame_as_unknown_never_as_a_place():
     tracker = Tracker(fake)
     steps = [tracker.step(im, d) for im, d in zip(images, moved, strict=True)]
     s = steps[2]
-    assert s.rejected and s.label == -1 and s.probability == 0.0 and s.unknown == 1.0 and s.frame_label == -1
-    assert s.frame_rejected and np.isnan(s.frame_unknown_score)
+    assert s.rejected
+    assert s.label == -1
+    assert s.probability == 0.0
+    assert s.unknown == 1.0
+    assert s.frame_label == -1
+    assert s.frame_rejected
+    assert np.isnan(s.frame_unknown_score)
     assert np.isfinite(s.belief).all()
     assert not any(t.rejected for i, t in enumerate(steps) if i != 2)
     assert all(np.isfinite(t.probability) and t.label >= 0 for i, t in enumerate(steps) if i != 2)

@@ -62,11 +62,16 @@ def logged(shared_smoke_run, tmp_path_factory) -> tuple[subprocess.CompletedProc
 
 def test_a_log_has_no_carriage_returns_and_every_line_has_a_time(logged):
     done, workdir = logged
-    assert "\r" not in done.stderr and "\r" not in done.stdout
+    assert "\r" not in done.stderr
+    assert "\r" not in done.stdout
     lines = done.stderr.splitlines()
-    assert lines and all(STAMP.match(line) for line in lines), [x for x in lines if not STAMP.match(x)][:5]
+    assert lines, [x for x in lines if not STAMP.match(x)][:5]
+    assert all(STAMP.match(line) for line in lines), [x for x in lines if not STAMP.match(x)][:5]
     first = lines[0]
-    assert "preset smoke" in first and str(workdir) in first and "seeds (0, 1)" in first and "cpu device" in first
+    assert "preset smoke" in first
+    assert str(workdir) in first
+    assert "seeds (0, 1)" in first
+    assert "cpu device" in first
     for stage in STAGES:
         assert any(line[10:].startswith(stage) for line in lines), stage
     # Periodic progress lines of the trainings, labelled with the session, modality and seed.
@@ -81,8 +86,12 @@ def test_the_summary_fits_100_columns_and_ends_naming_the_outputs(logged):
     assert sum(1 for line in out if re.match(r"^(WI|SP|SU|AU)→(WI|SP|SU|AU) ", line)) == 12
     assert "(a smoke run) the differences are noise" in " ".join(done.stdout.split())  # 9 classes
     last = out[-1]
-    assert last.startswith("done in ") and "table.md" in last and "figures/" in last and "results.json" in last
-    assert str(workdir) in last and "{" not in last  # names the folder, no dict repr
+    assert last.startswith("done in ")
+    assert "table.md" in last
+    assert "figures/" in last
+    assert "results.json" in last
+    assert str(workdir) in last
+    assert "{" not in last
 
 
 def test_a_terminal_shows_live_bars_and_stage_lines(shared_smoke_run, tmp_path_factory):
@@ -111,7 +120,8 @@ def test_a_terminal_shows_live_bars_and_stage_lines(shared_smoke_run, tmp_path_f
     stdout = proc.stdout.read()
     assert proc.wait(timeout=60) == 0
     screen = b"".join(chunks).decode().replace("\r\n", "\n")  # the terminal turns each newline into CR LF
-    assert "\r" in screen and "train SP-hha (seed 0)" in screen  # live bars
+    assert "\r" in screen
+    assert "train SP-hha (seed 0)" in screen
     shown = [part.rsplit("\r", 1)[-1].strip() for part in screen.split("\n")]
     stage_lines = [line for line in shown if STAMP.match(line)]
     for stage in STAGES:
@@ -132,8 +142,10 @@ def test_progress_lines_in_a_file_and_bars_in_a_terminal(monkeypatch):
             b.update(1)
             b.set_postfix(loss=1.0)
     lines = out.getvalue().splitlines()
-    assert "\r" not in out.getvalue() and all(STAMP.match(line) for line in lines)
-    assert lines[-1].endswith("loss=1]") and " 4/4 step " in lines[-1]
+    assert "\r" not in out.getvalue()
+    assert all(STAMP.match(line) for line in lines)
+    assert lines[-1].endswith("loss=1]")
+    assert " 4/4 step " in lines[-1]
     monkeypatch.setenv("PLACEJAX_PROGRESS", "bars")
     assert progress.interactive(out)
     monkeypatch.setenv("PLACEJAX_PROGRESS", "lines")

@@ -84,11 +84,15 @@ def test_lookup_gap(tmp_path):
     rows = json.loads((tmp_path / "fig" / "lookup_gap.json").read_text())["rows"]
     assert [(r["lever"], r["value"]) for r in rows] == [("size", 64), ("size", 96), ("jitter", 0)]
     # a: m_rgb = 20 − 22 = −2, m_hha = 25 − 24 = +1, m_fus = 30 − max(20, 25, 22.5, 10, 22, 24) = +5 → score −2.
-    assert rows[0]["m_rgb"] == pytest.approx(-2) and rows[0]["m_hha"] == pytest.approx(1)
-    assert rows[0]["m_fus"] == pytest.approx(5) and rows[0]["score"] == pytest.approx(-2)
+    assert rows[0]["m_rgb"] == pytest.approx(-2)
+    assert rows[0]["m_hha"] == pytest.approx(1)
+    assert rows[0]["m_fus"] == pytest.approx(5)
+    assert rows[0]["score"] == pytest.approx(-2)
     # b: +4, −1, 31 − 28 = +3 → −1.
-    assert rows[1]["score"] == pytest.approx(-1) and rows[1]["m_fus"] == pytest.approx(3)
-    assert "| size | 96 |" in out and rows[1]["total_s"] == 123.0
+    assert rows[1]["score"] == pytest.approx(-1)
+    assert rows[1]["m_fus"] == pytest.approx(3)
+    assert "| size | 96 |" in out
+    assert rows[1]["total_s"] == 123.0
     assert cv2.imread(str(tmp_path / "fig" / "lookup_gap.png")) is not None
     bad = subprocess.run(
         [sys.executable, "-m", "experiments.lookup_gap", "--out", "fig", f"size={a}"],
@@ -97,7 +101,8 @@ def test_lookup_gap(tmp_path):
         capture_output=True,
         text=True,
     )
-    assert bad.returncode != 0 and "LEVER:VALUE=WORKDIR" in bad.stderr
+    assert bad.returncode != 0
+    assert "LEVER:VALUE=WORKDIR" in bad.stderr
     missing = subprocess.run(
         [sys.executable, "-m", "experiments.lookup_gap", "--out", "fig", f"size:1={tmp_path}"],
         cwd=tmp_path,
@@ -105,7 +110,8 @@ def test_lookup_gap(tmp_path):
         capture_output=True,
         text=True,
     )
-    assert missing.returncode != 0 and "no results.json" in missing.stderr
+    assert missing.returncode != 0
+    assert "no results.json" in missing.stderr
 
 
 @pytest.mark.slow
@@ -133,7 +139,8 @@ def test_calibrate_world(tmp_path):
         cwd=tmp_path,
     )
     cal = json.loads((work / "calibration.json").read_text())
-    assert len(cal["pairs"]) == 12 and "| **mean** |" in out
+    assert len(cal["pairs"]) == 12
+    assert "| **mean** |" in out
     for k in ("seen_class_fraction", "heading_ceiling", "nn_rgb", "nn_gradient", "rgb_net"):
         assert cal["mean"][k] == pytest.approx(np.mean([p[k] for p in cal["pairs"]]))
         assert all(0.0 <= p[k] <= 1.0 for p in cal["pairs"])
@@ -193,7 +200,8 @@ def test_pretrain_diagnose_quick(tmp_path):
     for section in ("1. scales at initialisation", "2. memorising", "3. many-class pretext, 64²", "4. trunk map"):
         assert section in out, out
     accs = [float(line.rsplit(" ", 1)[1]) for line in out.splitlines() if "training accuracy" in line]
-    assert len(accs) == 2 and all(0.0 <= a <= 1.0 for a in accs)  # memorising, and the pretext at 64²
+    assert len(accs) == 2
+    assert all(0.0 <= a <= 1.0 for a in accs)
 
 
 @pytest.mark.slow
@@ -206,7 +214,8 @@ def test_simcampus_sanity(tmp_path):
         cwd=tmp_path,
     )
     r = json.loads(out_json.read_text())
-    assert len(r["top1"]) == 16 and all(0.0 <= v <= 1.0 for v in r["top1"].values())
+    assert len(r["top1"]) == 16
+    assert all(0.0 <= v <= 1.0 for v in r["top1"].values())
     assert r["mean_within"] == pytest.approx(np.mean([r["top1"][f"{s}->{s}"] for s in SEASONS]))
     assert r["mean_cross"] == pytest.approx(np.mean([v for k, v in r["top1"].items() if k[:2] != k[-2:]]))
     assert "mean within-session" in out
@@ -218,7 +227,8 @@ def test_simcampus_picture(tmp_path):
     png = tmp_path / "seasons.png"
     out = _run(["-m", "placejax.data.simcampus", str(png), "--size", "32", "--frame", "0"], cwd=tmp_path)
     image = cv2.imread(str(png))
-    assert image is not None and image.shape == (416, 800, 3), None if image is None else image.shape
+    assert image is not None, None if image is None else image.shape
+    assert image.shape == (416, 800, 3), None if image is None else image.shape
     assert "SU frame 0" in out
 
 
@@ -229,14 +239,17 @@ def test_simcampus_picture(tmp_path):
 def test_benchmark_hha_speed(bench):
     out, r = _bench(bench, "hha_speed", "--quick")
     assert [row["batch"] for row in r["rows"]] == [1, 1, 32]  # the NumPy baseline, then placejax at 1 and 32
-    assert r["stream"]["images"] == 64 and "implementation" in out
+    assert r["stream"]["images"] == 64
+    assert "implementation" in out
 
 
 @pytest.mark.slow
 def test_benchmark_simcampus_speed(bench):
     out, r = _bench(bench, "simcampus_speed", "--quick")
     (case,) = r["cases"]
-    assert case["size"] == "64x64" and case["fps_median"] > 0 and "64x64" in out
+    assert case["size"] == "64x64"
+    assert case["fps_median"] > 0
+    assert "64x64" in out
 
 
 @pytest.mark.slow
@@ -245,7 +258,8 @@ def test_benchmark_training_step(bench):
     assert {"vgg_step_1dev", "head_step_1dev (default)", "mlp_step", "train_dataset_batch"} <= {
         row["case"] for row in r["rows"]
     }
-    assert all(row["ms"] > 0 for row in r["rows"]) and "median ms" in out
+    assert all(row["ms"] > 0 for row in r["rows"])
+    assert "median ms" in out
     steps = [row for row in r["rows"] if "step" in row["case"]]
     assert all(row["gflops"] > 0 for row in steps), steps  # XLA's flop count over the step's time
 
@@ -254,7 +268,8 @@ def test_benchmark_training_step(bench):
 def test_benchmark_data_pipeline(bench):
     out, r = _bench(bench, "data_pipeline", "--frames", "2", "--repeats", "1", "--batch", "64")
     assert {row["case"] for row in r["results"]} >= {"nclt_image", "cache_build", "train_batches_augmented"}
-    assert r["meta"]["frames"] == 2 and "cache_build" in out
+    assert r["meta"]["frames"] == 2
+    assert "cache_build" in out
 
 
 @pytest.mark.slow
@@ -265,8 +280,11 @@ def test_benchmark_route_speed(bench):
         *("--tracker-steps", "2", "--first-repeats", "1"),
     )
     cases = [row["case"] for row in r["rows"]]
-    assert r["cells"] == 9 and len(cases) == 12 and "frames/s" in out
-    assert any(c.startswith("Tracker.step") for c in cases) and "PlaceClassifier.logits (1 image)" in cases
+    assert r["cells"] == 9
+    assert len(cases) == 12
+    assert "frames/s" in out
+    assert any(c.startswith("Tracker.step") for c in cases)
+    assert "PlaceClassifier.logits (1 image)" in cases
     assert "sequence matcher streaming (SequenceMatcher.step)" in cases
     assert "Tracker.step (classifier + sequence matcher)" in cases
 
@@ -277,7 +295,8 @@ def test_benchmark_inference_speed(bench):
     assert [row["batch"] for row in r["rows"]] == [1, 2]
     for row in r["rows"]:
         shares = [row[f"share_{k}"] for k in ("depth", "hha", "nets", "mlp")]
-        assert sum(shares) == pytest.approx(1.0) and row["images_per_s"] > 0
+        assert sum(shares) == pytest.approx(1.0)
+        assert row["images_per_s"] > 0
     assert "images/s" in out
 
 
@@ -286,4 +305,5 @@ def test_benchmark_models_speed(bench):
     out, r = _bench(
         bench, "models_speed", "--only", "midas", "--no-torch", "--repeats", "1", result="models_speed_midas"
     )
-    assert {row["batch"] for row in r["rows"]} == {1, 8} and "midas" in out
+    assert {row["batch"] for row in r["rows"]} == {1, 8}
+    assert "midas" in out

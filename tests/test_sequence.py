@@ -79,7 +79,8 @@ def test_a_move_beyond_every_neighbourhood_forgets_the_place():
     emb, xy, labels = line_drive()
     cfg = route.MatchConfig(unknown=False, neighbours=8, uniform_mix=0.0)
     ref = route.match_reference(emb, xy, labels, 4, neighbours=8)
-    assert ref.neighbours.shape == (40, 8) and (ref.neighbours[:, 0] == np.arange(40)).all()
+    assert ref.neighbours.shape == (40, 8)
+    assert (ref.neighbours[:, 0] == np.arange(40)).all()
     m = route.SequenceMatcher(ref, cfg)
     m.step(emb[5], 0.0)
     m.step(np.zeros(emb.shape[1]), 1000.0)  # 1 km: beyond every frame's 8 neighbours
@@ -93,7 +94,8 @@ def test_the_unknown_state_takes_frames_that_match_nothing():
     known = route.match_forward(emb[:10], np.r_[0.0, np.ones(9)], ref, cfg)
     assert known.unknown[-1] < 0.05
     flat = route.match_forward(np.zeros((10, emb.shape[1])), np.r_[0.0, np.ones(9)], ref, cfg)
-    assert flat.unknown[-1] > 0.5 and (np.diff(flat.unknown) > 0).all()
+    assert flat.unknown[-1] > 0.5
+    assert (np.diff(flat.unknown) > 0).all()
 
 
 def test_directions_of_travel_come_from_the_positions():
@@ -142,7 +144,10 @@ def test_a_broken_frame_moves_the_matcher_and_is_rejected():
     m = route.SequenceMatcher(ref)
     m.step(emb[3], 0.0)
     out = m.step(np.full(emb.shape[1], np.nan), 1.0)
-    assert m.rejected and out.frame[0] == -1 and out.unknown[0] == 1.0 and np.isfinite(m.belief).all()
+    assert m.rejected
+    assert out.frame[0] == -1
+    assert out.unknown[0] == 1.0
+    assert np.isfinite(m.belief).all()
     m.step(emb[5], 1.0)
     assert not m.rejected
 
@@ -165,7 +170,8 @@ def test_the_fixed_lag_filter_gives_smooths_answers_bit_for_bit(lag):
             assert lagged[0] == t - lag
             got[lagged[0]] = lagged[1]
     tail = f.flush()
-    assert [fr for fr, _ in tail] == list(range(90 - lag, 90)) and f.flush() == []
+    assert [fr for fr, _ in tail] == list(range(90 - lag, 90))
+    assert f.flush() == []
     got.update(tail)
     np.testing.assert_array_equal(np.stack([got[t] for t in range(90)]), want)
 
@@ -258,7 +264,9 @@ def test_the_file_carries_the_training_drive(drive_file):
     clf = PlaceClassifier.load(drive_file)
     assert clf.sequence == route.MatchConfig(neighbours=16)
     ref = clf.sequence_reference()
-    assert len(ref) == 30 and ref.embeddings.shape == (30, 128) and ref.neighbours.shape == (30, 16)
+    assert len(ref) == 30
+    assert ref.embeddings.shape == (30, 128)
+    assert ref.neighbours.shape == (30, 16)
     assert clf.sequence_reference() is ref  # built once
     without = PlaceClassifier(tiny_meta(), tiny_params())
     assert without.sequence is None
@@ -324,7 +332,8 @@ def test_tracker_methods_reproduce_the_batch_functions(drive_file):
     assert [s.window_rejected for s in steps] == (want.window_distance > clf.sequence.distance_threshold).tolist()
     np.testing.assert_allclose([s.unknown for s in steps], want.unknown, rtol=1e-5, atol=1e-7)
     assert all(s.lagged_frame == -1 and np.isfinite(s.belief).all() for s in steps)
-    assert "method='sequence'" in repr(seq) and "lag=3" in repr(lagged)
+    assert "method='sequence'" in repr(seq)
+    assert "lag=3" in repr(lagged)
 
 
 def test_tracker_refuses_what_it_cannot_do(drive_file):

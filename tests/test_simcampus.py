@@ -65,9 +65,12 @@ def test_same_seeds_same_pixels():
 def test_session_interface(sessions):
     s = simcampus.load_session("WI", image_size=HW, max_frames=12, batch_size=BATCH)
     assert isinstance(s, Session)
-    assert len(s) == 12 and s.name == "WI"
-    assert s.utimes.dtype == np.int64 and np.all(np.diff(s.utimes) > 0)
-    assert s.poses.shape == (12, 3) and s.poses6.shape == (12, 6)
+    assert len(s) == 12
+    assert s.name == "WI"
+    assert s.utimes.dtype == np.int64
+    assert np.all(np.diff(s.utimes) > 0)
+    assert s.poses.shape == (12, 3)
+    assert s.poses6.shape == (12, 6)
     np.testing.assert_array_equal(s.poses, s.poses6[:, [0, 1, 3]])
     assert s.image_shape == HW
     h, w = HW
@@ -75,9 +78,13 @@ def test_session_interface(sessions):
     # 80 deg horizontal field of view.
     np.testing.assert_allclose(2 * np.degrees(np.arctan((w / 2) / s.intrinsics[0, 0])), 80.0)
     img, d, sky = s.image(3), s.depth(3), s.sky(3)
-    assert img.shape == (h, w, 3) and img.dtype == np.uint8
-    assert d.shape == HW and d.dtype == np.float32 and sky.dtype == bool
-    assert np.all(d[sky] == simcampus.SKY_DEPTH) and np.all((d[~sky] > 0) & (d[~sky] < simcampus.SKY_DEPTH))
+    assert img.shape == (h, w, 3)
+    assert img.dtype == np.uint8
+    assert d.shape == HW
+    assert d.dtype == np.float32
+    assert sky.dtype == bool
+    assert np.all(d[sky] == simcampus.SKY_DEPTH)
+    assert np.all((d[~sky] > 0) & (d[~sky] < simcampus.SKY_DEPTH))
     # Full sessions: a few thousand frames at ~1 m spacing.
     for full in sessions.values():
         assert 1000 < len(full) < 5000
@@ -186,7 +193,8 @@ def test_sphere_and_pitch_analytic_depth():
     pitch = np.arctan2(3.0 - 1.3, 6.0)
     (_, depth, sky, objects), _ = _render_scene(geo, look, [0.0, 0.0, 1.3, 0.0, pitch, 0.0], hw)
     dist = np.hypot(6.0, 3.0 - 1.3)
-    assert bool(objects[0, 12, 12]) and not np.asarray(objects & sky).any()
+    assert bool(objects[0, 12, 12])
+    assert not np.asarray(objects & sky).any()
     np.testing.assert_allclose(float(depth[0, 12, 12]), dist - 1.0, rtol=1e-4)
 
 
@@ -219,10 +227,12 @@ def test_seasonal_geometry_changes_exist():
     crown = world.ells.role == W.ROLE_CROWN
     n = len(world.ells)
     vol = {s: np.prod(t[s].ells.geo[:n][crown, 3:6], axis=1).sum() for s in t}
-    assert vol["WI"] < 0.4 * vol["SU"] and vol["SP"] < vol["SU"]
+    assert vol["WI"] < 0.4 * vol["SU"]
+    assert vol["SP"] < vol["SU"]
     # Snow banks: long, low ellipsoids only in winter.
     banks = {s: ((t[s].ells.geo[:, 3] > 4.5) & (t[s].ells.geo[:, 5] < 0.6)).sum() for s in t}
-    assert banks["WI"] > 100 and banks["SP"] == banks["SU"] == banks["AU"] == 0
+    assert banks["WI"] > 100
+    assert banks["SP"] == banks["SU"] == banks["AU"] == 0
     # Dynamic objects differ in number and place between sessions.
     props = {s: t[s].cyls.geo[t[s].cyls.role == W.ROLE_PROP] for s in t}
     assert len({len(p) for p in props.values()}) == 4
@@ -235,7 +245,8 @@ def test_seasonal_geometry_changes_exist():
         crane = ((t[s].boxes.geo[:, 2] + t[s].boxes.geo[:, 5]) - world.height(*t[s].boxes.geo[:, :2].T) > 20) & (
             t[s].boxes.role == W.ROLE_PROP
         )
-        assert renovated == (s in ("SU", "AU")) and crane.any() == (s in ("SU", "AU")), s
+        assert renovated == (s in ("SU", "AU")), s
+        assert crane.any() == (s in ("SU", "AU")), s
     # Snow on roofs in winter only.
     bld = world.boxes.role == W.ROLE_BUILDING
     assert np.all(t["WI"].boxes.look[: len(bld)][bld, 6:9].mean(1) > 0.9)
@@ -294,10 +305,12 @@ def test_trajectory_follows_spec(sessions):
         assert d.max() < 1.5 + 0.2  # lateral random walk within +-1.5 m of the centre line
         assert d.mean() > 0.2  # ... and it does move off the centre line
         height = p[:, 2] - world.height(p[:, 0], p[:, 1])
-        assert height.min() >= 1.2 - 1e-6 and height.max() <= 1.5 + 1e-6
+        assert height.min() >= 1.2 - 1e-6
+        assert height.max() <= 1.5 + 1e-6
         step = np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1)
         assert 0.9 < np.median(step) < 1.1  # about a frame per metre
-        assert np.abs(p[:, 4]).max() < np.deg2rad(15) and np.abs(p[:, 5]).max() < np.deg2rad(15)
+        assert np.abs(p[:, 4]).max() < np.deg2rad(15)
+        assert np.abs(p[:, 5]).max() < np.deg2rad(15)
         assert np.abs(p[:, 4]).mean() > np.deg2rad(0.3)  # the terrain tilts the camera a little
 
 
@@ -307,8 +320,10 @@ def test_depth_training_frames():
     a = simcampus.depth_training_frames(0, BATCH, HW, batch_size=BATCH, progress=False)
     b = simcampus.depth_training_frames(0, BATCH, HW, batch_size=BATCH, progress=False)
     np.testing.assert_array_equal(a["rgb"], b["rgb"])
-    assert a["rgb"].shape == (BATCH, *HW, 3) and a["depth"].shape == (BATCH, *HW)
-    assert np.all(a["depth"][~a["sky"]] < simcampus.SKY_DEPTH) and a["sky"].mean() < 0.8
+    assert a["rgb"].shape == (BATCH, *HW, 3)
+    assert a["depth"].shape == (BATCH, *HW)
+    assert np.all(a["depth"][~a["sky"]] < simcampus.SKY_DEPTH)
+    assert a["sky"].mean() < 0.8
     # Random appearance per frame: frame colour statistics differ a lot.
     means = a["rgb"].reshape(BATCH, -1, 3).mean(1)
     assert np.ptp(means, axis=0).max() > 40

@@ -20,7 +20,8 @@ def test_true_depth_of_a_folder_is_resized_like_its_images():
     source = SimpleNamespace(has_depth=True, depths=lambda idx: native[np.asarray(idx)])
     s = stages.SessionData("a", SimpleNamespace(image_shape=(12, 16)), source)
     got = stages.true_depth(s, 0, 2)
-    assert got.shape == (2, 12, 16) and got.dtype == np.float32
+    assert got.shape == (2, 12, 16)
+    assert got.dtype == np.float32
     np.testing.assert_array_equal(got, native[:, ::2, ::2])  # nearest neighbour at exactly half the size
     same = stages.SessionData("b", SimpleNamespace(image_shape=(24, 32)), source)
     np.testing.assert_array_equal(stages.true_depth(same, 1, 2), native[1:2])
@@ -83,7 +84,9 @@ def test_the_depth_source_registry():
     """Sources by name; ``true`` has no network (the session's own depth), an unknown name is refused with the
     registered ones, and a registered source is what ``depth_source`` returns for its name."""
     true = depth.depth_source(depth.DepthSourceConfig(source="true"))
-    assert true.needs_true_depth and true.classifier is None and true.key == {"source": "true (rendered z-depth)"}
+    assert true.needs_true_depth
+    assert true.classifier is None
+    assert true.key == {"source": "true (rendered z-depth)"}
     assert set(depth.SOURCE_NAMES) == {"trained", "midas", "true", "depth_anything_v2", "depth_anything_v2_metric"}
 
     def flat(cfg, progress, train):
@@ -92,7 +95,8 @@ def test_the_depth_source_registry():
     depth.register_source("flat")(flat)
     try:
         src = depth.depth_source(SimpleNamespace(source="flat"))
-        assert src.predict(np.zeros((2, 4, 5, 3), np.uint8)).shape == (2, 4, 5) and not src.needs_true_depth
+        assert src.predict(np.zeros((2, 4, 5, 3), np.uint8)).shape == (2, 4, 5)
+        assert not src.needs_true_depth
         with pytest.raises(KeyError, match=r"unknown depth source 'nope'; registered: .*'flat'"):
             depth.depth_source(SimpleNamespace(source="nope"))
     finally:
@@ -106,14 +110,15 @@ def test_workspace_times_stages_and_tells_a_listener(tmp_path):
 
     seen = []
     ws = stages.Workspace(tmp_path, data_mesh(1), progress=False, on_stage=lambda s, started: seen.append((s, started)))
-    with ws.timed("depth"):
-        with ws.timed("hha"):
-            pass
+    with ws.timed("depth"), ws.timed("hha"):
+        pass
     with ws.timed("depth"):
         pass
     assert seen == [("depth", True), ("hha", True), ("hha", False), ("depth", False), ("depth", True), ("depth", False)]
-    assert set(ws.timings) == {"depth", "hha"} and ws.timings["depth"] >= ws.timings["hha"] >= 0
-    assert ws.peak_rss_mib["depth"] > 0 and ws.cache_root == tmp_path / "cache"
+    assert set(ws.timings) == {"depth", "hha"}
+    assert ws.timings["depth"] >= ws.timings["hha"] >= 0
+    assert ws.peak_rss_mib["depth"] > 0
+    assert ws.cache_root == tmp_path / "cache"
 
 
 def test_hha_caches_are_keyed_by_the_camera_the_height_rule_and_the_encoder_version(tmp_path, monkeypatch):

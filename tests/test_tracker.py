@@ -64,7 +64,9 @@ def test_the_file_carries_every_route_setting(tiny_file, tmp_path):
     clf = PlaceClassifier.load(tiny_file)
     with zipfile.ZipFile(tiny_file) as z:
         assert json.loads(z.read("manifest.json"))["route"] == clf.route.to_dict()
-    assert clf.route.temperature == 2.5 and clf.route.n_noise == 3 and clf.route.bounded
+    assert clf.route.temperature == 2.5
+    assert clf.route.n_noise == 3
+    assert clf.route.bounded
     # A file written before the settings were stored loads with FilterConfig's defaults (the experiment's values).
     old = _rewrite_manifest(tiny_file, tmp_path / "old.placejax", lambda m: m.pop("route"))
     assert PlaceClassifier.load(old).route == route.FilterConfig()
@@ -72,7 +74,7 @@ def test_the_file_carries_every_route_setting(tiny_file, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "edit, field, problem",
+    ("edit", "field", "problem"),
     [
         (lambda r: r.update(temperature=0.0), "route.temperature", r"must be in \(0, 1e\+06\], got 0\.0"),
         (lambda r: r.update(temperature=-4.0), "route.temperature", "must be in"),
@@ -109,7 +111,8 @@ def test_route_entry_must_be_an_object(tiny_file, tmp_path):
 
 def test_tracker_runs_with_the_classifiers_settings(tiny_file):
     clf = PlaceClassifier.load(tiny_file)
-    assert Tracker(clf).config == clf.route and Tracker(clf).temperature == 2.5  # not 1.0, not another default
+    assert Tracker(clf).config == clf.route
+    assert Tracker(clf).temperature == 2.5
     assert Tracker.from_classifier(clf).config == clf.route.replace(bounded=False)
     assert Tracker.from_classifier(clf, bounded=True, branch="rgb").config.bounded
     assert Tracker(clf, temperature=7).config == clf.route.replace(temperature=7.0)
@@ -152,14 +155,20 @@ def test_a_classifier_output_that_is_not_finite_is_an_unknown_step(tiny_file):
     tracker, ref = Tracker(broken), route.RouteFilter(clf.grid, clf.route)
     for im, d in zip(images, [0.0, 5.0, 5.0], strict=True):
         s = tracker.step(im, d)
-        assert s.rejected and s.label == -1 and s.probability == 0.0 and s.unknown == 1.0 and s.frame_rejected
+        assert s.rejected
+        assert s.label == -1
+        assert s.probability == 0.0
+        assert s.unknown == 1.0
+        assert s.frame_rejected
         np.testing.assert_array_equal(s.belief, ref.predict(d))
         assert np.isfinite(s.belief).all()
     with pytest.raises(ValueError, match=r"logits \(one frame\) is not finite"):
         tracker.probabilities(images[0])
     # The RGB branch of the same classifier is finite: its steps name places.
     s = Tracker(broken, branch="rgb").step(images[0], 0.0)
-    assert not s.rejected and s.label >= 0 and np.isfinite(s.probability)
+    assert not s.rejected
+    assert s.label >= 0
+    assert np.isfinite(s.probability)
 
 
 # ---------------------------------------------------------------------------------------------------- the run

@@ -236,7 +236,8 @@ def test_training_batches_are_permutations_and_a_function_of_the_step():
     ds = train_dataset(x, y, batch_size=5, seed=3, num_epochs=2)
     assert len(ds) == 8
     idx = np.concatenate([ds[k]["index"] for k in range(len(ds))])
-    assert sorted(idx[:20].tolist()) == list(range(20)) and sorted(idx[20:].tolist()) == list(range(20))
+    assert sorted(idx[:20].tolist()) == list(range(20))
+    assert sorted(idx[20:].tolist()) == list(range(20))
     assert not np.array_equal(idx[:20], idx[20:])
     again = train_dataset(x, y, batch_size=5, seed=3, num_epochs=2)
     np.testing.assert_array_equal(again[5]["index"], ds[5]["index"])

@@ -187,10 +187,12 @@ def test_classifier_rejects_by_the_feature_score_of_its_fused_embedding(tiny_fea
     pred = clf.predict(images)
     np.testing.assert_allclose(pred.unknown_score, want, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(pred.rejected, want > thr)
-    assert pred.unknown_kind == score == clf.unknown_kind and pred.threshold == pytest.approx(thr)
+    assert pred.unknown_kind == score == clf.unknown_kind
+    assert pred.threshold == pytest.approx(thr)
     assert "held-out" in clf.describe()
     rec = pred.records()[0]
-    assert rec["unknown_kind"] == score and rec["threshold"] == pytest.approx(thr)
+    assert rec["unknown_kind"] == score
+    assert rec["threshold"] == pytest.approx(thr)
 
 
 def test_classifier_refuses_feature_arrays_that_do_not_fit(tiny_feature_clfs):
@@ -218,8 +220,11 @@ def test_can_fit_feature_detector_says_when_a_session_is_too_small():
     with pytest.raises(ValueError, match="no reference frame"):
         unknown.held_out_folds(4)
     assert not unknown.can_fit_feature_detector("knn1", np.zeros(4, int))
-    for score, y in (("knn50", labels[:60]), ("mahalanobis", np.arange(40))):
-        with pytest.raises(ValueError):
+    for score, y, problem in (
+        ("knn50", labels[:60], r"k must be in \[1, "),
+        ("mahalanobis", np.arange(40), "no variance"),
+    ):
+        with pytest.raises(ValueError, match=problem):
             unknown.fit_feature_detector(score, np.random.default_rng(0).normal(size=(len(y), 3)), y)
 
 

@@ -120,7 +120,8 @@ def test_nearest_distance_and_far_auroc_by_hand():
     assert ud.far_auroc(scores, unseen, dist, 10.0) == (pytest.approx(0.5), 2)  # 0.3, 0.4: 2 of 4
     assert ud.far_auroc(scores, unseen, dist, 50.0) == (pytest.approx(0.5), 1)  # 0.3: 1 of 2
     auroc, n = ud.far_auroc(scores, unseen, dist, 100.0)
-    assert np.isnan(auroc) and n == 0
+    assert np.isnan(auroc)
+    assert n == 0
 
 
 def test_on_a_finished_run(tmp_path, capsys):
@@ -138,10 +139,12 @@ def test_on_a_finished_run(tmp_path, capsys):
         r = rows[("WI", "SU")]
         unseen = np.array([False] * len(SU_SEEN_XY) + [True] * len(SU_UNSEEN))
         dist = np.array([d for _, d in SU_UNSEEN])
-        assert r["n_unseen"] == len(SU_UNSEEN) and r["n_test"] == len(SU_XY)
+        assert r["n_unseen"] == len(SU_UNSEEN)
+        assert r["n_test"] == len(SU_XY)
         assert r["unseen_median_m"] == pytest.approx(11.0)  # of 7, 10, 10, 12, 40, 60
         assert r["seen_median_m"] == pytest.approx(1.0)
-        assert r["unseen_within_10m"] == pytest.approx(1 / 6) and r["unseen_within_25m"] == pytest.approx(4 / 6)
+        assert r["unseen_within_10m"] == pytest.approx(1 / 6)
+        assert r["unseen_within_25m"] == pytest.approx(4 / 6)
         score = _brute_knn1(truth["emb"][(f"seed{seed}", "WI", "WI")], truth["emb"][(f"seed{seed}", "WI", "SU")])
         assert r["auroc"] == pytest.approx(_brute_auroc(score, unseen), abs=1e-12)
         for d in ud.FAR_M:
@@ -157,8 +160,11 @@ def test_on_a_finished_run(tmp_path, capsys):
             assert "recorded_auroc" not in r
         # SU visited every cell of WI: no unseen frame, every AUROC undefined (null in the JSON).
         back = rows[("SU", "WI")]
-        assert back["n_unseen"] == 0 and back["auroc"] is None and back["unseen_median_m"] is None
-        assert report["mean"]["auroc"] == r["auroc"] and report["n_pairs"]["auroc"] == 1
+        assert back["n_unseen"] == 0
+        assert back["auroc"] is None
+        assert back["unseen_median_m"] is None
+        assert report["mean"]["auroc"] == r["auroc"]
+        assert report["n_pairs"]["auroc"] == 1
         text = capsys.readouterr().out
         assert f"| WI → SU | 6 | 11.0 | 17 % | 67 % | {r['auroc']:.3f} |" in text
         assert "| SU → WI | 0 | – | – | – | – |" in text

@@ -44,7 +44,7 @@ def samples(tmp_path_factory, midas_recipe_npz):
     return out
 
 
-@pytest.fixture()
+@pytest.fixture
 def cache(tmp_path, monkeypatch):
     root = tmp_path / "cache"
     monkeypatch.setenv("PLACEJAX_CACHE", str(root))
@@ -60,11 +60,14 @@ def test_reads_real_torch_save_files(samples, name):
     with np.load(samples / "expected.npz") as f:
         expected = {k: f[k] for k in f.files}
     assert list(got) == list(expected)  # the file's order, "model" unwrapped, optimizer ignored
-    assert got["1.num_batches_tracked"].dtype == np.int64 and got["1.num_batches_tracked"] == 1
+    assert got["1.num_batches_tracked"].dtype == np.int64
+    assert got["1.num_batches_tracked"] == 1
     assert got["extra.half"].dtype == np.float16
     assert got["extra.bf16"].dtype == ml_dtypes.bfloat16
-    assert got["extra.f64"].dtype == np.float64 and got["extra.i32"].dtype == np.int32
-    assert got["extra.u8"].dtype == np.uint8 and got["extra.bool"].dtype == np.bool_
+    assert got["extra.f64"].dtype == np.float64
+    assert got["extra.i32"].dtype == np.int32
+    assert got["extra.u8"].dtype == np.uint8
+    assert got["extra.bool"].dtype == np.bool_
     for key, want in expected.items():
         value = got[key].astype(np.float32) if got[key].dtype == ml_dtypes.bfloat16 else got[key]
         assert value.shape == want.shape, key
@@ -170,7 +173,8 @@ def _assert_trees_equal(a, b):
 def test_registry_entries_are_complete():
     for name in ("midas_v21_small_256", "vgg16_imagenet"):
         entry = REGISTRY[name]
-        assert entry.url.startswith("https://") and entry.url.endswith(entry.filename)
+        assert entry.url.startswith("https://")
+        assert entry.url.endswith(entry.filename)
         assert entry.preprocessing.mean == (0.485, 0.456, 0.406)
     assert REGISTRY["vgg16_imagenet"].sha256_prefix == "397923af"
     img = np.full((2, 2, 3), 255, np.uint8)
@@ -210,7 +214,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         pass
 
 
-@pytest.fixture()
+@pytest.fixture
 def server(samples):
     _Handler.files = {"tiny.pt": (samples / "plain_zip.pt").read_bytes()}
     httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
@@ -274,7 +278,8 @@ def test_offline_message_says_where_to_put_the_file(cache, monkeypatch):
     with pytest.raises(WeightsUnavailableError) as err:
         load("tiny")
     msg = str(err.value)
-    assert f"put it at {cache / 'weights' / 'tiny.pt'}" in msg and "tiny.pt" in msg
+    assert f"put it at {cache / 'weights' / 'tiny.pt'}" in msg
+    assert "tiny.pt" in msg
     assert _cache_files(cache) == []
 
 
@@ -310,7 +315,8 @@ def test_resolve_names_every_kind_of_weights_one_way(samples, midas_recipe_npz, 
     record = tmp_path / "r.npz"  # a placejax record: flat keys → tree, float16 → float32, meta kept
     io.write_npz(record, {"trunk/conv/kernel": np.full((2, 3), 0.5, np.float16)}, meta={"config": {"width": 1}})
     variables, meta = resolve(record)
-    assert variables["trunk"]["conv"]["kernel"].dtype == np.float32 and meta == {"config": {"width": 1}}
+    assert variables["trunk"]["conv"]["kernel"].dtype == np.float32
+    assert meta == {"config": {"width": 1}}
     np.testing.assert_array_equal(variables["trunk"]["conv"]["kernel"], np.full((2, 3), 0.5, np.float32))
 
     names = shipped_names()

@@ -203,12 +203,11 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
         + ("; bars off (progress=False)" if not ws.progress else "")
     )
 
-    with story.step("sessions", lambda: f"{len(sessions)} sessions, {sum(len(s) for s in sessions)} frames"):
-        with ws.timed("sessions"):
-            sessions = stages.open_sessions(ws, c["data"])
-    with story.step("grid", lambda: f"{grid.num_classes} place classes"):
-        with ws.timed("grid"):
-            grid = stages.fit_grid(ws, sessions, c["grid"])
+    opened = lambda: f"{len(sessions)} sessions, {sum(len(s) for s in sessions)} frames"
+    with story.step("sessions", opened), ws.timed("sessions"):
+        sessions = stages.open_sessions(ws, c["data"])
+    with story.step("grid", lambda: f"{grid.num_classes} place classes"), ws.timed("grid"):
+        grid = stages.fit_grid(ws, sessions, c["grid"])
     num_classes = grid.num_classes
     with story.step("depth and HHA", lambda: f"depth source {source.name}"):
         with ws.timed("depth"):
@@ -249,9 +248,8 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
             rendered_runs = [train_seed(rendered, seed, ("rgb", "hha")) for seed in seeds]
         _release_memory()
 
-    with story.step("baselines"):
-        with ws.timed("baselines"):
-            thumbs = stages.baseline_features(ws, sessions, c["depth"].batch_size)
+    with story.step("baselines"), ws.timed("baselines"):
+        thumbs = stages.baseline_features(ws, sessions, c["depth"].batch_size)
     _release_memory()
 
     with story.step("evaluate", lambda: f"{len(scores['pairs'])} train → test pairs"):

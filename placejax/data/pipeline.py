@@ -290,7 +290,7 @@ class _EpochOrder:
     def indices(self, ks: np.ndarray) -> np.ndarray:
         """:meth:`index` of every element of ``ks`` (int ``(B,)``), int64 ``(B,)``."""
         epochs, pos = np.divmod(np.asarray(ks, np.int64), self.n)
-        if len(ks) and not (0 <= epochs.min() and epochs.max() < self._epochs):
+        if len(ks) and not (epochs.min() >= 0 and epochs.max() < self._epochs):
             raise IndexError(f"elements {ks} beyond {self._epochs} epochs of {self.n}")
         out = np.empty(len(pos), np.int64)
         for e in np.unique(epochs):

@@ -90,10 +90,8 @@ def network_on_images(model: MidasSmall, variables: Any, x: jax.Array, net_hw: t
     """
     mean = jnp.asarray(IMAGENET_MEAN).reshape(1, 1, 1, 3)
     std = jnp.asarray(IMAGENET_STD).reshape(1, 1, 1, 3)
-    if tuple(x.shape[1:3]) != tuple(net_hw):
-        x_net = resize(x, tuple(net_hw), "bicubic", align_corners=False)
-    else:
-        x_net = x
+    resized = tuple(x.shape[1:3]) != tuple(net_hw)
+    x_net = resize(x, tuple(net_hw), "bicubic", align_corners=False) if resized else x
     out = model.apply(variables, (x_net - mean) / std, train=False)
     # run.py: F.interpolate(prediction[:, None], size=image size, mode="bicubic", align_corners=False).
     return resize(out[..., None], tuple(x.shape[1:3]), "bicubic", align_corners=False)[..., 0]

@@ -27,7 +27,8 @@ import numpy as np
 from placejax.hha._constants import RADIUS_ANGLE, RADIUS_GRAVITY
 
 # The 21×21 gravity windows are built from three 7×7 blocks: this relies on the two radii being 10 and 3.
-assert RADIUS_GRAVITY == 3 * RADIUS_ANGLE + 1 and 2 * RADIUS_ANGLE + 1 == 7
+assert RADIUS_GRAVITY == 3 * RADIUS_ANGLE + 1
+assert 2 * RADIUS_ANGLE + 1 == 7
 
 
 def _materialise(tree, token: jax.Array):
