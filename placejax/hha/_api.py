@@ -198,7 +198,7 @@ def _prepare(depth_m, intrinsics, raw_depth_m, dtype, depth_scale, min_depth_m, 
 # ----------------------------------------------------------------------------------------------------------------------
 # Running a batch on every core.
 
-_POOL: dict[str, object] = {"pid": None, "pool": None}
+_POOL: dict[str, object] = {"pid": None, "size": 0, "pool": None}
 _POOL_LOCK = threading.Lock()
 
 
@@ -220,11 +220,25 @@ def workers() -> int:
 def _pool(n: int) -> ThreadPoolExecutor:
     """One thread pool per process (rebuilt after a fork, whose child inherits no running threads)."""
     with _POOL_LOCK:
-        pool = _POOL["pool"]
-        if _POOL["pid"] != os.getpid() or pool is None or pool._max_workers < n:
+        if _POOL["pid"] != os.getpid() or _POOL["size"] < n:
             pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="placejax-hha")
-            _POOL.update(pid=os.getpid(), pool=pool)
-        return pool
+            _POOL.update(pid=os.getpid(), size=n, pool=pool)
+        return _POOL["pool"]
+
+
+def _check_height(height) -> None:
+    if not isinstance(height, HeightRule):
+        raise TypeError(f"height must be a placejax.hha.HeightRule, got {type(height).__name__}")
+
+
+def _parts(depth, k, raw, depth_range) -> int:
+    """How many parts a batch runs in: one per core for concrete CPU arrays, else 1 (one compiled program)."""
+    arrays = [x for x in (depth, k, raw, depth_range) if x is not None]
+    if depth.shape[0] <= 1 or jax.default_backend() != "cpu" or any(isinstance(x, jax.core.Tracer) for x in arrays):
+        return 1
+    if any(d.platform != "cpu" for x in arrays if isinstance(x, jax.Array) for d in x.devices()):
+        return 1
+    return min(depth.shape[0], workers())
 
 
 def _run(depth, k, raw, depth_range, full: bool, height: HeightRule = REFERENCE_HEIGHT):
@@ -236,19 +250,11 @@ def _run(depth, k, raw, depth_range, full: bool, height: HeightRule = REFERENCE_
     scale instead. Each image's program is the same in every part, so the result is bit-identical to one
     call. Traced inputs (a caller's ``jit``/``vmap``) and other backends keep one program.
     """
-    b = depth.shape[0]
-    if not isinstance(height, HeightRule):
-        raise TypeError(f"height must be a placejax.hha.HeightRule, got {type(height).__name__}")
-    if b <= 1:
+    _check_height(height)
+    n = _parts(depth, k, raw, depth_range)
+    if n == 1:
         return _encode_batch(depth, k, raw, depth_range, full=full, height_rule=height)
-    traced = any(isinstance(x, jax.core.Tracer) for x in (depth, k, raw, depth_range) if x is not None)
-    on_cpu = all(
-        d.platform == "cpu" for x in (depth, k) if isinstance(x, jax.Array) and not traced for d in x.devices()
-    )
-    n = 1 if traced or not on_cpu or jax.default_backend() != "cpu" else min(b, workers())
-    if n <= 1:
-        return _encode_batch(depth, k, raw, depth_range, full=full, height_rule=height)
-    bounds = np.linspace(0, b, n + 1).round().astype(int)
+    bounds = np.linspace(0, depth.shape[0], n + 1).round().astype(int)
 
     def part(i):
         a, z = bounds[i], bounds[i + 1]
@@ -395,8 +401,7 @@ def encode_stream(
         raise ValueError(f"intrinsics must have shape (3, 3) for encode_stream, got shape {np.shape(intrinsics)}")
     _check_intrinsics(np.asarray(intrinsics, np.float64), dtype)  # as given, before any cast to float32
     k = np.asarray(_as_intrinsics(intrinsics))
-    if not isinstance(height, HeightRule):
-        raise TypeError(f"height must be a placejax.hha.HeightRule, got {type(height).__name__}")
+    _check_height(height)
     kwargs = dict(depth_scale=depth_scale, min_depth_m=min_depth_m, max_depth_m=max_depth_m, dtype=dtype, height=height)
     return _stream(iter(depths), k, int(batch_size), kwargs)
 

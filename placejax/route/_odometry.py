@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from placejax.data import nclt
-from placejax.data.session import Session
-from placejax.data.sources import DataConfig
+if TYPE_CHECKING:
+    from placejax.data.session import Session
+    from placejax.data.sources import DataConfig
 
 MAX_TRAVELLED_M = 1e9
 """Largest odometer reading (metres, a million kilometres): anything beyond is not a robot's distance travelled."""
@@ -91,6 +92,8 @@ def moved_from_session(
     if travelled is not None:
         return moved_from_travelled(np.asarray(travelled)[:n]), "odometry"
     if cfg.source == "nclt" and cfg.nclt_root:
+        from placejax.data import nclt  # its reader (and OpenCV) only for NCLT runs
+
         path = Path(cfg.nclt_root) / "sensor_data" / source.name / "odometry_mu_100hz.csv"
         if path.is_file():
             odo = nclt.read_odometry(path)
