@@ -46,6 +46,7 @@ _DEPTH = PRESETS["default"]
 SIZES = ("builtin", "paper")
 
 
+@functools.cache
 def _default_preset():
     from experiments.cross_season.config import get_config
 
