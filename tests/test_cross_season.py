@@ -191,7 +191,7 @@ def test_the_rendered_depth_ceiling_adds_columns_and_changes_none(smoke, tmp_pat
     workdir, base = smoke
     copy = tmp_path / "run"
     shutil.copytree(workdir, copy, ignore=shutil.ignore_patterns(".lock"))
-    results = run(smoke_config("ablations.rendered=True"), copy)
+    results = run(smoke_config("ablations.rendered=True", "ablations.pool_weights=(0.4,)"), copy)
     for p, q in zip(base["pairs"], results["pairs"], strict=True):
         for m in ("ours", "rgb_net", "hha_net", "average", "depth1_net"):
             assert p[f"{m}_per_seed"] == q[f"{m}_per_seed"], m
@@ -201,11 +201,14 @@ def test_the_rendered_depth_ceiling_adds_columns_and_changes_none(smoke, tmp_pat
         assert "gain_ours_rendered_vs_hha_net_rendered" in q
         assert "gain_ours_rendered_vs_average_rendered" in q
     assert {"ours_rendered_vs_hha_net_rendered", "ours_rendered_vs_average_rendered"} <= set(results["gains"])
+    # The pool on rendered depth is judged against the ceiling's own columns.
+    assert {"pool_0.4_rendered_vs_ours_rendered", "pool_0.4_rendered_vs_hha_net_rendered"} <= set(results["gains"])
     # HHA on rendered depth is another input: its nets are other nets.
     assert any(p["hha_net_rendered_per_seed"] != p["hha_net_per_seed"] for p in results["pairs"])
     table = (copy / "table.md").read_text()
     assert "HHA-Net (rendered depth)" in table
     assert "Ours (rendered depth)" in table
+    assert "Pool(w=0.4) (rendered depth)" in table
     from experiments.cross_season.report.table import table_text
 
     assert "on rendered depth (the ceiling): HHA-Net" in table_text(results)

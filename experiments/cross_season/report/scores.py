@@ -115,11 +115,13 @@ METHODS = (
 
 def rendered_logits(run: SeedRun, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
     """The ceiling columns of one seed on one pair: the fusion, HHA-Net and their softmax average with HHA-Net
-    trained on HHA of rendered depth (``run``: the seed's run on those sessions; its RGB-Net is the main one)."""
+    trained on HHA of rendered depth, and each log-linear pool of the two (``run``: the seed's run on those
+    sessions; its RGB-Net is the main one)."""
     base = method_logits(run, train, test, config)
     out = {"ours_rendered": base["ours"], "hha_net_rendered": base["hha_net"]}
     if "average" in base:
         out["average_rendered"] = base["average"]
+    out.update({f"{k}_rendered": v for k, v in base.items() if k.startswith("pool_")})
     return out
 
 
@@ -162,9 +164,11 @@ def _gain_intervals(cross: list[dict], seed: int) -> dict:
         for p, g in zip(cross, per_pair, strict=True):
             p[f"gain_vs_{base}"] = g
         out[f"ours_vs_{base}"] = mean
-    # Each log-linear pool against the learned fusion and the plain average (ablations.pool_weights).
+    # Each log-linear pool against the learned fusion, the plain average and HHA-Net (ablations.pool_weights), on
+    # the same depth as the pool (a ``_rendered`` pool against the ceiling's columns).
     for pool in sorted(k for k in correct[0] if k.startswith("pool_")):
-        for base in ("ours", "average"):
+        suffix = "_rendered" if pool.endswith("_rendered") else ""
+        for base in (f"ours{suffix}", f"average{suffix}", f"hha_net{suffix}"):
             if base in correct[0]:
                 per_pair, mean = gain_intervals([frame_gains(c[pool], c[base]) for c in correct], seed=seed)
                 for p, g in zip(cross, per_pair, strict=True):

@@ -36,7 +36,8 @@ _UNKNOWN_COLUMNS = {
 def method_name(key: str) -> str:
     """A method's column header (``pool_0.4``: the log-linear pool with weight 0.4 on RGB-Net)."""
     if key.startswith("pool_"):
-        return f"Pool(w={key.removeprefix('pool_')})"
+        weight = key.removeprefix("pool_").removesuffix("_rendered")
+        return f"Pool(w={weight})" + (" (rendered depth)" if key.endswith("_rendered") else "")
     return METHOD_NAMES[key]
 
 
@@ -222,6 +223,7 @@ def table_text(results: dict, width: int = 100) -> str:
     out = [line(head), rule, *map(line, rows), rule, line(mean)]
     if "ours_rendered" in m:  # the ceiling (ablations.rendered): the same method on rendered depth
         names = {"hha_net_rendered": "HHA-Net", "ours_rendered": "Ours", "average_rendered": "Avg"}
+        names |= {k: method_name(k).removesuffix(" (rendered depth)") for k in sorted(m) if k.endswith("_rendered")}
         parts = [f"{name} {acc(m[k], sd.get(k))}" for k, name in names.items() if k in m]
         out.append(f"on rendered depth (the ceiling): {', '.join(parts)}")
     r = results.get("route", {}).get("mean", {})
