@@ -23,7 +23,17 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["N_BOOT", "bootstrap_means", "frame_gains", "gain_intervals", "mean_sd", "softmax", "top1"]
+__all__ = [
+    "N_BOOT",
+    "bootstrap_means",
+    "frame_gains",
+    "gain_intervals",
+    "log_linear_pool",
+    "log_softmax",
+    "mean_sd",
+    "softmax",
+    "top1",
+]
 
 N_BOOT = 2000
 """Bootstrap resamples of :func:`gain_intervals` by default."""
@@ -52,6 +62,30 @@ def softmax(logits: np.ndarray) -> np.ndarray:
     z = logits - logits.max(axis=1, keepdims=True)
     e = np.exp(z)
     return e / e.sum(axis=1, keepdims=True)
+
+
+def log_softmax(logits: np.ndarray) -> np.ndarray:
+    """Row-wise log softmax of ``(N, C)`` logits, float64 (stable: the row maximum subtracted first)."""
+    x = np.asarray(logits, np.float64)
+    x = x - x.max(axis=1, keepdims=True)
+    return x - np.log(np.exp(x).sum(axis=1, keepdims=True))
+
+
+def log_linear_pool(rgb_logits: np.ndarray, hha_logits: np.ndarray, rgb_weight: float) -> np.ndarray:
+    """The log-linear (geometric) pool of two classifiers' beliefs: ``w · log p_rgb + (1 − w) · log p_hha``.
+
+    Its softmax is the normalised weighted geometric mean of the two nets' class probabilities; weight 1 is RGB-Net
+    alone, 0 HHA-Net alone, 0.5 their geometric mean. Returns float64 ``(N, C)`` scores (log-probabilities up to a
+    per-row constant; their arg-max is the pool's class).
+
+    >>> a = np.log(np.array([[0.7, 0.3]]))  # RGB-Net fairly sure of class 0
+    >>> b = np.log(np.array([[0.2, 0.8]]))  # HHA-Net surer of class 1
+    >>> softmax(log_linear_pool(a, b, 0.5)).round(3)
+    array([[0.433, 0.567]])
+    """
+    if not 0.0 <= rgb_weight <= 1.0:
+        raise ValueError(f"rgb_weight={rgb_weight!r}: expected a number in [0, 1]")
+    return rgb_weight * log_softmax(rgb_logits) + (1.0 - rgb_weight) * log_softmax(hha_logits)
 
 
 def mean_sd(values) -> tuple[float, float]:

@@ -300,6 +300,8 @@ def _flip_last_byte(data: bytes) -> bytes:
         ("missing_array", "is missing"),
         ("shape", "manifest says"),
         ("classes", "do not fit"),
+        ("fusion_kind", "fusion.kind"),
+        ("fusion_weight", "fusion.pool_weight"),
     ],
 )
 def test_bad_files_are_refused_by_name(saved, tmp_path, corrupt, message):
@@ -329,9 +331,48 @@ def test_bad_files_are_refused_by_name(saved, tmp_path, corrupt, message):
         _rewrite(saved, bad, manifest=edit)
     elif corrupt == "classes":
         _rewrite(saved, bad, manifest=lambda m: {**m, "num_classes": m["num_classes"] + 1})
+    elif corrupt == "fusion_kind":
+        _rewrite(saved, bad, manifest=lambda m: {**m, "fusion": {"kind": "vote"}})
+    elif corrupt == "fusion_weight":
+        _rewrite(saved, bad, manifest=lambda m: {**m, "fusion": {"kind": "pool", "pool_weight": 1.5}})
     with pytest.raises(ArtefactError, match=message) as e:
         PlaceClassifier.load(bad)
     assert str(bad) in str(e.value)
+
+
+@pytest.mark.slow
+def test_a_pool_fusion_runs_as_the_experiment_scores_it(classify_run, clf, experiment_outputs, tmp_path):
+    """``mlp.fusion=pool`` on a copy of the run: nothing is retrained (the MLP's column is the MLP run's Ours, to
+    the bit), Ours is the log-linear pool of the two nets' logits, and the classifier built from that run computes
+    the same pool in its jitted forward, and keeps it through save and load."""
+    from placejax.evaluation import log_linear_pool, top1
+
+    cfg, workdir, base = classify_run
+    copy = tmp_path / "run"
+    shutil.copytree(workdir, copy, ignore=shutil.ignore_patterns(".lock"))
+    pooled_cfg = cfg.copy_and_resolve_references()
+    apply_overrides(pooled_cfg, ["mlp.fusion=pool", "mlp.pool_weight=0.4"])
+    results = run(pooled_cfg, copy)
+    for p, q in zip(base["pairs"], results["pairs"], strict=True):
+        assert q["mlp_per_seed"] == p["ours_per_seed"]
+        assert q["rgb_net_per_seed"] == p["rgb_net_per_seed"]
+    (pair,) = [q for q in results["pairs"] if (q["train"], q["test"]) == (TRAIN, TEST)]
+    ref = experiment_outputs[TEST]
+    assert pair["ours"] == top1(log_linear_pool(ref["rgb"], ref["hha_logits"], 0.4), ref["labels"])
+    assert "ours_vs_mlp" in results["gains"]
+
+    pooled = PlaceClassifier.from_run(copy, TRAIN)
+    assert pooled.spec.pool_weight == 0.4
+    assert clf.spec.pool_weight is None  # the MLP run's classifier fuses by its MLP
+    images = ref["images"][:6]
+    got = pooled.logits(images)
+    mlp_run = clf.logits(images)
+    np.testing.assert_array_equal(got["rgb"], mlp_run["rgb"])
+    expected = log_linear_pool(got["rgb"], got["hha"], 0.4)
+    np.testing.assert_allclose(got["fusion"], expected, rtol=0, atol=1e-4 * np.abs(expected).max())
+    again = PlaceClassifier.load(pooled.save(tmp_path / "pool.placejax"))
+    assert again.meta["fusion"] == {"kind": "pool", "pool_weight": 0.4}
+    assert_same_predictions(pooled.predict(images), again.predict(images))
 
 
 def test_missing_file_is_a_file_not_found(tmp_path):

@@ -1,7 +1,7 @@
 """Using a trained model: classify new RGB images into places, and say when an image is from no known place.
 
 Public surface:
-    PlaceClassifier: depth network, HHA settings, both VGG16s, the fusion MLP, the place grid, the
+    PlaceClassifier: depth network, HHA settings, both VGG16s, their fusion, the place grid, the
         preprocessing and the route filter's settings (``clf.route``) of one training session, built from a
         finished ``experiments.cross_season`` run (``from_run``), saved to and loaded from one self-describing
         file (``save`` / ``load``).
@@ -10,8 +10,9 @@ Public surface:
         (``forward(spec, params, rgb_uint8)``: uint8 ``(N, H, W, 3)`` → logits ``(N, C)`` as ``jax.Array``s);
         ``PlaceClassifier`` wraps it (``clf.spec``, ``clf.params``); ``ClassifierSpec.from_meta`` builds a spec
         from a classifier's manifest.
-    stage_depth, stage_hha, stage_nets, stage_mlp: ``forward``'s stages, each pure and jittable on its own
-        (uint8 RGB → metric depth → uint8 HHA → both VGG16s' logits and fc7 → fused logits).
+    stage_depth, stage_hha, stage_nets, stage_fusion: ``forward``'s stages, each pure and jittable on its own
+        (uint8 RGB → metric depth → uint8 HHA → both VGG16s' logits and fc7 → fused logits: the run's fusion,
+        ``stage_mlp`` where that is the MLP or a log-linear pool of the two nets).
     ArtefactError: a classifier file that is corrupt, truncated or of another format.
     unknown: unseen-place scores, thresholds and their evaluation.
     Tracker, TrackStep: a ``PlaceClassifier`` followed by the route filter (`placejax.route`) with the
@@ -29,6 +30,7 @@ from placejax.classify._forward import (
     ClassifierSpec,
     forward,
     stage_depth,
+    stage_fusion,
     stage_hha,
     stage_mlp,
     stage_nets,
@@ -45,6 +47,7 @@ __all__ = [
     "forward",
     "run_layout",
     "stage_depth",
+    "stage_fusion",
     "stage_hha",
     "stage_mlp",
     "stage_nets",

@@ -96,6 +96,7 @@ def run_meta_and_params(
         "depth": depth_meta,
         "vgg": {"width": vgg["width"], "pretrained": vgg["pretrained"]},
         "mlp_hidden": cfg["mlp"]["hidden"],
+        "fusion": _fusion(cfg["mlp"]),
         "grid": files.grid,
         "visited_classes": files.visited_classes,
         "unknown": {
@@ -110,6 +111,13 @@ def run_meta_and_params(
         "source": {"workdir": str(files.workdir), "train_session": train_session},
     }
     return meta, params
+
+
+def _fusion(mlp: dict[str, Any]) -> dict[str, Any]:
+    """The manifest's ``fusion`` from a run's ``mlp`` section (a run from before the choice: the MLP)."""
+    if mlp.get("fusion", "mlp") == "pool":
+        return {"kind": "pool", "pool_weight": float(mlp["pool_weight"])}
+    return {"kind": "mlp"}
 
 
 def training_frames(files: run_layout.RunFiles) -> dict[str, np.ndarray] | None:

@@ -1,4 +1,4 @@
-"""``PlaceClassifier``: uint8 RGB → pseudo depth → HHA → RGB-Net and HHA-Net → fusion MLP → place, in one jit."""
+"""``PlaceClassifier``: uint8 RGB → pseudo depth → HHA → RGB-Net and HHA-Net → their fusion → place, in one jit."""
 
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from placejax.classify._forward import (
     _plain,
 )
 from placejax.classify._forward import stage_depth as stage_depth
+from placejax.classify._forward import stage_fusion as stage_fusion
 from placejax.classify._forward import stage_mlp as stage_mlp
 from placejax.classify._forward import stage_nets as stage_nets
 from placejax.data import PlaceGrid
@@ -50,7 +51,7 @@ class Prediction:
         rejected: bool ``(N,)`` score above the threshold fitted on training frames: "I don't know this place".
             Also True wherever a logit, probability or the score is NaN or infinite (fail closed); otherwise
             always False for the single-network branches (no threshold was fitted for them).
-        branch: which classifier produced the outputs: ``"fusion"`` (the paper's method), ``"rgb"`` or ``"hha"``.
+        branch: which classifier produced the outputs: ``"fusion"`` (the run's fusion), ``"rgb"`` or ``"hha"``.
         unknown_kind: the score's name (see ``placejax.classify.unknown``).
         threshold: the rejection threshold used (NaN: none).
     """
@@ -351,7 +352,8 @@ class PlaceClassifier:
         Args:
             rgb_uint8_batch: uint8 ``(N, H, W, 3)`` RGB, N ≥ 1; images of another size than
                 :attr:`image_size` are resized to it first (upright, undistorted images are assumed).
-            branch: ``"fusion"`` (the paper's method), or ``"rgb"`` / ``"hha"`` for one network alone.
+            branch: ``"fusion"`` (the run's fusion: the MLP or the pool), or ``"rgb"`` / ``"hha"`` for one network
+                alone.
 
         Returns:
             A :class:`Prediction`.

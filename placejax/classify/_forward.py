@@ -28,7 +28,8 @@ from placejax.models import (
 )
 
 BRANCHES = ("fusion", "rgb", "hha")
-"""The logits ``forward`` returns: the fusion MLP's (the paper's method), RGB-Net's and HHA-Net's."""
+"""The logits ``forward`` returns: the fusion's (the paper's MLP, or the run's log-linear pool), RGB-Net's and
+HHA-Net's."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,6 +58,8 @@ class ClassifierSpec:
             (``depth_net_size`` is ``dav2_input_size(*image_size, dav2_short_side)``; 0 for other networks).
         height_rule: the HHA height channel's floor and centimetres per level (the manifest's
             ``depth.hha_height``; the reference's where it has none).
+        pool_weight: ``None``: the fusion is the MLP (the paper's); a number ``w``: the fusion is the log-linear
+            pool ``w · log p_rgb + (1 − w) · log p_hha`` (the manifest's ``fusion``; the MLP where it has none).
     """
 
     image_size: tuple[int, int]
@@ -76,12 +79,13 @@ class ClassifierSpec:
     shifts: tuple[int, ...] = ()  # metric networks: and of the image shifted sideways by ±k px for each k
     dav2_short_side: int = 0  # Depth Anything V2: input short side before rounding to multiples of 14 (0: other)
     height_rule: _hha.HeightRule = _hha.REFERENCE_HEIGHT  # the HHA height channel's floor and scale
+    pool_weight: float | None = None  # None: the fusion MLP; w: the log-linear pool with weight w on RGB-Net
 
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> ClassifierSpec:
         """The spec a classifier file's manifest describes (``PlaceClassifier.meta``: ``image_size``, ``depth``,
-        ``intrinsics``, ``vgg``, ``num_classes``, ``mlp_hidden``, ``normalise``); e.g. to build parameters of the
-        right shapes with ``jax.eval_shape`` before any exist."""
+        ``intrinsics``, ``vgg``, ``num_classes``, ``mlp_hidden``, ``normalise``, ``fusion``); e.g. to build parameters
+        of the right shapes with ``jax.eval_shape`` before any exist."""
         d = meta["depth"]
         image_size = tuple(int(v) for v in meta["image_size"])
         short_side = 0
@@ -117,6 +121,7 @@ class ClassifierSpec:
             shifts=tuple(int(k) for k in d.get("shifts", ())),
             dav2_short_side=short_side,
             height_rule=_hha.HeightRule(**d["hha_height"]) if "hha_height" in d else _hha.REFERENCE_HEIGHT,
+            pool_weight=float(meta["fusion"]["pool_weight"]) if meta.get("fusion", {}).get("kind") == "pool" else None,
         )
 
 
@@ -181,9 +186,18 @@ def stage_mlp(spec: ClassifierSpec, params: dict, nets: dict[str, jax.Array]) ->
     return spec.mlp.apply({"params": params["mlp"]}, emb, train=False)
 
 
+def stage_fusion(spec: ClassifierSpec, params: dict, nets: dict[str, jax.Array]) -> jax.Array:
+    """The classifier's fusion: the MLP's logits, or (``spec.pool_weight``) the log-linear pool of the two nets'
+    log softmax, ``(N, C)`` (as ``placejax.evaluation.log_linear_pool`` computes it in the experiment)."""
+    if spec.pool_weight is None:
+        return stage_mlp(spec, params, nets)
+    w = spec.pool_weight
+    return w * jax.nn.log_softmax(nets["rgb_logits"], axis=1) + (1 - w) * jax.nn.log_softmax(nets["hha_logits"], axis=1)
+
+
 def forward(spec: ClassifierSpec, params: dict, rgb: jax.Array) -> dict[str, jax.Array]:
     """A trained classifier end to end, as a pure function of arrays: uint8 RGB → depth → HHA → both VGG16s →
-    fusion MLP.
+    their fusion (the MLP, or the log-linear pool).
 
     Jittable and composable (``spec`` is static: ``jax.jit(functools.partial(forward, spec))``);
     ``PlaceClassifier.logits`` runs exactly this in fixed-size batches.
@@ -195,12 +209,12 @@ def forward(spec: ClassifierSpec, params: dict, rgb: jax.Array) -> dict[str, jax
 
     Returns:
         ``jax.Array``s: ``"fusion"``, ``"rgb"`` and ``"hha"`` logits, float32 ``(N, C)``, ``"embedding"``, the
-        fused embedding ``[fc7_rgb, fc7_hha]`` float32 ``(N, D)`` the MLP read (the feature-space unseen-place
+        fused embedding ``[fc7_rgb, fc7_hha]`` float32 ``(N, D)`` the MLP reads (the feature-space unseen-place
         scores' input), and ``"hha_image"``, the uint8 ``(N, H, W, 3)`` HHA image the HHA-Net saw.
     """
     hha = stage_hha(spec, stage_depth(spec, params["depth"], rgb))
     nets = stage_nets(spec, params, rgb, hha)
-    fused = stage_mlp(spec, params, nets)
+    fused = stage_fusion(spec, params, nets)
     emb = jnp.concatenate([nets["rgb_fc7"], nets["hha_fc7"]], axis=1)
     return {"fusion": fused, "rgb": nets["rgb_logits"], "hha": nets["hha_logits"], "embedding": emb, "hha_image": hha}
 

@@ -53,8 +53,11 @@ _TOP = {
     "sequence",
     "config",
     "source",
+    "fusion",
 }
-_OPTIONAL_TOP = {"versions", "visited_classes", "route", "sequence", "config", "source"}
+_OPTIONAL_TOP = {"versions", "visited_classes", "route", "sequence", "config", "source", "fusion"}
+FUSION_KINDS = ("mlp", "pool")
+"""``fusion.kind``: the MLP on both nets' fc7 (also where a manifest has no ``fusion``), or their log-linear pool."""
 _DEPTH_REQUIRED = {"kind", "features", "encoder_width", "size", "near_m", "far_m"}
 _DEPTH_OPTIONAL = {"metric", "far_as_sky_m", "flip_average", "shifts", "source", "hha_height"}
 _HEIGHT_OPTIONAL = {"floor", "near_m", "camera_height_m", "cm_per_level"}
@@ -210,6 +213,8 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
         _check_route(c, m["route"])
     if "sequence" in m:  # files written before the sequence matcher have none (and no sequence arrays)
         _check_sequence(c, m["sequence"])
+    if "fusion" in m:  # none: the fusion MLP
+        _check_fusion(c, m["fusion"])
 
     for name in m["arrays"]:
         if name.split("/", 1)[0] not in _ARRAY_GROUPS:
@@ -224,6 +229,17 @@ def _check_route(c: _Checker, r: Any) -> None:
     bad = first_problem(r)
     if bad is not None:
         c.fail(f"route.{bad[0]}", bad[1])
+
+
+def _check_fusion(c: _Checker, f: Any) -> None:
+    """``fusion``: ``{"kind": "mlp"}`` or ``{"kind": "pool", "pool_weight": w}``, w in [0, 1]."""
+    c.obj(f, "fusion", {"kind"}, {"pool_weight"})
+    if f["kind"] not in FUSION_KINDS:
+        c.fail("fusion.kind", f"is {str(f['kind'])[:40]!r}, expected one of {FUSION_KINDS}")
+    if f["kind"] == "pool":
+        if "pool_weight" not in f:
+            c.fail("fusion", "is a pool without its pool_weight")
+        c.number(f["pool_weight"], "fusion.pool_weight", lo=0.0, hi=1.0)
 
 
 def _check_sequence(c: _Checker, r: Any) -> None:

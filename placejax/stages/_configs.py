@@ -9,6 +9,9 @@ from placejax import config as _config
 __all__ = ["EvalConfig", "MLPConfig", "TrainConfig", "VGGConfig"]
 
 OPTIMIZERS = ("sgd", "adamw")
+FUSIONS = ("mlp", "pool")
+"""How the run's fusion ("Ours") combines the two nets: the paper's MLP on their fc7, or a log-linear pool of
+their beliefs (``placejax.evaluation.log_linear_pool``)."""
 
 
 MAX_EPOCHS = 10_000
@@ -121,8 +124,16 @@ class TrainConfig:
 
 @dataclasses.dataclass(frozen=True)
 class MLPConfig:
-    """The fusion MLP on the two nets' concatenated fc7 and how it is trained (the ``mlp`` section)."""
+    """The fusion of the two nets (the ``mlp`` section): the fusion MLP on their concatenated fc7 and how it is
+    trained, and which fusion is the run's "Ours" (the MLP, or a log-linear pool of the two nets' beliefs; the MLP
+    is trained either way)."""
 
+    fusion: str = _config.setting(
+        "mlp",
+        "the fusion that is 'Ours': 'mlp' (the paper's MLP on [fc7_rgb, fc7_hha]) or 'pool' (the log-linear pool "
+        "pool_weight · log p_rgb + (1 − pool_weight) · log p_hha; the MLP is still trained, as a column)",
+    )
+    pool_weight: float = _config.setting(0.4, "fusion='pool': the weight on RGB-Net's log softmax, in [0, 1]")
     hidden: int = _config.setting(1024, "hidden units of the fusion MLP (1024 in the paper)")
     dropout: float = _config.setting(0.0, "dropout on the MLP hidden layer")
     input_dropout: float = _config.setting(
@@ -150,12 +161,13 @@ class MLPConfig:
             positive_int=("hidden", "epochs", "batch_size", "save_every"),
             nonnegative_int=("warmup_steps",),
             positive=("learning_rate",),
-            nonnegative=("weight_decay",),
+            nonnegative=("weight_decay", "pool_weight"),
             unit_interval=("dropout", "input_dropout"),
             boolean=("jittered",),
-            choices={"optimizer": OPTIMIZERS},
+            choices={"optimizer": OPTIMIZERS, "fusion": FUSIONS},
             at_most={
                 "hidden": 65_536,
+                "pool_weight": 1.0,
                 "epochs": MAX_EPOCHS,
                 "batch_size": MAX_BATCH,
                 "warmup_steps": 10**8,

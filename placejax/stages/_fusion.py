@@ -1,5 +1,6 @@
 """Stage ``mlp``: per training session, the fusion MLP (paper §III-D) on the concatenated fc7 of its RGB and HHA
-nets (orbax-checkpointed), and its logits on every session; :func:`train_seed` runs one seed's nets, outputs and
+nets (orbax-checkpointed), and its logits on every session; the run's fusion ("Ours": the MLP's logits, or with
+``mlp.fusion='pool'`` the log-linear pool of the two nets); :func:`train_seed` runs one seed's nets, outputs and
 MLPs."""
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy as np
 from placejax.classify.run_layout import MLP_DIR
 from placejax.data import eval_dataset
 from placejax.data.cache import cache_digest
+from placejax.evaluation import log_linear_pool
 from placejax.models import FusionMLP
 from placejax.stages._configs import EvalConfig, MLPConfig, TrainConfig, VGGConfig
 from placejax.stages._keys import results_only
@@ -112,8 +114,11 @@ class SeedRun:
         seed: the seed every net and MLP of this run was trained with.
         nets: ``(training session, modality) → TrainedNet``.
         outputs: ``(training session, modality, test session) → {"logits": (N, C), "fc7": (N, D)}``.
-        fused: ``(training session, test session) → fused logits (N, C)``.
+        fused: ``(training session, test session) → (N, C)`` scores of the run's fusion, "Ours" (``mlp.fusion``:
+            the MLP's logits, or the pool's log-probabilities).
         mlp_dirs: training session → the fusion MLP's checkpoint folder.
+        mlp_logits: ``(training session, test session) → (N, C)`` logits of the fusion MLP (``fused`` itself
+            when the MLP is the fusion).
     """
 
     seed: int
@@ -121,6 +126,7 @@ class SeedRun:
     outputs: dict[tuple[str, str, str], dict[str, np.ndarray]]
     fused: dict[tuple[str, str], np.ndarray]
     mlp_dirs: dict[str, Path]
+    mlp_logits: dict[tuple[str, str], np.ndarray]
 
 
 def train_seed(
@@ -135,7 +141,7 @@ def train_seed(
     seed: int,
     modalities: tuple[str, ...] = ("rgb", "hha"),
 ) -> SeedRun:
-    """Nets, their outputs on every session, the fusion MLPs and the fused logits of one seed (stages
+    """Nets, their outputs on every session, the fusion MLPs and the run's fusion of one seed (stages
     ``features``, ``nets``, ``outputs`` and ``mlp``)."""
     nets = train_nets(
         ws, sessions, num_classes, vgg=vgg, train_cfg=train_cfg, eval_cfg=eval_cfg, seed=seed, modalities=modalities
@@ -146,7 +152,7 @@ def train_seed(
             for (a, m), net in nets.items()
             for s in sessions
         }
-    fused: dict[tuple[str, str], np.ndarray] = {}
+    mlp_logits: dict[tuple[str, str], np.ndarray] = {}
     mlp_dirs: dict[str, Path] = {}
     with ws.timed("mlp"):
         for si, s in enumerate(sessions):
@@ -167,7 +173,13 @@ def train_seed(
                 ds = eval_dataset(
                     fused_embedding(outputs, s.name, t.name), batch_size=eval_cfg.batch_size // jax.process_count()
                 )
-                fused[(s.name, t.name)] = predict(state, ds, len(t), mesh=ws.mesh, prepare=prepare, progress=False)[
-                    "logits"
-                ]
-    return SeedRun(seed, nets, outputs, fused, mlp_dirs)
+                mlp_logits[(s.name, t.name)] = predict(
+                    state, ds, len(t), mesh=ws.mesh, prepare=prepare, progress=False
+                )["logits"]
+    fused = mlp_logits
+    if mlp.fusion == "pool":
+        fused = {
+            (a, t): log_linear_pool(outputs[(a, "rgb", t)]["logits"], outputs[(a, "hha", t)]["logits"], mlp.pool_weight)
+            for (a, t) in mlp_logits
+        }
+    return SeedRun(seed, nets, outputs, fused, mlp_dirs, mlp_logits)

@@ -16,14 +16,17 @@ __all__ = ["params_digest", "results_only"]
 
 # Options added after caches keyed without them existed: absent from a key while off (0 / False).
 _NEWER_OFF_BY_DEFAULT = ("input_dropout", "modality_dropout", "jittered")
+# Which fusion is "Ours" changes no trained model (the MLP is trained either way): never in a key.
+_CHOICE_OF_FUSION = ("fusion", "pool_weight")
 
 
 def results_only(section: Any) -> dict:
     """A config section (a config dataclass or a mapping) without the keys that change no result, for cache keys:
-    checkpoint intervals, the ``jitter_*`` magnitudes when ``jitter_copies`` is 0, and the fusion MLP's later
-    options while off (so runs without them keep the keys they had before they existed)."""
+    checkpoint intervals, the ``jitter_*`` magnitudes when ``jitter_copies`` is 0, the fusion MLP's later
+    options while off (so runs without them keep the keys they had before they existed) and which fusion is
+    "Ours" (it trains nothing)."""
     d = _config.section(section) if dataclasses.is_dataclass(section) else dict(section)
-    out = {k: v for k, v in d.items() if k != "save_every"}
+    out = {k: v for k, v in d.items() if k != "save_every" and k not in _CHOICE_OF_FUSION}
     if not out.get("jitter_copies", 1):
         out = {k: v for k, v in out.items() if not k.startswith("jitter_")}
     return {k: v for k, v in out.items() if not (k in _NEWER_OFF_BY_DEFAULT and not v)}

@@ -9,7 +9,7 @@ import ml_collections
 import numpy as np
 
 from placejax.classify.unknown import FEATURE_SCORES
-from placejax.evaluation import frame_gains, gain_intervals, mean_sd, softmax, top1
+from placejax.evaluation import frame_gains, gain_intervals, log_linear_pool, mean_sd, softmax, top1
 from placejax.stages import (
     SeedRun,
     SessionData,
@@ -106,11 +106,14 @@ METHODS = (
     "hha_net",
     "depth1_net",
     "average",
+    "mlp",
     "ours_rendered",
     "hha_net_rendered",
     "average_rendered",
+    "mlp_rendered",
 )
-"""Every method column a run may have (the last three: ``ablations.rendered``, on HHA of rendered depth)."""
+"""Every method column a run may have (``mlp``: the fusion MLP where a pool is Ours, ``mlp.fusion='pool'``; the
+``_rendered`` ones: ``ablations.rendered``, on HHA of rendered depth)."""
 
 
 def rendered_logits(run: SeedRun, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
@@ -119,9 +122,7 @@ def rendered_logits(run: SeedRun, train: str, test: str, config: ml_collections.
     sessions; its RGB-Net is the main one)."""
     base = method_logits(run, train, test, config)
     out = {"ours_rendered": base["ours"], "hha_net_rendered": base["hha_net"]}
-    if "average" in base:
-        out["average_rendered"] = base["average"]
-    out.update({f"{k}_rendered": v for k, v in base.items() if k.startswith("pool_")})
+    out.update({f"{k}_rendered": v for k, v in base.items() if k in ("average", "mlp") or k.startswith("pool_")})
     return out
 
 
@@ -131,13 +132,15 @@ def method_logits(run: SeedRun, train: str, test: str, config: ml_collections.Co
     out = {"ours": run.fused[(train, test)]}
     for m in nets_modalities(run.nets, train):
         out[f"{m}_net"] = outputs[(train, m, test)]["logits"]
+    if config.mlp.fusion != "mlp":  # the paper's fusion MLP beside the pool that is Ours
+        out["mlp"] = run.mlp_logits[(train, test)]
     if config.ablations.average:
         out["average"] = softmax(outputs[(train, "rgb", test)]["logits"]) + softmax(
             outputs[(train, "hha", test)]["logits"]
         )
     for w in config.ablations.get("pool_weights", ()):
-        out[pool_name(w)] = w * log_softmax(outputs[(train, "rgb", test)]["logits"]) + (1 - w) * log_softmax(
-            outputs[(train, "hha", test)]["logits"]
+        out[pool_name(w)] = log_linear_pool(
+            outputs[(train, "rgb", test)]["logits"], outputs[(train, "hha", test)]["logits"], w
         )
     return out
 
@@ -147,19 +150,14 @@ def pool_name(w: float) -> str:
     return f"pool_{float(w):g}"
 
 
-def log_softmax(logits: np.ndarray) -> np.ndarray:
-    """Row-wise log softmax, float64 (stable: the row maximum subtracted first)."""
-    x = np.asarray(logits, np.float64)
-    x = x - x.max(axis=1, keepdims=True)
-    return x - np.log(np.exp(x).sum(axis=1, keepdims=True))
-
-
 def _gain_intervals(cross: list[dict], seed: int) -> dict:
     """Paired bootstrap 95 % intervals of Ours − each baseline, per pair and for the mean (``stats``); drops the
     per-frame correctness the rows carried for it."""
     correct = [p.pop("_correct") for p in cross]
     out = {}
-    for base in ("rgb_net", "hha_net"):
+    for base in ("rgb_net", "hha_net", "average", "mlp"):
+        if base not in correct[0]:
+            continue
         per_pair, mean = gain_intervals([frame_gains(c["ours"], c[base]) for c in correct], seed=seed)
         for p, g in zip(cross, per_pair, strict=True):
             p[f"gain_vs_{base}"] = g
@@ -175,7 +173,7 @@ def _gain_intervals(cross: list[dict], seed: int) -> dict:
                     p[f"gain_{pool}_vs_{base}"] = g
                 out[f"{pool}_vs_{base}"] = mean
     # The ceiling's fusion against its own HHA-Net and average (ablations.rendered).
-    for base in ("hha_net_rendered", "average_rendered"):
+    for base in ("hha_net_rendered", "average_rendered", "mlp_rendered"):
         if "ours_rendered" in correct[0] and base in correct[0]:
             per_pair, mean = gain_intervals([frame_gains(c["ours_rendered"], c[base]) for c in correct], seed=seed)
             for p, g in zip(cross, per_pair, strict=True):

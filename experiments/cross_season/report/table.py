@@ -15,11 +15,23 @@ METHOD_NAMES = {
     "hha_net": "HHA-Net",
     "depth1_net": "Depth-Net (1-ch)",
     "average": "Avg(RGB,HHA)",
+    "mlp": "MLP (paper)",
     "ours_rendered": "Ours (rendered depth)",
     "hha_net_rendered": "HHA-Net (rendered depth)",
     "average_rendered": "Avg (rendered depth)",
+    "mlp_rendered": "MLP (rendered depth)",
 }
 
+_EXTRA_COLUMNS = (
+    "depth1_net",
+    "average",
+    "mlp",
+    "hha_net_rendered",
+    "ours_rendered",
+    "average_rendered",
+    "mlp_rendered",
+)
+"""The method columns after Ours, RGB-Net and HHA-Net, in order (then the log-linear pools)."""
 
 # Extra columns of the unseen-place detection: results key → header.
 _UNKNOWN_COLUMNS = {
@@ -96,11 +108,8 @@ def table_markdown(results: dict) -> str:
     """Table I layout: train, test, Ours, RGB-Net, gain, HHA-Net, gain (top-1 %), ablations, the unseen-place
     columns and, where the sessions are the paper's dates (or the SimCampus seasons that stand in for them), the
     paper's own Ours, RGB-Net and HHA-Net; then the mean."""
-    extra = [
-        m
-        for m in ("depth1_net", "average", "hha_net_rendered", "ours_rendered", "average_rendered")
-        if m in results["mean"]
-    ] + sorted(m for m in results["mean"] if m.startswith("pool_"))
+    extra = [m for m in _EXTRA_COLUMNS if m in results["mean"]]
+    extra += sorted(m for m in results["mean"] if m.startswith("pool_"))
     head = ["train", "test", "Ours", "RGB-Net", "gain", "HHA-Net", "gain"] + [method_name(m) for m in extra]
     unknown = _UNKNOWN_COLUMNS if "unknown" in results else {}
     head += list(unknown.values())
@@ -157,6 +166,13 @@ def table_markdown(results: dict) -> str:
         "seeds; for the mean row, frames resampled within each pair); * marks a gain whose interval excludes "
         "zero.\n"
     )
+    mlp_cfg = results.get("config", {}).get("mlp", {})
+    if mlp_cfg.get("fusion", "mlp") == "pool":
+        w = mlp_cfg["pool_weight"]
+        note += (
+            f"\nOurs: the log-linear pool of the two nets' beliefs, {w:g} · log p(RGB-Net) + {1 - w:g} · "
+            "log p(HHA-Net) (mlp.fusion=pool); MLP (paper): the paper's fusion MLP on their concatenated fc7.\n"
+        )
     if paper:
         note += "\npaper: the paper's Table I on NCLT (ImageNet VGG16s, MiDaS) for the same pair of dates" + (
             "; the SimCampus seasons stand in for them (WI = 2012-01-22, SP = 03-31, SU = 08-04, AU = 11-17).\n"
