@@ -30,7 +30,19 @@ import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-__all__ = ["MAX_INT", "MAX_NUMBER", "ConfigError", "build", "check", "help_text", "section", "setting", "shown"]
+__all__ = [
+    "MAX_INT",
+    "MAX_NUMBER",
+    "ConfigError",
+    "build",
+    "check",
+    "help_text",
+    "is_number",
+    "results_fields",
+    "section",
+    "setting",
+    "shown",
+]
 
 
 class ConfigError(ValueError):
@@ -45,9 +57,50 @@ class ConfigError(ValueError):
         super().__init__("; ".join(self.errors))
 
 
-def setting(default: Any, help: str) -> Any:
-    """A dataclass field with its default and its one-line help (shown by ``--help`` of the commands)."""
-    return dataclasses.field(default=default, metadata={"help": help})
+_ALWAYS = object()  # a field kept in results keys whatever its value
+
+
+def setting(default: Any, help: str, *, affects_results: bool = True, omitted_at: Any = _ALWAYS) -> Any:
+    """A dataclass field with its default, its one-line help (shown by ``--help`` of the commands) and what it means
+    for cache keys (:func:`results_fields`).
+
+    Args:
+        default: the field's default.
+        help: one line: what it is, its unit or choices.
+        affects_results: ``False`` for a field that changes no result (a checkpoint interval, a report's size):
+            never in a key.
+        omitted_at: a value at which the field is left out of keys (an option added after keys without it
+            existed, at the value that reproduces them), so adding it renames no cached or shipped file.
+    """
+    return dataclasses.field(
+        default=default, metadata={"help": help, "affects_results": affects_results, "omitted_at": omitted_at}
+    )
+
+
+def results_fields(obj: Any) -> dict[str, Any]:
+    """The fields of a config dataclass instance that identify its results, for cache keys and fingerprints: every
+    field but those marked ``affects_results=False`` and those at their ``omitted_at`` value (:func:`setting`), as
+    ``dataclasses.asdict`` gives them, in field order.
+
+    >>> @dataclasses.dataclass(frozen=True)
+    ... class Recipe:
+    ...     steps: int = setting(100, "optimiser steps")
+    ...     log_every: int = setting(10, "steps between log lines", affects_results=False)
+    ...     mix: float = setting(0.0, "a later option; 0 = off", omitted_at=0.0)
+    >>> results_fields(Recipe()), results_fields(Recipe(mix=0.5))
+    ({'steps': 100}, {'steps': 100, 'mix': 0.5})
+    """
+    values = dataclasses.asdict(obj)
+    out = {}
+    for f in dataclasses.fields(obj):
+        meta = f.metadata
+        if not meta.get("affects_results", True):
+            continue
+        omitted_at = meta.get("omitted_at", _ALWAYS)
+        if omitted_at is not _ALWAYS and values[f.name] == omitted_at:
+            continue
+        out[f.name] = values[f.name]
+    return out
 
 
 def help_text(cls: type, name: str) -> str:
@@ -87,6 +140,11 @@ MAX_NUMBER = 1e12
 
 def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and -MAX_INT <= v <= MAX_INT
+
+
+def is_number(v: Any) -> bool:
+    """A finite int or float (never a bool) of magnitude at most :data:`MAX_NUMBER`."""
+    return _is_number(v)
 
 
 def _is_number(v: Any) -> bool:

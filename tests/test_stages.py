@@ -68,16 +68,46 @@ def test_the_depth_section_states_the_hha_height_rule():
 
 
 def test_every_default_is_stated_once_with_its_help():
-    """Each section's fields carry a help line (what ``--help`` prints); the defaults build without error."""
-    for cls in (DataConfig, GridConfig, depth.DepthSourceConfig, stages.VGGConfig, stages.TrainConfig):
+    """Each section's fields are ``config.setting``s: a default, a help line (what ``--help`` prints) and whether it
+    enters cache keys, in one place; the defaults build without error, and a value out of range is refused naming
+    its field."""
+    from placejax.data import ViewJitter
+    from placejax.pretrain import PretrainConfig
+
+    classes = (
+        DataConfig,
+        GridConfig,
+        depth.DepthSourceConfig,
+        stages.VGGConfig,
+        stages.TrainConfig,
+        stages.MLPConfig,
+        stages.EvalConfig,
+        FilterConfig,
+        depth.DepthTrainConfig,
+        PretrainConfig,
+        ViewJitter,
+    )
+    for cls in classes:
         cls()
         for f in dataclasses.fields(cls):
             assert config.help_text(cls, f.name).strip(), (cls.__name__, f.name)
-    for cls in (stages.MLPConfig, stages.EvalConfig, FilterConfig):
-        cls()
-        for f in dataclasses.fields(cls):
-            assert config.help_text(cls, f.name).strip(), (cls.__name__, f.name)
+            assert "affects_results" in f.metadata, (cls.__name__, f.name)  # built by config.setting
     assert config.section(stages.EvalConfig) == {"batch_size": 128}
+    for cls, field in ((depth.DepthTrainConfig, "steps"), (PretrainConfig, "grid"), (ViewJitter, "zoom")):
+        with pytest.raises(ValueError, match=f"{field}=-1"):
+            cls(**{field: -1})
+
+
+def test_cache_keys_come_from_the_settings_marks():
+    """Checkpoint intervals and the choice of fusion never enter a key; a later option enters it only when on."""
+    base = stages.results_only(stages.MLPConfig())
+    assert "save_every" not in base
+    assert stages.results_only(stages.MLPConfig(fusion="pool", pool_weight=0.3, save_every=7)) == base
+    assert "input_dropout" not in base
+    assert stages.results_only(stages.MLPConfig(input_dropout=0.5))["input_dropout"] == 0.5
+    recipe = depth.DepthTrainConfig()
+    assert depth.DepthTrainConfig(eval_frames=3, checkpoint_every=7).fingerprint() == recipe.fingerprint()
+    assert depth.DepthTrainConfig(muted_share=0.5).fingerprint() != recipe.fingerprint()
 
 
 def test_the_depth_source_registry():

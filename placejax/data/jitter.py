@@ -18,6 +18,8 @@ import dataclasses
 import cv2
 import numpy as np
 
+from placejax import config as _config
+
 __all__ = ["ViewJitter", "jittered_copies", "jittered_view"]
 
 
@@ -25,33 +27,29 @@ __all__ = ["ViewJitter", "jittered_copies", "jittered_view"]
 class ViewJitter:
     """A small random change of viewpoint and (optionally) of colour that keeps the image's size.
 
-    Attributes:
-        shift: largest translation, as a fraction of the image's width (sideways) and height (up/down); each
-            drawn from ``U(−shift, shift)``.
-        zoom: magnification drawn from ``U(1, 1 + zoom)`` about the image centre (a crop-and-resize).
-        brightness: add ``U(−b, b) · 255`` to every pixel.
-        contrast: scale the deviation from the image's mean by ``U(1 − c, 1 + c)``.
-        saturation: scale each pixel's deviation from its own grey level by ``U(1 − s, 1 + s)``.
-
     The geometric part suits any image whose pixels are a function of the scene (RGB, HHA, depth); the colour part
-    is for RGB only (an HHA pixel's channels are measurements: leave them at 0 there).
+    is for RGB only (an HHA pixel's channels are measurements: leave them at 0 there). Each magnitude is drawn
+    uniformly per copy (:func:`jittered_view`).
     """
 
-    shift: float = 0.0
-    zoom: float = 0.0
-    brightness: float = 0.0
-    contrast: float = 0.0
-    saturation: float = 0.0
+    shift: float = _config.setting(
+        0.0, "largest translation, a fraction of the width (sideways) and height (up/down), each U(−shift, shift)"
+    )
+    zoom: float = _config.setting(0.0, "magnification U(1, 1 + zoom) about the image centre (crop and resize)")
+    brightness: float = _config.setting(0.0, "add U(−b, b) · 255 to every pixel")
+    contrast: float = _config.setting(0.0, "scale the deviation from the image's mean by U(1 − c, 1 + c)")
+    saturation: float = _config.setting(0.0, "scale each pixel's deviation from its grey level by U(1 − s, 1 + s)")
 
     def __post_init__(self):
-        for name in ("shift", "zoom", "brightness", "contrast", "saturation"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
-                raise ValueError(f"ViewJitter.{name}={v!r}: expected a finite number >= 0")
-        if self.shift >= 0.5:
-            raise ValueError(f"ViewJitter.shift={self.shift!r}: expected < 0.5 (a fraction of the image)")
-        if self.contrast >= 1 or self.saturation >= 1:
-            raise ValueError("ViewJitter.contrast and .saturation must be < 1 (a factor U(1 - c, 1 + c) > 0)")
+        try:
+            _config.check(
+                self,
+                nonnegative=("shift", "zoom", "brightness"),
+                unit_interval=("contrast", "saturation"),  # a factor U(1 − c, 1 + c) stays above 0
+                at_most={"shift": 0.4999, "zoom": 100.0, "brightness": 1.0},  # a shift of half the image or more
+            )
+        except _config.ConfigError as e:
+            raise _config.ConfigError(*(f"ViewJitter.{m}" for m in e.errors)) from None
 
     @property
     def geometric(self) -> bool:

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from placejax import config as _config
 from placejax import training
 from placejax.data import simcampus
 from placejax.models import VGG16, he_init, imagenet_normalise
@@ -36,93 +37,83 @@ _RECIPE_VERSION = 1
 
 @dataclasses.dataclass(frozen=True)
 class PretrainConfig:
-    """Everything that determines a pretrained trunk (its hash names the run's folder).
+    """Everything that determines a pretrained trunk; :meth:`fingerprint` (a hash of the fields that change the
+    weights) names its folder. Each field's default, help and checks are written once, below; the rules that tie
+    fields together are in ``__post_init__``."""
 
-    Attributes:
-        image_size: square input (multiple of 32; ≥ 64 so that the trunk leaves ≥ 2 × 2 cells before fc6).
-        width: VGG16 channel multiplier (0.125 = the built-in path's net).
-        n_worlds: pretraining worlds (seeds ``placejax.pretrain.data.place_world_seeds``, never the evaluation campus).
-        frames_per_world: frames rendered per world, each with its own random look.
-        grid: place cells per axis of a world's grid (5: coarser than the paper's 10 × 10, so that a class has
-            several views; with 10 × 10 × 4 a world's few hundred views give ~1.5 per class, which no net fits).
-        headings: heading bins per cell (4: 90° bins, so a class is a view, determined by geometry).
-        batch_size: global batch.
-        steps: optimiser steps.
-        learning_rate: peak AdamW learning rate (linear warm-up, cosine decay).
-        warmup_steps: linear warm-up steps.
-        weight_decay: AdamW decoupled weight decay.
-        dropout: dropout after fc6 and fc7.
-        place_weight: weight of the place-classification term (``PretextObjective``).
-        pair_weight: weight of the cross-look contrastive term.
-        temperature: InfoNCE temperature.
-        seed: worlds, poses, looks, data order and initialisation.
-        checkpoint_every: steps between checkpoints.
-        eval_seed: seed of the held-out validation worlds (``heldout_frames``); must differ from ``seed``.
-        eval_frames: held-out views per validation world.
-        world_seed: the evaluation campus (never rendered here).
-        modality: what the trunk reads: ``"rgb"`` (two random looks of each view) or ``"hha"`` (HHA of the depth
-            of each view in two seasons' geometry; ``placejax.pretrain.data.place_frames``).
-        hha_depth: ``modality="hha"`` only: where that depth comes from — ``"perturbed"`` (rendered depth through
-            ``placejax.pretrain.data.perturb_depth``) or ``"trained:<preset>"`` (that placejax depth network's
-            prediction from each version's RGB image, with the experiment's default views and sky step;
-            ``placejax.pretrain.data.network_depth``).
-    """
-
-    image_size: int = 64
-    width: float = 0.125
-    n_worlds: int = 8
-    frames_per_world: int = 384
-    grid: int = 5
-    headings: int = 4
-    batch_size: int = 32
-    steps: int = 2500
-    learning_rate: float = 5e-4
-    warmup_steps: int = 100
-    weight_decay: float = 1e-4
-    dropout: float = 0.0
-    place_weight: float = 1.0
-    pair_weight: float = 1.0
-    temperature: float = 0.1
-    seed: int = 0
-    checkpoint_every: int = 250
-    eval_seed: int = 99
-    eval_frames: int = 256
-    world_seed: int = 0
-    modality: str = "rgb"
-    hha_depth: str = "perturbed"
+    image_size: int = _config.setting(
+        64, "square input, pixels (a multiple of 32, ≥ 64 so that the trunk leaves ≥ 2 × 2 cells before fc6)"
+    )
+    width: float = _config.setting(0.125, "VGG16 channel multiplier (0.125 = the built-in path's net)")
+    n_worlds: int = _config.setting(
+        8, "pretraining worlds (seeds placejax.pretrain.data.place_world_seeds, never the evaluation campus)"
+    )
+    frames_per_world: int = _config.setting(384, "frames rendered per world, each with its own random look")
+    # 5: coarser than the paper's 10 × 10, so that a class has several views (10 × 10 × 4 gives ~1.5 a class).
+    grid: int = _config.setting(5, "place cells per axis of a world's grid")
+    headings: int = _config.setting(4, "heading bins per cell (4: 90° bins, so a class is a view)")
+    batch_size: int = _config.setting(32, "global batch")
+    steps: int = _config.setting(2500, "optimiser steps")
+    learning_rate: float = _config.setting(5e-4, "peak AdamW learning rate (linear warm-up, cosine decay)")
+    warmup_steps: int = _config.setting(100, "linear warm-up steps")
+    weight_decay: float = _config.setting(1e-4, "AdamW decoupled weight decay")
+    dropout: float = _config.setting(0.0, "dropout after fc6 and fc7")
+    place_weight: float = _config.setting(1.0, "weight of the place-classification term (PretextObjective)")
+    pair_weight: float = _config.setting(1.0, "weight of the cross-look contrastive term")
+    temperature: float = _config.setting(0.1, "InfoNCE temperature")
+    seed: int = _config.setting(0, "worlds, poses, looks, data order and initialisation")
+    checkpoint_every: int = _config.setting(250, "steps between checkpoints", affects_results=False)
+    eval_seed: int = _config.setting(
+        99, "seed of the held-out validation worlds (heldout_frames); differs from seed", affects_results=False
+    )
+    eval_frames: int = _config.setting(256, "held-out views per validation world", affects_results=False)
+    world_seed: int = _config.setting(0, "the evaluation campus (never rendered here)")
+    modality: str = _config.setting(
+        "rgb",
+        "what the trunk reads: 'rgb' (two random looks of each view) or 'hha' (HHA of each view's depth in two "
+        "seasons' geometry; placejax.pretrain.data.place_frames)",
+        omitted_at="rgb",
+    )
+    hha_depth: str = _config.setting(
+        HHA_DEPTH_PERTURBED,
+        "modality='hha': 'perturbed' (rendered depth through pretrain.data.perturb_depth) or 'trained:<preset>' "
+        "(that depth network's predictions, with the experiment's default views and sky step)",
+        omitted_at=HHA_DEPTH_PERTURBED,
+    )
 
     def __post_init__(self):
-        for name in (
-            "image_size",
-            "n_worlds",
-            "frames_per_world",
-            "grid",
-            "headings",
-            "batch_size",
-            "steps",
-            "checkpoint_every",
-            "eval_frames",
-        ):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}")
-        if self.image_size % 32:
-            raise ValueError(f"image_size must be a multiple of 32, got {self.image_size}")
-        if self.n_worlds * self.frames_per_world < self.batch_size:
-            raise ValueError("n_worlds · frames_per_world must be at least batch_size")
-        for name in ("learning_rate", "width"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a finite positive number, got {value!r}")
-        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0 and 0 <= self.dropout < 1):
-            raise ValueError("weight_decay must be finite and >= 0, dropout in [0, 1)")
-        if self.modality not in MODALITIES:
-            raise ValueError(f"modality must be one of {MODALITIES}, got {self.modality!r}")
+        _config.check(
+            self,
+            positive_int=(
+                "image_size",
+                "n_worlds",
+                "frames_per_world",
+                "grid",
+                "headings",
+                "batch_size",
+                "steps",
+                "checkpoint_every",
+                "eval_frames",
+            ),
+            nonnegative_int=("warmup_steps", "seed", "eval_seed", "world_seed"),
+            positive=("learning_rate", "width", "temperature"),
+            nonnegative=("weight_decay", "place_weight", "pair_weight"),
+            unit_interval=("dropout",),
+            choices={"modality": MODALITIES},
+            string=("hha_depth",),
+        )
         check_hha_depth(self.hha_depth)
+        errors = []
+        if self.image_size % 32:
+            errors.append(f"image_size={self.image_size}: expected a multiple of 32")
+        if self.n_worlds * self.frames_per_world < self.batch_size:
+            errors.append("n_worlds · frames_per_world must be at least batch_size")
         if self.hha_depth != HHA_DEPTH_PERTURBED and self.modality != "hha":
-            raise ValueError(f"hha_depth={self.hha_depth!r} needs modality='hha' (got {self.modality!r})")
+            errors.append(f"hha_depth={self.hha_depth!r} needs modality='hha' (got {self.modality!r})")
         if self.eval_seed == self.seed:
-            raise ValueError("eval_seed must differ from seed: validation worlds must be held out")
+            errors.append("eval_seed must differ from seed: validation worlds must be held out")
+        if errors:
+            raise _config.ConfigError(*errors)
 
     def hha_depth_network(self) -> str | None:
         """``"<depth preset>-<its config fingerprint>"`` of the network whose predictions the HHA views are made of
@@ -135,15 +126,12 @@ class PretrainConfig:
         return f"{preset}-{DEPTH_PRESETS[preset].fingerprint()}"
 
     def fingerprint(self) -> str:
-        """Short hash of every field that changes the trained weights."""
-        fields = dataclasses.asdict(self)
-        for k in ("checkpoint_every", "eval_seed", "eval_frames"):
-            fields.pop(k)
-        if fields["modality"] == "rgb":  # RGB runs keep the hash they had before the field existed
-            fields.pop("modality")
-        if fields["hha_depth"] == HHA_DEPTH_PERTURBED:  # so do runs on perturbed depth
-            fields.pop("hha_depth")
-        else:  # the named depth preset's recipe, so that a change of it makes a new run, not a stale cache hit
+        """12 hex digits naming the trunk these settings train: the hash of the fields that change its weights
+        (``placejax.config.results_fields``; RGB runs and runs on perturbed depth keep the hash they had before
+        ``modality`` and ``hha_depth`` existed), the recipe's version and, on a depth network's predictions, that
+        network's recipe (so that a change of it makes a new run, not a stale cache hit)."""
+        fields = _config.results_fields(self)
+        if self.hha_depth != HHA_DEPTH_PERTURBED:
             from placejax.depth import PRESETS as DEPTH_PRESETS
 
             fields["hha_depth_network"] = DEPTH_PRESETS[self.hha_depth.removeprefix(HHA_DEPTH_TRAINED)].fingerprint()

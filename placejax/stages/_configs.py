@@ -70,7 +70,7 @@ class TrainConfig:
     warmup_steps: int = _config.setting(20, "linear warmup steps")
     weight_decay: float = _config.setting(5e-4, "L2 / decoupled weight decay")
     # A head on cached features trains in ~5 s and each orbax save costs ~0.15 s: rare saves (research log).
-    save_every: int = _config.setting(1000, "steps between orbax checkpoints (changes no result)")
+    save_every: int = _config.setting(1000, "steps between orbax checkpoints", affects_results=False)
     shuffle_labels: bool = _config.setting(
         False, "control: train every net and MLP on its session's labels permuted across frames"
     )
@@ -128,24 +128,32 @@ class MLPConfig:
     trained, and which fusion is the run's "Ours" (the MLP, or a log-linear pool of the two nets' beliefs; the MLP
     is trained either way)."""
 
+    # Which fusion is Ours trains nothing (the MLP is trained either way): never in a checkpoint's key.
     fusion: str = _config.setting(
         "mlp",
         "the fusion that is 'Ours': 'mlp' (the paper's MLP on [fc7_rgb, fc7_hha]) or 'pool' (the log-linear pool "
         "pool_weight · log p_rgb + (1 − pool_weight) · log p_hha; the MLP is still trained, as a column)",
+        affects_results=False,
     )
-    pool_weight: float = _config.setting(0.4, "fusion='pool': the weight on RGB-Net's log softmax, in [0, 1]")
+    pool_weight: float = _config.setting(
+        0.4, "fusion='pool': the weight on RGB-Net's log softmax, in [0, 1]", affects_results=False
+    )
     hidden: int = _config.setting(1024, "hidden units of the fusion MLP (1024 in the paper)")
     dropout: float = _config.setting(0.0, "dropout on the MLP hidden layer")
+    # Options added after checkpoints keyed without them existed: out of the key while off.
     input_dropout: float = _config.setting(
-        0.0, "dropout on the MLP's concatenated input embeddings (docs/lookup-gap.md)"
+        0.0, "dropout on the MLP's concatenated input embeddings (docs/lookup-gap.md)", omitted_at=0.0
     )
     modality_dropout: float = _config.setting(
         0.0,
         "probability per training example of dropping its RGB (and, separately, its HHA) embedding, the other "
         "scaled up (ModDrop; at most 0.5)",
+        omitted_at=0.0,
     )
     jittered: bool = _config.setting(
-        False, "with train.jitter_copies: the MLP also trains on the embeddings of the jittered copies"
+        False,
+        "with train.jitter_copies: the MLP also trains on the embeddings of the jittered copies",
+        omitted_at=False,
     )
     epochs: int = _config.setting(20, "epochs of the fusion MLP")
     batch_size: int = _config.setting(64, "fusion MLP batch")
@@ -153,7 +161,7 @@ class MLPConfig:
     optimizer: str = _config.setting("adamw", "fusion MLP optimiser: 'adamw' or 'sgd' (momentum 0.9)")
     weight_decay: float = _config.setting(1e-4, "fusion MLP weight decay")
     warmup_steps: int = _config.setting(0, "fusion MLP linear warmup steps")
-    save_every: int = _config.setting(1000, "MLP steps between orbax checkpoints (changes no result)")
+    save_every: int = _config.setting(1000, "MLP steps between orbax checkpoints", affects_results=False)
 
     def __post_init__(self):
         _config.check(
@@ -161,13 +169,13 @@ class MLPConfig:
             positive_int=("hidden", "epochs", "batch_size", "save_every"),
             nonnegative_int=("warmup_steps",),
             positive=("learning_rate",),
-            nonnegative=("weight_decay", "pool_weight"),
+            nonnegative=("weight_decay",),
             unit_interval=("dropout", "input_dropout"),
+            rate=("pool_weight",),
             boolean=("jittered",),
             choices={"optimizer": OPTIMIZERS, "fusion": FUSIONS},
             at_most={
                 "hidden": 65_536,
-                "pool_weight": 1.0,
                 "epochs": MAX_EPOCHS,
                 "batch_size": MAX_BATCH,
                 "warmup_steps": 10**8,

@@ -3,7 +3,6 @@ sections without the keys that change no result."""
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 from typing import Any
 
@@ -14,22 +13,16 @@ from placejax import config as _config
 
 __all__ = ["params_digest", "results_only"]
 
-# Options added after caches keyed without them existed: absent from a key while off (0 / False).
-_NEWER_OFF_BY_DEFAULT = ("input_dropout", "modality_dropout", "jittered")
-# Which fusion is "Ours" changes no trained model (the MLP is trained either way): never in a key.
-_CHOICE_OF_FUSION = ("fusion", "pool_weight")
-
 
 def results_only(section: Any) -> dict:
-    """A config section (a config dataclass or a mapping) without the keys that change no result, for cache keys:
-    checkpoint intervals, the ``jitter_*`` magnitudes when ``jitter_copies`` is 0, the fusion MLP's later
-    options while off (so runs without them keep the keys they had before they existed) and which fusion is
-    "Ours" (it trains nothing)."""
-    d = _config.section(section) if dataclasses.is_dataclass(section) else dict(section)
-    out = {k: v for k, v in d.items() if k != "save_every" and k not in _CHOICE_OF_FUSION}
+    """A config section without the keys that change no result, for cache keys and checkpoint folder names: the
+    fields its settings mark (``placejax.config.results_fields``: checkpoint intervals, which fusion is Ours, and
+    options added later while off, so that runs without them keep the keys they had before they existed), and
+    the ``jitter_*`` magnitudes when ``jitter_copies`` is 0 (a rule between fields)."""
+    out = _config.results_fields(section)
     if not out.get("jitter_copies", 1):
         out = {k: v for k, v in out.items() if not k.startswith("jitter_")}
-    return {k: v for k, v in out.items() if not (k in _NEWER_OFF_BY_DEFAULT and not v)}
+    return out
 
 
 def params_digest(params: Any) -> str:
