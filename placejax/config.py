@@ -36,6 +36,7 @@ __all__ = [
     "ConfigError",
     "build",
     "check",
+    "first_problem",
     "help_text",
     "is_number",
     "results_fields",
@@ -50,10 +51,13 @@ class ConfigError(ValueError):
 
     Attributes:
         errors: one message per offending field (``"epochs=0: expected an int in [1, 10,000]"``).
+        fields: ``(field, what it expects)`` of each value :func:`check` refused, in the order of ``errors``
+            (empty for a rule between fields).
     """
 
-    def __init__(self, *errors: str):
+    def __init__(self, *errors: str, fields: Iterable[tuple[str, str]] = ()):
         self.errors = list(errors)
+        self.fields = list(fields)
         super().__init__("; ".join(self.errors))
 
 
@@ -75,6 +79,33 @@ def setting(default: Any, help: str, *, affects_results: bool = True, omitted_at
     return dataclasses.field(
         default=default, metadata={"help": help, "affects_results": affects_results, "omitted_at": omitted_at}
     )
+
+
+def first_problem(cls: type, values: Mapping[str, Any]) -> tuple[str, str] | None:
+    """``(field, problem)`` of the first value of ``values`` that ``cls``'s own checks refuse (``"is 0.0, expected a
+    finite number in (0, 1e+06]"``), or None when ``cls(**values)`` builds: how a stored copy of a section (a
+    classifier file's manifest) is checked by the section's rules, without restating them.
+
+    >>> @dataclasses.dataclass(frozen=True)
+    ... class Demo:
+    ...     epochs: int = setting(3, "passes over the data")
+    ...     def __post_init__(self):
+    ...         check(self, positive_int=("epochs",), at_most={"epochs": 100})
+    >>> first_problem(Demo, {"epochs": 0})
+    ('epochs', 'is 0, expected an int in [1, 100]')
+    >>> first_problem(Demo, {"epochs": 5}) is None
+    True
+    """
+    try:
+        cls(**dict(values))
+    except ConfigError as e:
+        if e.fields:
+            name, what = e.fields[0]
+            return name, f"is {shown(values[name])}, expected {what}"
+        return "", e.errors[0]
+    except TypeError as e:  # a missing or unknown key
+        return "", str(e)
+    return None
 
 
 def results_fields(obj: Any) -> dict[str, Any]:
@@ -126,7 +157,10 @@ def build(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:
     try:
         return cls(**dict(values))
     except ConfigError as e:
-        raise ConfigError(*(f"{prefix}.{m}" if prefix else m for m in e.errors)) from None
+        raise ConfigError(
+            *(f"{prefix}.{m}" if prefix else m for m in e.errors),
+            fields=[(f"{prefix}.{n}" if prefix else n, w) for n, w in e.fields],
+        ) from None
     except (TypeError, ValueError) as e:
         raise ConfigError(f"{prefix}: {e}" if prefix else str(e)) from None
 
@@ -190,11 +224,12 @@ def check(
         choices: field → its allowed values.
         at_most: field → the largest value it takes (a number field of one of the kinds above).
     """
-    errors = []
+    errors, found = [], []
     caps = dict(at_most or {})
 
     def bad(name: str, what: str) -> None:
         errors.append(f"{name}={shown(getattr(obj, name))}: expected {what}")
+        found.append((name, what))
 
     def cap(name: str, default: float) -> tuple[float, str]:
         hi = caps.get(name, default)
@@ -239,4 +274,4 @@ def check(
         if getattr(obj, name) not in allowed:
             bad(name, f"one of {allowed}")
     if errors:
-        raise ConfigError(*errors)
+        raise ConfigError(*errors, fields=found)

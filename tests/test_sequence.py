@@ -226,11 +226,11 @@ def test_bad_matcher_input_is_named():
         route.match_forward(emb, np.ones(40), "ref")
     with pytest.raises(ValueError, match=r"embedding must have shape \(16,\)"):
         route.SequenceMatcher(ref).step(emb[0, :3], 1.0)
-    with pytest.raises(ValueError, match=r"MatchConfig.similarity_scale must be in"):
+    with pytest.raises(ValueError, match=r"similarity_scale=0.0: expected a finite number in \(0, "):
         route.MatchConfig(similarity_scale=0.0)
-    with pytest.raises(ValueError, match=r"MatchConfig.embedding must be one of"):
+    with pytest.raises(ValueError, match=r"embedding='depth': expected one of"):
         route.MatchConfig(embedding="depth")
-    with pytest.raises(ValueError, match=r"MatchConfig.neighbours must be an int"):
+    with pytest.raises(ValueError, match=r"neighbours=True: expected an int"):
         route.MatchConfig(neighbours=True)
     with pytest.raises(ValueError, match=r"lag must be an int in \[0, 10000\]"):
         route.FixedLagFilter(PlaceGrid(0.0, 1.0, 0.0, 1.0, n=2), lag=-1)
@@ -277,8 +277,8 @@ def test_the_file_carries_the_training_drive(drive_file):
 @pytest.mark.parametrize(
     ("edit", "match"),
     [
-        (lambda m: m["sequence"].update(similarity_scale=-1), r"'sequence.similarity_scale' must be in"),
-        (lambda m: m["sequence"].update(embedding="x"), r"'sequence.embedding' must be one of"),
+        (lambda m: m["sequence"].update(similarity_scale=-1), r"'sequence.similarity_scale' is -1, expected a finite"),
+        (lambda m: m["sequence"].update(embedding="x"), r"'sequence.embedding' is 'x', expected one of"),
         (lambda m: m["sequence"].pop("neighbours"), r"'sequence' lacks neighbours"),
         (lambda m: m["sequence"].update(extra=1), r"'sequence' has unknown entries"),
         (lambda m: m["sequence"].update(embedding="rgb"), r"sequence arrays: embeddings \[30, 128\]"),
@@ -368,7 +368,7 @@ def test_the_window_distance_is_a_causal_mean_of_the_best_match():
     m = route.SequenceMatcher(ref, cfg)
     first = [m.step(q, 1.0).window_distance[0] for q in queries[:3]]
     assert m.step(np.full(emb.shape[1], np.nan), 1.0).window_distance[0] == first[-1]
-    with pytest.raises(ValueError, match=r"MatchConfig.distance_window must be an int"):
+    with pytest.raises(ValueError, match=r"distance_window=0: expected an int in \[1, "):
         route.MatchConfig(distance_window=0)
-    with pytest.raises(ValueError, match=r"MatchConfig.distance_threshold must be in \(0, 2\]"):
+    with pytest.raises(ValueError, match=r"distance_threshold=3.0: expected a finite number in \(0, 2\]"):
         route.MatchConfig(distance_threshold=3.0)

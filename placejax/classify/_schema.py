@@ -222,13 +222,13 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
 
 
 def _check_route(c: _Checker, r: Any) -> None:
-    """``route``: every field of ``placejax.route.FilterConfig``, each checked by FilterConfig's own rules."""
+    """``route``: every field of ``placejax.route.FilterConfig``, checked by FilterConfig's own checks."""
     from placejax.route import FilterConfig, first_problem
 
     c.obj(r, "route", {f.name for f in dataclasses.fields(FilterConfig)})
     bad = first_problem(r)
     if bad is not None:
-        c.fail(f"route.{bad[0]}", bad[1])
+        c.fail(f"route.{bad[0]}" if bad[0] else "route", bad[1])
 
 
 def _check_fusion(c: _Checker, f: Any) -> None:
@@ -249,7 +249,7 @@ def _check_sequence(c: _Checker, r: Any) -> None:
     c.obj(r, "sequence", set(MATCH_FIELDS))
     bad = first_match_problem(r)
     if bad is not None:
-        c.fail(f"sequence.{bad[0]}", bad[1])
+        c.fail(f"sequence.{bad[0]}" if bad[0] else "sequence", bad[1])
 
 
 def _check_near_far(c: _Checker, d: dict) -> None:

@@ -8,10 +8,8 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
-import math
-from typing import ClassVar
 
+from placejax import config as _config
 from placejax.config import setting
 
 MAX_SETTING = 1e6
@@ -23,78 +21,10 @@ MAX_ANGLES = 4096
 MAX_NOISE = 1024
 
 
-def _real(v, *, lo_open: bool, hi: float = MAX_SETTING) -> str | None:
-    # bool is an int in Python; a JSON true for a rate is a mistake, not 1.0.
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        return f"must be a finite number, got {v!r}"
-    if (v <= 0 if lo_open else v < 0) or v > hi:
-        return f"must be in {'(0' if lo_open else '[0'}, {hi:g}], got {v!r}"
-    return None
-
-
-def _probability(v) -> str | None:
-    if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v < 1:
-        return f"must be a number in [0, 1), got {v!r}"
-    return None
-
-
-def _count(v, hi: int) -> str | None:
-    if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi:
-        return f"must be an int in [1, {hi}], got {v!r}"
-    return None
-
-
-def _flag(v) -> str | None:
-    return None if isinstance(v, bool) else f"must be True or False, got {v!r}"
-
-
-# Every field's check, in field order: FilterConfig.__post_init__ runs them, and so does a classifier file's schema.
-_CHECKS = {
-    "temperature": functools.partial(_real, lo_open=True),
-    "uniform_mix": _probability,
-    "unknown_level": functools.partial(_real, lo_open=True),
-    "unknown_prior": _probability,
-    "unknown_enter_per_m": functools.partial(_real, lo_open=False),
-    "unknown_leave_per_m": functools.partial(_real, lo_open=False),
-    "emission_floor": functools.partial(_real, lo_open=False),
-    "odometry_noise_frac": functools.partial(_real, lo_open=False),
-    "odometry_noise_m": functools.partial(_real, lo_open=False),
-    "max_speed_mps": functools.partial(_real, lo_open=True),
-    "bounded": _flag,
-    "unknown": _flag,
-    "n_angles": functools.partial(_count, hi=MAX_ANGLES),
-    "n_noise": functools.partial(_count, hi=MAX_NOISE),
-}
-FIELDS = tuple(_CHECKS)
-"""`FilterConfig`'s field names, in order."""
-
-
-def problem_in(checks: dict, values: dict) -> tuple[str, str] | None:
-    """``(field, problem)`` of the first of ``values`` (``{field: value}``, every field of ``checks`` present) that
-    its check (``checks[field](value) → problem or None``) refuses."""
-    for name, check in checks.items():
-        problem = check(values[name])
-        if problem is not None:
-            return name, problem
-    return None
-
-
-def first_problem(values: dict) -> tuple[str, str] | None:
-    """``(field, problem)`` of the first of ``values`` (``{field: value}``, every field present) out of range."""
-    return problem_in(_CHECKS, values)
-
-
 class CheckedSettings:
-    """The route's settings dataclasses (`FilterConfig`, ``MatchConfig``): ``__post_init__`` runs every field's
-    check (the class's ``CHECKS``, field → check) and raises ``ValueError`` naming ``Class.field``; ``replace`` and
-    ``to_dict``."""
-
-    CHECKS: ClassVar[dict]
-
-    def __post_init__(self):
-        bad = problem_in(self.CHECKS, {name: getattr(self, name) for name in self.CHECKS})
-        if bad is not None:
-            raise ValueError(f"{type(self).__name__}.{bad[0]} {bad[1]}")
+    """What the route's settings dataclasses (`FilterConfig`, ``MatchConfig``) share: ``replace`` and ``to_dict``;
+    each checks its own fields in ``__post_init__`` (``placejax.config.check``: a value out of range raises
+    ``ConfigError``, a ``ValueError`` naming the field)."""
 
     def replace(self, **changes):
         """A copy with ``changes`` (field names as keywords), checked like a new one."""
@@ -134,7 +64,8 @@ class FilterConfig(CheckedSettings):
         n_noise: distance samples the motion model averages over, in ``[1, 1024]``.
 
     Every real-valued setting that is not a probability is at most `MAX_SETTING` (1e6): beyond it float32
-    products overflow. A value out of range raises ``ValueError`` naming the field.
+    products overflow. A value out of range raises ``placejax.config.ConfigError`` (a ``ValueError``) naming the
+    field.
     """
 
     # Chosen on world 1 (docs/research-log.md): the temperature fitted (route.fit_temperature) on world 1's
@@ -156,4 +87,30 @@ class FilterConfig(CheckedSettings):
     n_angles: int = setting(32, "headings the motion model averages over")
     n_noise: int = setting(5, "distance samples the motion model averages over")
 
-    CHECKS: ClassVar[dict] = _CHECKS
+    def __post_init__(self):
+        reals = ("unknown_enter_per_m", "unknown_leave_per_m", "emission_floor", "odometry_noise_frac")
+        _config.check(
+            self,
+            positive=("temperature", "unknown_level", "max_speed_mps"),
+            nonnegative=(*reals, "odometry_noise_m"),
+            unit_interval=("uniform_mix", "unknown_prior"),
+            boolean=("bounded", "unknown"),
+            positive_int=("n_angles", "n_noise"),
+            at_most={
+                **dict.fromkeys(
+                    ("temperature", "unknown_level", "max_speed_mps", *reals, "odometry_noise_m"), MAX_SETTING
+                ),
+                "n_angles": MAX_ANGLES,
+                "n_noise": MAX_NOISE,
+            },
+        )
+
+
+FIELDS = tuple(f.name for f in dataclasses.fields(FilterConfig))
+"""`FilterConfig`'s field names, in order."""
+
+
+def first_problem(values: dict) -> tuple[str, str] | None:
+    """``(field, problem)`` of the first of ``values`` (``{field: value}``, every field present) that
+    `FilterConfig`'s checks refuse (``placejax.config.first_problem``), None when they build a `FilterConfig`."""
+    return _config.first_problem(FilterConfig, values)

@@ -29,15 +29,16 @@ import collections
 import dataclasses
 import functools
 import math
-from typing import ClassVar, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from placejax import config as _config
 from placejax.config import setting
 from placejax.route._chunks import padded_chunks
-from placejax.route._config import CheckedSettings, _count, _flag, _probability, _real, problem_in
+from placejax.route._config import MAX_SETTING, CheckedSettings
 from placejax.route._filter import check_moved
 
 MAX_NEIGHBOURS = 4096
@@ -49,42 +50,14 @@ EMBEDDINGS = ("fused", "rgb", "hha")
 """Which fc7 embedding a classifier's sequence matcher reads: both nets' (each L2-normalised), RGB-Net's, HHA-Net's."""
 
 
-def _embedding(v) -> str | None:
-    return None if isinstance(v, str) and v in EMBEDDINGS else f"must be one of {EMBEDDINGS}, got {v!r}"
-
-
-_CHECKS = {
-    "embedding": _embedding,
-    "similarity_scale": functools.partial(_real, lo_open=True),
-    "position_sd_m": functools.partial(_real, lo_open=True),
-    "position_sd_frac": functools.partial(_real, lo_open=False),
-    "heading_kappa": functools.partial(_real, lo_open=False, hi=100.0),
-    "uniform_mix": _probability,
-    "neighbours": functools.partial(_count, hi=MAX_NEIGHBOURS),
-    "unknown": _flag,
-    "unknown_level": functools.partial(_real, lo_open=True),
-    "unknown_prior": _probability,
-    "unknown_enter_per_m": functools.partial(_real, lo_open=False),
-    "unknown_leave_per_m": functools.partial(_real, lo_open=False),
-    "distance_window": functools.partial(_count, hi=MAX_WINDOW),
-    "distance_threshold": functools.partial(_real, lo_open=True, hi=2.0),
-}
-MATCH_FIELDS = tuple(_CHECKS)
-"""`MatchConfig`'s field names, in order."""
-
-
-def first_match_problem(values: dict) -> tuple[str, str] | None:
-    """``(field, problem)`` of the first of ``values`` (``{field: value}``, every field present) out of range."""
-    return problem_in(_CHECKS, values)
-
-
 @dataclasses.dataclass(frozen=True)
 class MatchConfig(CheckedSettings):
     """Settings of the sequence matcher (`SequenceMatcher`, `match_forward`), and the one place their defaults and
     ranges are written.
 
     The defaults are those ``experiments.cross_season`` chose on world 1 (docs/research-log.md; docs/route.md,
-    "Sequence matching against the training drive"). A value out of range raises ``ValueError`` naming the field.
+    "Sequence matching against the training drive"). A value out of range raises ``placejax.config.ConfigError``
+    (a ``ValueError``) naming the field.
 
     Attributes:
         embedding: which embedding of a ``PlaceClassifier`` the matcher compares (`EMBEDDINGS`: ``"fused"``, both
@@ -125,7 +98,40 @@ class MatchConfig(CheckedSettings):
     distance_window: int = setting(20, "frames of the causal mean of the unseen-place distance (window_distance)")
     distance_threshold: float = setting(0.201, "window_distance above this: an unseen place (in (0, 2])")
 
-    CHECKS: ClassVar[dict] = _CHECKS
+    def __post_init__(self):
+        reals = ("position_sd_frac", "unknown_enter_per_m", "unknown_leave_per_m")
+        _config.check(
+            self,
+            choices={"embedding": EMBEDDINGS},
+            positive=("similarity_scale", "position_sd_m", "unknown_level", "distance_threshold"),
+            nonnegative=(*reals, "heading_kappa"),
+            unit_interval=("uniform_mix", "unknown_prior"),
+            boolean=("unknown",),
+            positive_int=("neighbours", "distance_window"),
+            at_most={
+                **dict.fromkeys(("similarity_scale", "position_sd_m", "unknown_level", *reals), MAX_SETTING),
+                "heading_kappa": 100.0,
+                "distance_threshold": 2.0,
+                "neighbours": MAX_NEIGHBOURS,
+                "distance_window": MAX_WINDOW,
+            },
+        )
+
+
+MATCH_FIELDS = tuple(f.name for f in dataclasses.fields(MatchConfig))
+"""`MatchConfig`'s field names, in order."""
+
+
+def first_match_problem(values: dict) -> tuple[str, str] | None:
+    """``(field, problem)`` of the first of ``values`` (``{field: value}``, every field present) that
+    `MatchConfig`'s checks refuse, None when they build a `MatchConfig`."""
+    return _config.first_problem(MatchConfig, values)
+
+
+def _check_count(name: str, v, hi: int) -> None:
+    """ValueError naming ``name`` unless ``v`` is an int in ``[1, hi]`` (a function's argument)."""
+    if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi:
+        raise ValueError(f"{name} must be an int in [1, {hi}], got {v!r}")
 
 
 def unit_embedding(*parts) -> np.ndarray:
@@ -157,8 +163,8 @@ def select_embedding(fused, embedding: str) -> np.ndarray:
     """The matcher's embedding (`MatchConfig.embedding`) from a classifier's fused embedding ``[fc7_rgb, fc7_hha]``
     float ``(N, 2D)``: both blocks (``"fused"``) or one (``"rgb"``, ``"hha"``), through `unit_embedding`."""
     f = np.asarray(fused, np.float32)
-    if _embedding(embedding) is not None:
-        raise ValueError(f"embedding {_embedding(embedding)}")
+    if not (isinstance(embedding, str) and embedding in EMBEDDINGS):
+        raise ValueError(f"embedding must be one of {EMBEDDINGS}, got {embedding!r}")
     if f.ndim != 2 or f.shape[1] % 2:
         raise ValueError(f"fused must have shape (N, 2D) ([fc7_rgb, fc7_hha]), got {f.shape}")
     half = f.shape[1] // 2
@@ -265,8 +271,7 @@ def match_reference(embeddings, positions, labels, num_classes: int, *, neighbou
         raise ValueError(f"labels must be cells in [0, {num_classes})")
     if not np.isfinite(p).all():
         raise ValueError(f"positions: frame {int(np.argmax(~np.isfinite(p).all(axis=1)))} is not finite")
-    if _count(neighbours, MAX_NEIGHBOURS) is not None:
-        raise ValueError(f"neighbours {_count(neighbours, MAX_NEIGHBOURS)}")
+    _check_count("neighbours", neighbours, MAX_NEIGHBOURS)
     unit = unit_embedding(e)
     m = min(int(neighbours), n)
     nb = _nearest(p, m)
@@ -404,8 +409,7 @@ def window_mean(values, frames: int) -> np.ndarray:
         [1.0, 2.0, 4.0, 6.0]
     """
     v = np.asarray(values, np.float64)
-    if _count(frames, MAX_WINDOW) is not None:
-        raise ValueError(f"frames {_count(frames, MAX_WINDOW)}")
+    _check_count("frames", frames, MAX_WINDOW)
     return np.array([_mean(v[max(0, t - frames + 1) : t + 1]) for t in range(len(v))])
 
 
