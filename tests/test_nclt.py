@@ -323,6 +323,9 @@ def test_command_line_report_grid_and_cache(fake, tmp_path, capsys):
     caches = sorted(p for p in (tmp_path / "c").iterdir() if p.is_dir())
     assert len(caches) == 2
     assert open_session_cache(caches[0]).image_shape == (8, 6)
+    # A cache's size is the experiment's data.image_size, never a default of this command: without it, a usage error.
+    assert main([*argv]) == 2
+    assert "--cache needs --image-size H W" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------------------------------------------------

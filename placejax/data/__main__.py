@@ -11,7 +11,7 @@ draws the trajectories over the place grid to ``--map`` when given, and exits wi
 
     python -m placejax.data [nclt] --root /data/nclt --dates 2012-01-22 2012-03-31 2012-08-04 2012-11-17 \\
         [--camera 5] [--undistort] [--verify] [--skip-bad-frames] \\
-        [--cache /data/placejax_cache --image-size 224 224] [--grid grid.json]
+        [--cache /data/placejax_cache --image-size 256 256] [--grid grid.json]
 
 Prints every NCLT session's kept / dropped frame counts; with ``--cache`` writes (or resumes, or reuses) each
 session's image cache; with ``--grid`` fits the 10 × 10 place grid over all given sessions and saves it. The
@@ -21,6 +21,7 @@ subcommand name ``nclt`` may be left out.
 from __future__ import annotations
 
 import argparse
+import inspect
 import logging
 import sys
 from pathlib import Path
@@ -28,11 +29,21 @@ from pathlib import Path
 import numpy as np
 
 from placejax import cli, io
+from placejax import config as _config
 from placejax.data import folder, nclt
 from placejax.data.cache import cache_session
 from placejax.data.grid import PlaceGrid
+from placejax.data.sources import DataConfig, GridConfig
 
 _COMMANDS = ("check", "nclt")
+
+
+def _default(fn, name: str):
+    """The default of argument ``name`` of ``fn``: a flag's default is the function's, stated once there."""
+    return inspect.signature(fn).parameters[name].default
+
+
+_GRID_N = _config.section(GridConfig)["n"]
 
 
 def _session_dirs(dirs: list[Path]) -> list[Path]:
@@ -83,8 +94,13 @@ def _check_parser(sub) -> None:
     )
     p.add_argument("dirs", type=Path, nargs="+", help="session folders, or folders holding them")
     p.add_argument("--map", type=Path, help="write a PNG of the trajectories over the place grid here")
-    p.add_argument("--grid-n", type=int, default=10, help="cells per axis of the place grid drawn")
-    p.add_argument("--tolerance-s", type=float, default=0.1, help="largest image-to-pose gap kept (s)")
+    p.add_argument("--grid-n", type=int, default=_GRID_N, help=_config.help_text(GridConfig, "n"))
+    p.add_argument(
+        "--tolerance-s",
+        type=float,
+        default=_default(folder.load_session, "tolerance_s"),
+        help="largest image-to-pose gap kept (s)",
+    )
     p.add_argument(
         "--max-speed-mps",
         type=float,
@@ -167,18 +183,30 @@ def _nclt_parser(sub) -> None:
     )
     p.add_argument("--root", type=Path, required=True, help="NCLT root (images/, ground_truth/, ...)")
     p.add_argument("--dates", nargs="+", required=True)
-    p.add_argument("--camera", type=int, default=5)
+    camera = _config.section(DataConfig)["camera"]
+    p.add_argument("--camera", type=int, default=camera, help=_config.help_text(DataConfig, "camera"))
     p.add_argument("--images-root", type=Path)
     p.add_argument("--ground-truth-root", type=Path)
     p.add_argument("--calib-root", type=Path)
     p.add_argument("--undistort", action="store_true")
-    p.add_argument("--tolerance-s", type=float, default=0.1)
+    p.add_argument(
+        "--tolerance-s",
+        type=float,
+        default=_default(nclt.load_session, "tolerance_s"),
+        help="largest image-to-pose gap kept (s)",
+    )
     p.add_argument("--verify", action="store_true", help="decode every image now")
     p.add_argument("--skip-bad-frames", action="store_true")
     p.add_argument("--cache", type=Path, help="cache folder; builds each session's image cache")
-    p.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), default=(224, 224))
+    p.add_argument(
+        "--image-size",
+        type=int,
+        nargs=2,
+        metavar=("H", "W"),
+        help="with --cache: the cached images' size, the experiment's data.image_size (the paper preset: 256 256)",
+    )
     p.add_argument("--grid", type=Path, help="fit the place grid over these sessions and save it here")
-    p.add_argument("--grid-n", type=int, default=10)
+    p.add_argument("--grid-n", type=int, default=_GRID_N, help=_config.help_text(GridConfig, "n"))
 
 
 def parser() -> argparse.ArgumentParser:
@@ -198,7 +226,9 @@ def parser() -> argparse.ArgumentParser:
 def nclt_command(args: argparse.Namespace) -> int:
     """``python -m placejax.data [nclt] --root ... --dates ...`` (module docstring)."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-
+    if args.cache is not None and args.image_size is None:
+        print("error: --cache needs --image-size H W (the experiment's data.image_size)", file=sys.stderr)
+        return 2
     sessions = []
     for date in args.dates:
         s = nclt.load_session(
