@@ -116,7 +116,8 @@ def test_smoke_table_and_results(smoke):
         assert g["gain"] == pytest.approx(p["ours"] - p["rgb_net"])
         assert g["lo"] <= g["gain"] <= g["hi"]
         assert cells[4].endswith("*") == g["excludes_zero"] == (g["lo"] > 0 or g["hi"] < 0)
-    assert set(results["gains"]) == {"ours_vs_rgb_net", "ours_vs_hha_net"}
+    # The smoke preset's fusion is the MLP: no MLP column, so no gain over it; the average is a column.
+    assert set(results["gains"]) == {"ours_vs_rgb_net", "ours_vs_hha_net", "ours_vs_average"}
     assert results["seeds"] == {"seed": 0, "seeds": [0, 1]}
     for name in ("workspace_map", "samples", "depth_hha", "examples", "accuracy"):
         assert (workdir / "figures" / f"{name}.png").stat().st_size > 1000

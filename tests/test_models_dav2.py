@@ -356,7 +356,8 @@ def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
     assert (diff == 0).mean() > 0.99, (diff.max(), (diff == 0).mean())
     # The nets on the experiment's HHA give the classifier's logits (up to those ±1 HHA values).
     ref = _classifier.stage_nets(clf.spec, clf.params, jnp.asarray(rgb), jnp.asarray(exp_hha))
-    fused = np.asarray(_classifier.stage_mlp(clf.spec, clf.params, ref))
+    assert clf.spec.pool_weight == c.mlp.pool_weight  # the default preset's fusion: the log-linear pool
+    fused = np.asarray(_classifier.stage_fusion(clf.spec, clf.params, ref))
     np.testing.assert_allclose(out["rgb"], ref["rgb_logits"], rtol=0, atol=1e-4 * np.abs(ref["rgb_logits"]).max())
     np.testing.assert_allclose(out["fusion"], fused, rtol=0, atol=1e-2 * np.abs(fused).max())
 
