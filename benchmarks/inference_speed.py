@@ -13,7 +13,8 @@ Two model sizes, both with random weights of the exact architectures (speed does
 
 For each size and batch (1 and ``--batch``): images/s and ms/image of ``predict`` (host input to host output,
 padding buckets and all), and the share of each stage (depth: MiDaS transform + network + resize back + metric
-mapping; hha: HHA encoding; nets: RGB-Net and HHA-Net; mlp: fusion MLP) from each stage jitted and timed alone.
+mapping; hha: HHA encoding; nets: RGB-Net and HHA-Net; fusion: the fusion MLP or the log-linear pool) from each
+stage jitted and timed alone.
 At the paper size PyTorch (``benchmarks.torch_baselines``, ``no_grad``, all cores) runs MiDaS small on the same
 normalised input and VGG16 fc7 twice (two nets) in the same run, interleaved with JAX so both see the same load.
 ``--baseline-shift-px 2 4``: the built-in classifier also with those shifted depth views, its ``predict`` timed in
@@ -34,7 +35,15 @@ import numpy as np
 
 from benchmarks import _report
 from placejax import cli
-from placejax.classify import ClassifierSpec, PlaceClassifier, stage_depth, stage_hha, stage_mlp, stage_nets
+from placejax.classify import (
+    ClassifierSpec,
+    PlaceClassifier,
+    fusion_entry,
+    stage_depth,
+    stage_fusion,
+    stage_hha,
+    stage_nets,
+)
 from placejax.data import PlaceGrid
 from placejax.depth import PRESETS
 from placejax.models import cpu_compiler_options
@@ -56,7 +65,9 @@ def _default_preset():
 def _size(name: str) -> dict:
     if name == "paper":
         midas = ("midas", 64, 1.0, 256)
-        return dict(image=256, depth=midas, vgg=(1.0, True), far_m=80.0, metric=False, mlp_hidden=1024)
+        return dict(
+            image=256, depth=midas, vgg=(1.0, True), far_m=80.0, metric=False, mlp_hidden=1024, fusion={"kind": "mlp"}
+        )
     c = _default_preset()
     h, w = c.data.image_size
     if h != w:
@@ -68,6 +79,7 @@ def _size(name: str) -> dict:
         far_m=float(c.depth.far_m),
         metric=True,
         mlp_hidden=int(c.mlp.hidden),
+        fusion=fusion_entry(c.mlp),
     )
 
 
@@ -102,6 +114,7 @@ def synthetic_classifier(size: str, seed: int = 0, shifts: tuple[int, ...] | Non
         },
         "vgg": {"width": s["vgg"][0], "pretrained": s["vgg"][1]},
         "mlp_hidden": s["mlp_hidden"],
+        "fusion": s["fusion"],
         "grid": PlaceGrid(0.0, 100.0, 0.0, 100.0, 10).to_dict(),
         "visited_classes": list(range(100)),
         "unknown": {"score": "msp", "threshold": 0.5, "target_frr": 0.05},
@@ -139,7 +152,7 @@ def _stage_fns(clf: PlaceClassifier, rgb: np.ndarray) -> dict:
     depth_fn = jax.jit(functools.partial(stage_depth, spec), compiler_options=cpu_compiler_options("midas_small"))
     hha_fn = jax.jit(functools.partial(stage_hha, spec))
     nets_fn = jax.jit(functools.partial(stage_nets, spec), compiler_options=opts)
-    mlp_fn = jax.jit(functools.partial(stage_mlp, spec))
+    fusion_fn = jax.jit(functools.partial(stage_fusion, spec))  # the MLP or the log-linear pool
     x = jnp.asarray(rgb)
     d = jax.block_until_ready(depth_fn(params["depth"], x))
     hh = jax.block_until_ready(hha_fn(d))
@@ -148,7 +161,7 @@ def _stage_fns(clf: PlaceClassifier, rgb: np.ndarray) -> dict:
         "depth": lambda: jax.block_until_ready(depth_fn(params["depth"], x)),
         "hha": lambda: jax.block_until_ready(hha_fn(d)),
         "nets": lambda: jax.block_until_ready(nets_fn(params, x, hh)),
-        "mlp": lambda: jax.block_until_ready(mlp_fn(params, nets)),
+        "fusion": lambda: jax.block_until_ready(fusion_fn(params, nets)),
     }
 
 
@@ -205,15 +218,15 @@ def main(argv: list[str] | None = None) -> int:
             if size == "paper" and not args.no_torch:
                 fns.update(_torch_fns(batch, hw, rng))
             t = _interleaved(fns, args.repeats)
-            stages = sum(t[k] for k in ("depth", "hha", "nets", "mlp"))
+            stages = sum(t[k] for k in ("depth", "hha", "nets", "fusion"))
             row = {
                 "size": size,
                 "image_hw": [hw, hw],
                 "batch": batch,
                 "images_per_s": batch / t["predict"],
                 "ms_per_image": 1e3 * t["predict"] / batch,
-                **{f"share_{k}": t[k] / stages for k in ("depth", "hha", "nets", "mlp")},
-                **{f"{k}_ms_per_image": 1e3 * t[k] / batch for k in ("depth", "hha", "nets", "mlp")},
+                **{f"share_{k}": t[k] / stages for k in ("depth", "hha", "nets", "fusion")},
+                **{f"{k}_ms_per_image": 1e3 * t[k] / batch for k in ("depth", "hha", "nets", "fusion")},
             }
             if "baseline" in t:
                 row["baseline_shift_px"] = list(args.baseline_shift_px)
@@ -236,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         ("share_depth", "depth share"),
         ("share_hha", "HHA share"),
         ("share_nets", "nets share"),
-        ("share_mlp", "MLP share"),
+        ("share_fusion", "fusion share"),
         ("depth_ms_per_image", "depth ms/img"),
         ("torch_midas_ms_per_image", "torch MiDaS ms/img"),
         ("nets_ms_per_image", "nets ms/img"),

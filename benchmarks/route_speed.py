@@ -83,7 +83,7 @@ def builtin_classifier(seed: int = 0, reference: int = 2000):
     import jax.numpy as jnp
 
     from experiments.cross_season.config import get_config
-    from placejax.classify import ClassifierSpec, PlaceClassifier, unknown
+    from placejax.classify import ClassifierSpec, PlaceClassifier, fusion_entry, unknown
     from placejax.depth import PRESETS
 
     c = get_config("default")
@@ -110,6 +110,7 @@ def builtin_classifier(seed: int = 0, reference: int = 2000):
         },
         "vgg": {"width": c.vgg.width, "pretrained": c.vgg.pretrained},
         "mlp_hidden": c.mlp.hidden,
+        "fusion": fusion_entry(c.mlp),
         "grid": PlaceGrid(0.0, 20.0 * c.grid.n, 0.0, 20.0 * c.grid.n, n=c.grid.n).to_dict(),
         "unknown": {"score": "knn1", "threshold": 0.5, "target_frr": 0.05},
     }

@@ -294,7 +294,7 @@ def test_benchmark_inference_speed(bench):
     out, r = _bench(bench, "inference_speed", "--only", "builtin", "--no-torch", "--repeats", "1", "--batch", "2")
     assert [row["batch"] for row in r["rows"]] == [1, 2]
     for row in r["rows"]:
-        shares = [row[f"share_{k}"] for k in ("depth", "hha", "nets", "mlp")]
+        shares = [row[f"share_{k}"] for k in ("depth", "hha", "nets", "fusion")]
         assert sum(shares) == pytest.approx(1.0)
         assert row["images_per_s"] > 0
     assert "images/s" in out

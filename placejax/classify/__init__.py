@@ -14,6 +14,7 @@ Public surface:
         (uint8 RGB → metric depth → uint8 HHA → both VGG16s' logits and fc7 → fused logits: the run's fusion,
         ``stage_mlp`` where that is the MLP or a log-linear pool of the two nets).
     ArtefactError: a classifier file that is corrupt, truncated or of another format.
+    fusion_entry: a manifest's ``fusion`` (the MLP or the log-linear pool) from a run's ``mlp`` config section.
     unknown: unseen-place scores, thresholds and their evaluation.
     Tracker, TrackStep: a ``PlaceClassifier`` followed by the route filter (`placejax.route`) with the
         classifier's settings, one image and the distance travelled at a time
@@ -35,6 +36,7 @@ from placejax.classify._forward import (
     stage_mlp,
     stage_nets,
 )
+from placejax.classify._schema import fusion_entry
 from placejax.classify._track import Tracker, TrackStep
 
 __all__ = [
@@ -45,6 +47,7 @@ __all__ = [
     "TrackStep",
     "Tracker",
     "forward",
+    "fusion_entry",
     "run_layout",
     "stage_depth",
     "stage_fusion",

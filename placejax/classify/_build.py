@@ -20,6 +20,7 @@ import numpy as np
 from placejax import route
 from placejax.classify import run_layout, unknown
 from placejax.classify._forward import _plain
+from placejax.classify._schema import fusion_entry
 from placejax.data import PlaceGrid
 from placejax.depth import SOURCE_NAMES, DepthSource, DepthSourceConfig, depth_source
 from placejax.hha import REFERENCE_HEIGHT
@@ -96,7 +97,7 @@ def run_meta_and_params(
         "depth": depth_meta,
         "vgg": {"width": vgg["width"], "pretrained": vgg["pretrained"]},
         "mlp_hidden": cfg["mlp"]["hidden"],
-        "fusion": _fusion(cfg["mlp"]),
+        "fusion": fusion_entry(cfg["mlp"]),
         "grid": files.grid,
         "visited_classes": files.visited_classes,
         "unknown": {
@@ -111,13 +112,6 @@ def run_meta_and_params(
         "source": {"workdir": str(files.workdir), "train_session": train_session},
     }
     return meta, params
-
-
-def _fusion(mlp: dict[str, Any]) -> dict[str, Any]:
-    """The manifest's ``fusion`` from a run's ``mlp`` section (a run from before the choice: the MLP)."""
-    if mlp.get("fusion", "mlp") == "pool":
-        return {"kind": "pool", "pool_weight": float(mlp["pool_weight"])}
-    return {"kind": "mlp"}
 
 
 def training_frames(files: run_layout.RunFiles) -> dict[str, np.ndarray] | None:

@@ -231,6 +231,14 @@ def _check_route(c: _Checker, r: Any) -> None:
         c.fail(f"route.{bad[0]}" if bad[0] else "route", bad[1])
 
 
+def fusion_entry(mlp: Any) -> dict[str, Any]:
+    """A manifest's ``fusion`` from a run's ``mlp`` config section (a mapping with ``fusion`` and ``pool_weight``;
+    a run from before the choice: the MLP)."""
+    if mlp.get("fusion", "mlp") == "pool":
+        return {"kind": "pool", "pool_weight": float(mlp["pool_weight"])}
+    return {"kind": "mlp"}
+
+
 def _check_fusion(c: _Checker, f: Any) -> None:
     """``fusion``: ``{"kind": "mlp"}`` or ``{"kind": "pool", "pool_weight": w}``, w in [0, 1]."""
     c.obj(f, "fusion", {"kind"}, {"pool_weight"})
