@@ -17,8 +17,7 @@ import numpy as np
 import pytest
 from predictions import assert_same_predictions
 
-from experiments.cross_season import apply_overrides, get_config, run
-from experiments.cross_season.config import sections
+from experiments.cross_season import apply_overrides, get_config, run, sections
 from placejax import stages
 from placejax.classify import ArtefactError, PlaceClassifier, run_layout, unknown
 from placejax.classify.__main__ import main as classify_main

@@ -168,7 +168,7 @@ def test_the_paper_columns_only_beside_its_own_sessions_and_a_smoke_table_says_i
     and get no paper column nor a caption with SimCampus's dates. Nine classes: the table says it shows noise."""
     import copy
 
-    from experiments.cross_season.report.table import table_markdown
+    from experiments.cross_season import table_markdown
 
     _, results = smoke
     text = table_markdown(results)
@@ -210,7 +210,7 @@ def test_the_rendered_depth_ceiling_adds_columns_and_changes_none(smoke, tmp_pat
     assert "HHA-Net (rendered depth)" in table
     assert "Ours (rendered depth)" in table
     assert "Pool(w=0.4) (rendered depth)" in table
-    from experiments.cross_season.report.table import table_text
+    from experiments.cross_season import table_text
 
     assert "on rendered depth (the ceiling): HHA-Net" in table_text(results)
 
@@ -252,7 +252,7 @@ def test_frozen_trunk_features_are_cached_once_and_reused(smoke, monkeypatch):
     """The default path freezes the trunk: its conv features are computed once per session and modality (both
     seeds of the smoke run read the same caches) and a later call reads them without running the trunk."""
     workdir, _ = smoke
-    from experiments.cross_season.config import sections
+    from experiments.cross_season import sections
     from placejax import stages
     from placejax.depth import depth_source
     from placejax.pretrain import modality_weights

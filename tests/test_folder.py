@@ -630,7 +630,7 @@ def test_render_presets_match_the_experiment():
     """The export's presets render the frames the experiment's presets train on: both against the values
     docs/simcampus.md states, written here once by hand (both sides read one table in the library, so comparing
     them with each other alone could not fail)."""
-    from experiments.cross_season.config import get_config
+    from experiments.cross_season import get_config
 
     stated = {
         "default": {"world_seed": 0, "image_size": (96, 96), "frame_spacing": 1.0, "max_frames": 0},
@@ -837,8 +837,7 @@ def test_experiment_with_a_depth_network_and_the_classifier_on_folders(tmp_path,
 
 
 def test_folder_source_config_checked():
-    from experiments.cross_season import apply_overrides, get_config
-    from experiments.cross_season.config import validate
+    from experiments.cross_season import apply_overrides, get_config, validate
 
     cfg = get_config("smoke")
     apply_overrides(cfg, ["data.source=folder"])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from experiments.cross_season.config import apply_overrides, get_config, leaf_keys, sections, validate
+from experiments.cross_season import apply_overrides, get_config, leaf_keys, sections, validate
 from experiments.overrides import get
 from placejax.data import ViewJitter, jittered_copies, jittered_view
 

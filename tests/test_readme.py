@@ -182,10 +182,9 @@ def test_readme_links_exist():
 
 def test_help_shows_every_presets_values():
     """``python -m experiments.cross_season --help`` gives each key's value in every preset, not only the default's."""
-    from experiments.cross_season import config
-    from experiments.cross_season.__main__ import _help_epilog
+    from experiments.cross_season import config, help_epilog
 
-    text = _help_epilog()
+    text = help_epilog()
     for key in config.leaf_keys(config.get_config("default")):
         if key == "preset":
             continue
@@ -242,7 +241,7 @@ def test_the_readme_quotes_the_committed_record_of_its_default_run():
     """Every row of the README's table, its headline time and memory, its ceilings and baselines, and its route and
     unseen-place figures equal the committed record of the run (docs/cross_season/results.json), rounded as
     printed: a number there changes only with the record that backs it."""
-    from experiments.cross_season.driver import duration
+    from experiments.cross_season import duration
 
     rec = json.loads(RECORD.read_text())
     text = README.read_text()

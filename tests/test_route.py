@@ -456,8 +456,7 @@ def test_filter_config_refuses_each_bad_setting_by_name(field, value):
 
 
 def test_the_experiments_filter_config_is_filter_configs():
-    from experiments.cross_season import get_config
-    from experiments.cross_season.config import sections
+    from experiments.cross_season import get_config, sections
 
     cfg = get_config("default")
     assert sections(cfg)["route"] == route.FilterConfig()

@@ -188,7 +188,7 @@ def test_tracker_reproduces_the_runs_route_column(tracker_run, tmp_path):
     seed's networks), to the last frame: a saved and reloaded classifier, each other season's cached frames in
     order, one at a time through ``Tracker.step`` with the distances the experiment used (SimCampus's simulated
     odometry)."""
-    from experiments.cross_season.config import sections
+    from experiments.cross_season import sections
     from placejax import stages
     from placejax.training import data_mesh
 

@@ -5,7 +5,11 @@ only configures, drives and reports them.
 
 Public surface:
     get_config, apply_overrides, validate, PRESETS: presets as data, typed overrides, whole-config validation.
-    run: the whole experiment in a work directory (every stage cached or checkpointed, resumable).
+    sections, leaf_keys, help_epilog: a config's sections as the library's dataclasses, its keys, the ``--help``
+        listing of every key in every preset.
+    run, duration: the whole experiment in a work directory (every stage cached or checkpointed, resumable);
+        how it prints a time.
+    table_markdown, table_text: a run's results as ``table.md`` and as the text it prints.
 
 Modules:
     config      the config sections (the library's dataclasses) composed, validation, help.
@@ -14,7 +18,28 @@ Modules:
     report      scores of every method and pair, the route columns, ``table.md`` and the figures.
 """
 
-from experiments.cross_season.config import PRESETS, apply_overrides, get_config, validate
-from experiments.cross_season.driver import run
+from experiments.cross_season.config import (
+    PRESETS,
+    apply_overrides,
+    get_config,
+    help_epilog,
+    leaf_keys,
+    sections,
+    validate,
+)
+from experiments.cross_season.driver import duration, run
+from experiments.cross_season.report.table import table_markdown, table_text
 
-__all__ = ["PRESETS", "apply_overrides", "get_config", "run", "validate"]
+__all__ = [
+    "PRESETS",
+    "apply_overrides",
+    "duration",
+    "get_config",
+    "help_epilog",
+    "leaf_keys",
+    "run",
+    "sections",
+    "table_markdown",
+    "table_text",
+    "validate",
+]

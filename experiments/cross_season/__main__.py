@@ -10,26 +10,6 @@ from experiments.cross_season import config as _config
 from placejax import cli
 
 
-def _help_epilog() -> str:
-    configs = {name: _config.get_config(name) for name in _config.PRESETS}
-    lines = [
-        "config keys (override with key=value; values are Python literals). Each key's value in every preset "
-        f"({', '.join(_config.PRESETS)}):"
-    ]
-    for k in _config.leaf_keys(configs["default"]):
-        if k == "preset":
-            continue
-        values = {}
-        for name, c in configs.items():
-            node = c
-            for part in k.split("."):
-                node = node[part]
-            values[name] = node
-        shown = "  ".join(f"{name}={value!r}" for name, value in values.items())
-        lines.append(f"  {k}\n      {shown}\n      {_config.help_text(k)}")
-    return "\n".join(lines)
-
-
 @cli.command
 def main(argv: list[str] | None = None) -> int:
     """The command line (module docstring); returns the exit status (130 after Ctrl-C: rerun to resume)."""
@@ -40,7 +20,7 @@ def main(argv: list[str] | None = None) -> int:
             "the fusion MLP and the ablations on all 12 ordered season pairs. Resumable: rerun the same command "
             "after an interruption. Writes results.json, table.md and figures/ into the work directory."
         ),
-        epilog=_help_epilog(),
+        epilog=_config.help_epilog(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--preset", default="default", choices=_config.PRESETS, help="configuration preset")

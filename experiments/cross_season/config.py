@@ -45,6 +45,7 @@ __all__ = [
     "base_config",
     "get",
     "get_config",
+    "help_epilog",
     "help_text",
     "leaf_keys",
     "sections",
@@ -275,3 +276,24 @@ def _cross_section_errors(c: ml_collections.ConfigDict, n_devices: int | None) -
             if isinstance(v, int) and not isinstance(v, bool) and v % n_devices:
                 errors.append(f"{key}={v} must be divisible by the {n_devices} devices of the mesh")
     return errors
+
+
+def help_epilog() -> str:
+    """What ``--help`` prints after the flags: every config key, its value in each preset, and its help."""
+    configs = {name: get_config(name) for name in PRESETS}
+    lines = [
+        "config keys (override with key=value; values are Python literals). Each key's value in every preset "
+        f"({', '.join(PRESETS)}):"
+    ]
+    for k in leaf_keys(configs["default"]):
+        if k == "preset":
+            continue
+        values = {}
+        for name, c in configs.items():
+            node = c
+            for part in k.split("."):
+                node = node[part]
+            values[name] = node
+        shown = "  ".join(f"{name}={value!r}" for name, value in values.items())
+        lines.append(f"  {k}\n      {shown}\n      {help_text(k)}")
+    return "\n".join(lines)
