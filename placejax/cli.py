@@ -118,6 +118,9 @@ def command(main: Main | None = None, *, interrupted: str | None = None) -> Call
             entry = argv is None
             args = list(sys.argv[1:] if entry else argv)
             show = _take_flag(args) or os.environ.get(TRACEBACK_ENV, "") not in ("", "0")
+            helpers = _HelperThreadTracebacks()
+            if not show:
+                logging.getLogger("absl").addFilter(helpers)
             try:
                 if "-h" not in args and "--help" not in args:
                     check_jax_platforms()
@@ -134,10 +137,20 @@ def command(main: Main | None = None, *, interrupted: str | None = None) -> Call
             except Exception as e:
                 _fail(e, show=show, entry=entry)
                 return EXIT_FAILURE
+            finally:
+                logging.getLogger("absl").removeFilter(helpers)
 
         return run
 
     return wrap if main is None else wrap(main)
+
+
+class _HelperThreadTracebacks(logging.Filter):
+    """Drops what a helper thread logs with a traceback (orbax's writer threads log the exception that the command
+    itself then raises, and reports in one line): without ``--traceback`` a failure is told once, in one line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (record.exc_info and threading.current_thread() is not threading.main_thread())
 
 
 def check_jax_platforms() -> None:

@@ -386,3 +386,33 @@ def test_the_cases_cover_every_command_line():
                 assert "\n@cli.command" in text, f"{rel}: main is not wrapped by placejax.cli.command"
     covered = {args[1] for args, _, _ in _cases(Path("/t")).values() if args[0] == "-m"}
     assert modules == covered
+
+
+@pytest.mark.parametrize("show", [False, True])
+def test_a_helper_threads_traceback_is_told_once(show, caplog, capsys):
+    """A writer thread that logs the exception the command then raises (as orbax's do) is silenced without
+    ``--traceback``, so the failure is one line whichever thread reports first; with it, nothing is hidden."""
+    import logging
+    import threading
+
+    from absl import logging as absl_logging
+
+    @cli.command
+    def main(argv):
+        def write():
+            try:
+                raise OSError(errno.EFBIG, "File too large")
+            except OSError:
+                absl_logging.exception("writer thread failed")
+
+        thread = threading.Thread(target=write)
+        thread.start()
+        thread.join()
+        raise OSError(errno.EFBIG, "File too large")
+
+    with caplog.at_level(logging.ERROR, logger="absl"):
+        assert main([cli.TRACEBACK_FLAG] if show else []) == cli.EXIT_FAILURE
+    logged = [r for r in caplog.records if "writer thread failed" in r.getMessage()]
+    assert bool(logged) is show
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("error: EFBIG")
+    assert not any(isinstance(f, cli._HelperThreadTracebacks) for f in logging.getLogger("absl").filters)
