@@ -136,7 +136,7 @@ def build(spec: tuple) -> DepthAnythingForDepthEstimation:
 
 
 def randomise(model: torch.nn.Module, seed: int) -> None:
-    """Seeded weights that exercise every parameter: LayerNorm/LayerScale around 1, fan-in scaled matrices."""
+    """Seeded weights that exercise every parameter: LayerNorm/LayerScale near 1, fan-in scaled matrices."""
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for name, p in model.named_parameters():
