@@ -142,6 +142,10 @@ def test_network_depth_averages_the_shipped_trunks_views(uninterrupted_dir, tmp_
     trained = depth.load_trained(depth.run_dir(CFG, "smoke", tmp_path), CFG)
     want = depth.far_to_sky(trained.predict_metric(rgb, flip_average=True, shifts=(2, 4)), 50.0, SKY_DEPTH)
     np.testing.assert_allclose(got, want, rtol=1e-6)
+    # The experiment's own depth stage, as PretrainConfig(hha_depth_shifts=(), hha_sky_from_m=60) selects it.
+    got = _data.network_depth("trained:smoke", progress=False, shifts=(), sky_from_m=60.0)(rgb)
+    want = depth.far_to_sky(trained.predict_metric(rgb, flip_average=True), 60.0, SKY_DEPTH)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
     assert _data.network_depth("perturbed") is None
     with pytest.raises(ValueError, match="hha_depth must be"):
         _data.network_depth("trained:nonsense")

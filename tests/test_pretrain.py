@@ -285,3 +285,25 @@ def test_modality_weights_picks_the_hha_trunk_for_the_hha_net_only():
     # no HHA trunk of its own ("" or left out, as older runs' configs do): the HHA net reads the RGB trunk's weights
     assert pretrain.modality_weights("hha", weights="shipped:rgb", hha_weights="") == "shipped:rgb"
     assert pretrain.modality_weights("hha", weights="shipped:rgb") == "shipped:rgb"
+
+
+def test_the_hha_depth_stage_fields_keep_the_shipped_hash_and_are_validated():
+    """``hha_depth_shifts`` and ``hha_sky_from_m`` select the depth stage the HHA views come from: at the shipped
+    trunk's stage (±2, ±4 px; 50 m) the hash is the one recorded before the fields existed, any other stage is
+    another run, and bad values name the field."""
+    _, meta = weights.resolve(f"shipped:{pretrain.SHIPPED_HHA_PREDICTED}")
+    cfg = pretrain.PretrainConfig(**meta["config"])
+    assert (cfg.hha_depth_shifts, cfg.hha_sky_from_m) == ((2, 4), 50.0)
+    assert "hha_depth_shifts" not in meta["config"] and "hha_sky_from_m" not in meta["config"]
+    stage = dataclasses.replace(cfg, hha_depth_shifts=[], hha_sky_from_m=60.0)
+    assert stage.hha_depth_shifts == ()
+    keys = {stage.fingerprint(), cfg.fingerprint()}
+    keys |= {dataclasses.replace(cfg, hha_depth_shifts=()).fingerprint()}
+    keys |= {dataclasses.replace(cfg, hha_sky_from_m=60.0).fingerprint()}
+    assert len(keys) == 4
+    with pytest.raises(ValueError, match="hha_depth_shifts="):
+        dataclasses.replace(cfg, hha_depth_shifts=(0, 2))
+    with pytest.raises(ValueError, match="hha_sky_from_m="):
+        dataclasses.replace(cfg, hha_sky_from_m=-1.0)
+    with pytest.raises(ValueError, match="need hha_depth='trained"):
+        dataclasses.replace(pretrain.PRESETS["default"], modality="hha", hha_sky_from_m=60.0)

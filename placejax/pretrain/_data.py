@@ -42,9 +42,10 @@ PERTURB_FIELD_PX = 0.125  # its correlation length, as a share of the image widt
 PERTURB_BLUR_PX = (0.0, 1.5)  # log-depth blur sigma, pixels at 64 x 64 (scaled with the width)
 PERTURB_SKY_FROM_M = (40.0, 70.0)
 
-# network_depth: the depth views and the sky step the shipped HHA trunk was pretrained with (mirror and shifts ±2,
-# ±4 px; everything from 50 m on as sky), which differ from the experiment's depth stage (the image and its mirror;
-# 60 m): kept so that the shipped trunk's recipe still makes that trunk (docs/depth-network.md, "Fewer views").
+# network_depth's defaults: the depth views and the sky step the shipped HHA trunk was pretrained with (mirror and
+# shifts ±2, ±4 px; everything from 50 m on as sky), which differ from the experiment's depth stage (the image and
+# its mirror; 60 m): PretrainConfig.hha_depth_shifts and hha_sky_from_m select another stage, these keep the shipped
+# trunk's recorded recipe making that trunk (docs/depth-network.md, "Fewer views").
 NETWORK_FLIP = True
 NETWORK_SHIFTS = (2, 4)
 NETWORK_SKY_FROM_M = 50.0
@@ -160,14 +161,21 @@ def check_hha_depth(hha_depth: str) -> None:
         )
 
 
-def network_depth(hha_depth: str, progress: bool = True):
+def network_depth(
+    hha_depth: str,
+    progress: bool = True,
+    *,
+    shifts: tuple[int, ...] = NETWORK_SHIFTS,
+    sky_from_m: float = NETWORK_SKY_FROM_M,
+):
     """The depth function ``uint8 (N, H, W, 3) → float32 (N, H, W)`` m that ``hha_depth`` names, or None.
 
     ``"perturbed"``: None (HHA views then come from :func:`perturb_depth` of rendered depth).
     ``"trained:<preset>"``: that placejax depth network (``placejax.depth.ensure_trained``: loaded from the
-    cache, trained there first if missing), its prediction averaged over the mirror and ±2, ±4 px shifted views
-    and everything from 50 m on handed over as sky — the depth stage the shipped HHA trunk was pretrained on (the
-    experiment's default now averages the image and its mirror only and hands over from 60 m).
+    cache, trained there first if missing), its prediction averaged over the image, its mirror and the views
+    shifted sideways by ± each of ``shifts`` pixels, and everything from ``sky_from_m`` on handed over as sky. The
+    defaults (±2, ±4 px; 50 m) are the depth stage the shipped HHA trunk was pretrained on; the experiment's
+    default depth stage is ``shifts=()``, ``sky_from_m=60``.
     """
     check_hha_depth(hha_depth)
     if hha_depth == HHA_DEPTH_PERTURBED:
@@ -177,8 +185,8 @@ def network_depth(hha_depth: str, progress: bool = True):
     net = ensure_trained(hha_depth.removeprefix(HHA_DEPTH_TRAINED), progress=progress)
 
     def depth_fn(rgb: np.ndarray) -> np.ndarray:
-        d = net.predict_metric(rgb, flip_average=NETWORK_FLIP, shifts=NETWORK_SHIFTS)
-        return far_to_sky(d, NETWORK_SKY_FROM_M, simcampus.SKY_DEPTH)
+        d = net.predict_metric(rgb, flip_average=NETWORK_FLIP, shifts=tuple(shifts))
+        return far_to_sky(d, sky_from_m, simcampus.SKY_DEPTH)
 
     return depth_fn
 
@@ -227,6 +235,8 @@ def place_frames(
     exclude_world_seeds=(0,),
     modality: str = "rgb",
     hha_depth: str = HHA_DEPTH_PERTURBED,
+    hha_depth_shifts: tuple[int, ...] = NETWORK_SHIFTS,
+    hha_sky_from_m: float = NETWORK_SKY_FROM_M,
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
     """Place-labelled views of ``n_worlds`` pretraining worlds, each in two versions.
@@ -234,7 +244,7 @@ def place_frames(
     ``modality="rgb"``: the two versions are renderings with independent random looks. ``"hha"``: HHA images of
     the view's depth in summer's geometry and in another season's, each through :func:`perturb_depth`
     (``hha_depth="perturbed"``) or predicted by a trained depth network (``"trained:<preset>"``,
-    :func:`network_depth`).
+    :func:`network_depth` with ``hha_depth_shifts`` and ``hha_sky_from_m``).
     Classes are numbered world by world (``world · grid² · headings + place_labels``); only some are occupied.
 
     Returns:
@@ -250,7 +260,9 @@ def place_frames(
     if modality not in MODALITIES:
         raise ValueError(f"modality must be one of {MODALITIES}, got {modality!r}")
     seeds = place_world_seeds(seed, n_worlds, exclude_world_seeds)
-    depth_fn = network_depth(hha_depth, progress) if modality == "hha" else None
+    depth_fn = None
+    if modality == "hha":
+        depth_fn = network_depth(hha_depth, progress, shifts=hha_depth_shifts, sky_from_m=hha_sky_from_m)
     parts = []
     per_world = grid * grid * headings
     for w, ws in enumerate(_progress.bar(seeds, desc="pretraining worlds", unit="world", disable=not progress)):

@@ -166,7 +166,9 @@ def heldout_report(trunk_params, cfg: PretrainConfig, *, n_worlds: int = 2) -> d
     from placejax.pretrain._data import network_depth
 
     s = cfg.image_size
-    depth_fn = network_depth(cfg.hha_depth) if cfg.modality == "hha" else None
+    depth_fn = None
+    if cfg.modality == "hha":
+        depth_fn = network_depth(cfg.hha_depth, shifts=cfg.hha_depth_shifts, sky_from_m=cfg.hha_sky_from_m)
     per_world = []
     for w in range(n_worlds):
         frames = _evaluate.heldout_frames(

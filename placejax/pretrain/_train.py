@@ -29,7 +29,14 @@ from placejax import config as _config
 from placejax import training
 from placejax.data import simcampus
 from placejax.models import VGG16, he_init, imagenet_normalise
-from placejax.pretrain._data import HHA_DEPTH_PERTURBED, HHA_DEPTH_TRAINED, MODALITIES, check_hha_depth
+from placejax.pretrain._data import (
+    HHA_DEPTH_PERTURBED,
+    HHA_DEPTH_TRAINED,
+    MODALITIES,
+    NETWORK_SHIFTS,
+    NETWORK_SKY_FROM_M,
+    check_hha_depth,
+)
 
 # Bumped whenever the recipe changes in a way the config does not show.
 _RECIPE_VERSION = 1
@@ -80,8 +87,23 @@ class PretrainConfig:
         "(that depth network's predictions, with the experiment's default views and sky step)",
         omitted_at=HHA_DEPTH_PERTURBED,
     )
+    hha_depth_shifts: tuple[int, ...] = _config.setting(
+        NETWORK_SHIFTS,
+        "hha_depth='trained:…': sideways shifts (px) whose views are averaged with the image and its mirror "
+        "(() = the image and its mirror only, the experiment's default depth stage)",
+        omitted_at=NETWORK_SHIFTS,
+    )
+    hha_sky_from_m: float = _config.setting(
+        NETWORK_SKY_FROM_M,
+        "hha_depth='trained:…': predictions from this distance (m) on are handed over as sky (the experiment's "
+        "depth.far_as_sky_m)",
+        omitted_at=NETWORK_SKY_FROM_M,
+    )
 
     def __post_init__(self):
+        shifts = self.hha_depth_shifts
+        if isinstance(shifts, list):
+            object.__setattr__(self, "hha_depth_shifts", tuple(shifts))
         _config.check(
             self,
             positive_int=(
@@ -96,7 +118,7 @@ class PretrainConfig:
                 "eval_frames",
             ),
             nonnegative_int=("warmup_steps", "seed", "eval_seed", "world_seed"),
-            positive=("learning_rate", "width", "temperature"),
+            positive=("learning_rate", "width", "temperature", "hha_sky_from_m"),
             nonnegative=("weight_decay", "place_weight", "pair_weight"),
             unit_interval=("dropout",),
             choices={"modality": MODALITIES},
@@ -110,6 +132,14 @@ class PretrainConfig:
             errors.append("n_worlds · frames_per_world must be at least batch_size")
         if self.hha_depth != HHA_DEPTH_PERTURBED and self.modality != "hha":
             errors.append(f"hha_depth={self.hha_depth!r} needs modality='hha' (got {self.modality!r})")
+        shifts = self.hha_depth_shifts
+        if not (isinstance(shifts, tuple) and all(isinstance(k, int) and not isinstance(k, bool) and k > 0 for k in shifts)):
+            errors.append(
+                f"hha_depth_shifts={_config.shown(shifts)}: expected a tuple of positive pixel counts, e.g. (2, 4)"
+            )
+        depth_stage = (self.hha_depth_shifts, self.hha_sky_from_m) != (NETWORK_SHIFTS, NETWORK_SKY_FROM_M)
+        if depth_stage and self.hha_depth == HHA_DEPTH_PERTURBED:
+            errors.append("hha_depth_shifts and hha_sky_from_m need hha_depth='trained:<preset>'")
         if self.eval_seed == self.seed:
             errors.append("eval_seed must differ from seed: validation worlds must be held out")
         if errors:
@@ -177,6 +207,8 @@ def training_frames(cfg: PretrainConfig, progress: bool = True) -> dict[str, np.
         exclude_world_seeds=(cfg.world_seed,),
         modality=cfg.modality,
         hha_depth=cfg.hha_depth,
+        hha_depth_shifts=cfg.hha_depth_shifts,
+        hha_sky_from_m=cfg.hha_sky_from_m,
         progress=progress,
     )
     _, f["label"] = np.unique(f["label"], return_inverse=True)
