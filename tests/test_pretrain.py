@@ -294,7 +294,8 @@ def test_the_hha_depth_stage_fields_keep_the_shipped_hash_and_are_validated():
     _, meta = weights.resolve(f"shipped:{pretrain.SHIPPED_HHA_PREDICTED}")
     cfg = pretrain.PretrainConfig(**meta["config"])
     assert (cfg.hha_depth_shifts, cfg.hha_sky_from_m) == ((2, 4), 50.0)
-    assert "hha_depth_shifts" not in meta["config"] and "hha_sky_from_m" not in meta["config"]
+    assert "hha_depth_shifts" not in meta["config"]
+    assert "hha_sky_from_m" not in meta["config"]
     stage = dataclasses.replace(cfg, hha_depth_shifts=[], hha_sky_from_m=60.0)
     assert stage.hha_depth_shifts == ()
     keys = {stage.fingerprint(), cfg.fingerprint()}

@@ -189,3 +189,56 @@ def test_hha_caches_are_keyed_by_the_camera_the_height_rule_and_the_encoder_vers
     np.testing.assert_array_equal(np.asarray(other_rule.data), np.asarray(hha.encode(ramp, k, height=rule)))
     monkeypatch.setattr(hha, "ENCODER_VERSION", hha.ENCODER_VERSION + 1)
     assert build(k).path not in (first.path, other_camera.path)
+
+
+def test_the_scoring_stages_reproduce_a_runs_results_from_the_library(shared_smoke_run, tmp_path_factory):
+    """``stages.evaluate`` and ``stages.route_columns``, called on the stages of a finished run (every cache and
+    checkpoint read back), give the run's ``results.json`` exactly: the experiment adds only its driver and the
+    report."""
+    import json
+
+    from helpers import copy_of_smoke_run, smoke_config
+
+    from experiments.cross_season import sections
+    from placejax import training
+
+    workdir, results = copy_of_smoke_run(shared_smoke_run, tmp_path_factory, "library_scores")
+    cfg = smoke_config()
+    c = sections(cfg)
+    ws = stages.Workspace(workdir, training.data_mesh(cfg.devices or None), progress=False)
+    sessions = stages.open_sessions(ws, c["data"])
+    grid = stages.fit_grid(ws, sessions, c["grid"])
+    source = depth.depth_source(c["depth"], progress=False)
+    height = c["depth"].height_rule()
+    stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, source, c["depth"].batch_size, height))
+    modalities = ("rgb", "hha", "depth1") if c["ablations"].depth1 else ("rgb", "hha")
+    of_a_seed = {"vgg": c["vgg"], "mlp": c["mlp"], "train_cfg": c["train"], "eval_cfg": c["eval"]}
+    runs = [
+        stages.train_seed(ws, sessions, grid.num_classes, seed=cfg.seed + k, modalities=modalities, **of_a_seed)
+        for k in range(cfg.n_seeds)
+    ]
+    thumbs = stages.baseline_features(ws, sessions, c["depth"].batch_size)
+    scores = stages.evaluate(ws, sessions, runs, thumbs, mlp=c["mlp"], ablations=c["ablations"], seed=cfg.seed)
+    detectors = scores.pop("_detectors")
+    assert set(detectors) == {s.name for s in sessions}
+    scores["route"], traces = stages.route_columns(
+        ws,
+        sessions,
+        runs,
+        grid,
+        scores["pairs"],
+        data=c["data"],
+        settings=c["route"],
+        report=c["route_report"],
+        sequence=c["sequence"],
+        mlp=c["mlp"],
+        ablations=c["ablations"],
+        seed=cfg.seed,
+    )
+    assert set(traces) == {(p["train"], p["test"]) for p in scores["pairs"]}
+    assert set(scores["route"]["mean"]) == set(stages.ROUTE_COLUMNS)
+    got = json.loads(json.dumps(scores))
+    for key in ("pairs", "same_session", "mean", "mean_sd_over_seeds", "gains", "ceilings_and_baselines", "unknown"):
+        assert got[key] == results[key], key
+    assert got["route"] == results["route"]
+    assert {k for k in got["mean"] if k in stages.METHOD_COLUMNS} <= set(stages.METHOD_COLUMNS)

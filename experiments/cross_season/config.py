@@ -9,9 +9,10 @@ Every section is one dataclass, and its defaults, ranges and help are written th
     train      placejax.stages.TrainConfig       how each place classifier is trained
     mlp        placejax.stages.MLPConfig         the fusion MLP
     eval       placejax.stages.EvalConfig        inference batches
-    route      placejax.route.FilterConfig       the route filter (its run-level settings) + RouteReport
+    route      placejax.route.FilterConfig       the route filter (its RUN_SETTINGS)
+               + placejax.stages.RouteReportConfig  the route columns' bootstrap blocks and lag
     sequence   placejax.route.MatchConfig        the sequence matcher against the training drive
-    ablations  Ablations                          which extra columns the table gets
+    ablations  placejax.stages.AblationsConfig   which extra columns the table gets
     (top)      RunConfig                          seeds, devices, figures, progress
 
 A stage reads its section as the dataclass (``TrainConfig(**config.train)``). Presets are small override files in
@@ -31,15 +32,12 @@ from experiments.overrides import apply_overrides, get, leaf_keys
 from placejax import config as _config
 from placejax.data import DataConfig, GridConfig
 from placejax.depth import DepthSourceConfig
-from placejax.route import FilterConfig, MatchConfig
-from placejax.stages import EvalConfig, MLPConfig, TrainConfig, VGGConfig
+from placejax.route import RUN_SETTINGS, FilterConfig, MatchConfig
+from placejax.stages import AblationsConfig, EvalConfig, MLPConfig, RouteReportConfig, TrainConfig, VGGConfig
 
 __all__ = [
     "PRESETS",
-    "ROUTE_SETTINGS",
     "SECTIONS",
-    "Ablations",
-    "RouteReport",
     "RunConfig",
     "apply_overrides",
     "base_config",
@@ -54,67 +52,6 @@ __all__ = [
 
 PRESETS = ("smoke", "default", "large", "paper", "paper_dav2")
 """The presets, each a module of ``experiments.cross_season.configs``."""
-
-# The route filter's settings a run chooses (docs/route.md, "In the experiment"); the rest of FilterConfig
-# (bounded, unknown, n_angles, n_noise) follows from the data or is structural.
-ROUTE_SETTINGS = (
-    "temperature",
-    "uniform_mix",
-    "unknown_level",
-    "unknown_prior",
-    "unknown_enter_per_m",
-    "unknown_leave_per_m",
-    "emission_floor",
-    "odometry_noise_frac",
-    "odometry_noise_m",
-    "max_speed_mps",
-)
-
-
-@dataclasses.dataclass(frozen=True)
-class RouteReport:
-    """How the route columns are reported (beside the filter's settings in the ``route`` section)."""
-
-    block_frames: int = _config.setting(25, "consecutive test frames per block of the route gains' bootstrap")
-    # Chosen on world 1 (docs/research-log.md): the smallest of 5, 10, 20 within 1 point of the best.
-    lag_frames: int = _config.setting(20, "frames of look-ahead of the fixed-lag column ours_route_lag")
-
-    def __post_init__(self):
-        _config.check(
-            self, positive_int=("block_frames",), nonnegative_int=("lag_frames",), at_most={"lag_frames": 10_000}
-        )
-
-
-@dataclasses.dataclass(frozen=True)
-class Ablations:
-    """Extra columns of the table (the ``ablations`` section)."""
-
-    depth1: bool = _config.setting(True, "also train a net on the 1-channel depth image (the HHA disparity channel ×3)")
-    average: bool = _config.setting(True, "also report equal-weight averaging of RGB-Net and HHA-Net softmax outputs")
-    rendered: bool = _config.setting(
-        False,
-        "the ceiling: also train HHA-Net and the fusion on HHA of rendered depth (columns hha_net_rendered, "
-        "ours_rendered, average_rendered): how many points the pseudo depth costs",
-    )
-
-    pool_weights: tuple[float, ...] = _config.setting(
-        (),
-        "also report log-linear pools of the two nets, log p = w log p_RGB + (1 - w) log p_HHA, one column per "
-        "weight w in [0, 1] (docs/research-log.md: the weight is chosen on world 1)",
-    )
-
-    def __post_init__(self):
-        object.__setattr__(self, "pool_weights", tuple(self.pool_weights))
-        _config.check(self, boolean=("depth1", "average", "rendered"))
-        w = self.pool_weights
-        if (
-            len(w) > 9
-            or len(set(w)) != len(w)
-            or not all(isinstance(v, int | float) and not isinstance(v, bool) and 0 <= v <= 1 for v in w)
-        ):
-            raise _config.ConfigError(
-                f"pool_weights={_config.shown(w)}: expected at most 9 distinct weights, each a number in [0, 1]"
-            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,9 +87,10 @@ SECTIONS: dict[str, type] = {
     "mlp": MLPConfig,
     "eval": EvalConfig,
     "sequence": MatchConfig,
-    "ablations": Ablations,
+    "ablations": AblationsConfig,
 }
-"""Config section → the dataclass that owns it (``route`` is composed: FilterConfig's settings + RouteReport)."""
+"""Config section → the dataclass that owns it (``route`` is composed: FilterConfig's ``RUN_SETTINGS`` +
+RouteReportConfig)."""
 
 
 def base_config() -> ml_collections.ConfigDict:
@@ -162,8 +100,8 @@ def base_config() -> ml_collections.ConfigDict:
     for name in ("data", "grid", "depth", "vgg", "train", "mlp", "eval", "sequence"):
         c[name] = _config.section(SECTIONS[name])
     route_defaults = FilterConfig()
-    c.route = {**{k: getattr(route_defaults, k) for k in ROUTE_SETTINGS}, **_config.section(RouteReport)}
-    c.ablations = _config.section(Ablations)
+    c.route = {**{k: getattr(route_defaults, k) for k in RUN_SETTINGS}, **_config.section(RouteReportConfig)}
+    c.ablations = _config.section(AblationsConfig)
     for k, v in _config.section(RunConfig).items():
         c[k] = v
     return c
@@ -182,7 +120,7 @@ def help_text(key: str) -> str:
     if not section:
         return _config.help_text(RunConfig, name) if name != "preset" else "the preset this config started from"
     if section == "route":
-        return _config.help_text(FilterConfig if name in ROUTE_SETTINGS else RouteReport, name)
+        return _config.help_text(FilterConfig if name in RUN_SETTINGS else RouteReportConfig, name)
     return _config.help_text(SECTIONS[section], name)
 
 
@@ -204,8 +142,8 @@ def _build_sections(c: ml_collections.ConfigDict) -> tuple[dict[str, Any], list[
     for name, cls in SECTIONS.items():
         build(name, cls, _plain(c[name]), name)
     route = _plain(c.route)
-    build("route", FilterConfig, {k: route[k] for k in ROUTE_SETTINGS if k in route}, "route")
-    build("route_report", RouteReport, {k: v for k, v in route.items() if k not in ROUTE_SETTINGS}, "route")
+    build("route", FilterConfig, {k: route[k] for k in RUN_SETTINGS if k in route}, "route")
+    build("route_report", RouteReportConfig, {k: v for k, v in route.items() if k not in RUN_SETTINGS}, "route")
     run_keys = [f.name for f in dataclasses.fields(RunConfig)]
     build("run", RunConfig, {k: c[k] for k in run_keys}, "")
     return out, errors
@@ -213,7 +151,7 @@ def _build_sections(c: ml_collections.ConfigDict) -> tuple[dict[str, Any], list[
 
 def sections(c: ml_collections.ConfigDict) -> dict[str, Any]:
     """Every section of ``c`` as its dataclass (``route``: the FilterConfig without ``bounded``, which the data
-    decides per session; ``route_report``: RouteReport; ``run``: RunConfig).
+    decides per session; ``route_report``: RouteReportConfig; ``run``: RunConfig).
 
     Raises:
         placejax.config.ConfigError: every offending key, named as on the command line.

@@ -11,8 +11,8 @@ Stages, in order (``results.json`` records each one's wall time in this run):
     outputs    every net on every session: logits and fc7, cached.
     mlp        per training session, the fusion MLP on [fc7_rgb, fc7_hha]; orbax.
     baselines  thumbnails of every session for the nearest-neighbour baselines.
-    evaluate   top-1 accuracy on every other session for all methods, gains and their intervals (report.scores).
-    route      the route filter on the fusion's and RGB-Net's outputs along every test session (report.route).
+    evaluate   top-1 accuracy on every other session for all methods, gains and their intervals.
+    route      the route filter on the fusion's and RGB-Net's outputs along every test session.
 Then ``classifiers.json`` (``placejax.stages.write_classifier_index``), ``results.json``, ``table.md`` and the
 figures (``report``).
 
@@ -253,10 +253,32 @@ def _run(config: ml_collections.ConfigDict, ws: stages.Workspace, t_start: float
     _release_memory()
 
     with story.step("evaluate", lambda: f"{len(scores['pairs'])} train → test pairs"):
-        scores = report.evaluate(ws, config, sessions, runs, thumbs, rendered_runs=rendered_runs)
+        scores = stages.evaluate(
+            ws,
+            sessions,
+            runs,
+            thumbs,
+            mlp=c["mlp"],
+            ablations=c["ablations"],
+            seed=config.seed,
+            rendered_runs=rendered_runs,
+        )
         detectors = scores.pop("_detectors")  # for the classifier index; not part of results.json
     with story.step("route"):
-        scores["route"], route_traces = report.route_columns(ws, config, sessions, runs, grid, scores["pairs"])
+        scores["route"], route_traces = stages.route_columns(
+            ws,
+            sessions,
+            runs,
+            grid,
+            scores["pairs"],
+            data=c["data"],
+            settings=c["route"],
+            report=c["route_report"],
+            sequence=c["sequence"],
+            mlp=c["mlp"],
+            ablations=c["ablations"],
+            seed=config.seed,
+        )
     ws.timings["total"] = time.perf_counter() - t_start
     results = {
         "preset": config.preset,

@@ -133,7 +133,8 @@ class PretrainConfig:
         if self.hha_depth != HHA_DEPTH_PERTURBED and self.modality != "hha":
             errors.append(f"hha_depth={self.hha_depth!r} needs modality='hha' (got {self.modality!r})")
         shifts = self.hha_depth_shifts
-        if not (isinstance(shifts, tuple) and all(isinstance(k, int) and not isinstance(k, bool) and k > 0 for k in shifts)):
+        pixels = isinstance(shifts, tuple) and all(isinstance(k, int) and not isinstance(k, bool) for k in shifts)
+        if not (pixels and all(k > 0 for k in shifts)):
             errors.append(
                 f"hha_depth_shifts={_config.shown(shifts)}: expected a tuple of positive pixel counts, e.g. (2, 4)"
             )

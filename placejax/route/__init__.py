@@ -44,7 +44,7 @@ Example:
 """
 
 from placejax.route._calibration import calibrated_probabilities, fit_temperature
-from placejax.route._config import FilterConfig, first_problem
+from placejax.route._config import RUN_SETTINGS, FilterConfig, first_problem
 from placejax.route._filter import (
     RouteFilter,
     forward,
@@ -75,6 +75,7 @@ __all__ = [
     "EMBEDDINGS",
     "MATCH_FIELDS",
     "MAX_LAG",
+    "RUN_SETTINGS",
     "FilterConfig",
     "FixedLagFilter",
     "MatchConfig",

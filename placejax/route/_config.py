@@ -1,8 +1,8 @@
 """The route filter's settings: `FilterConfig`, the one place their defaults and ranges are written.
 
-``experiments.cross_season`` composes its config section ``route`` from these fields (plus its own
-``block_frames``), a ``PlaceClassifier`` file stores them (``clf.route``; its schema checks them with
-`first_problem`), and ``Tracker`` runs with them.
+``experiments.cross_season`` composes its config section ``route`` from `RUN_SETTINGS` (plus
+``placejax.stages.RouteReportConfig``), a ``PlaceClassifier`` file stores them (``clf.route``; its schema checks
+them with `first_problem`), and ``Tracker`` runs with them.
 """
 
 from __future__ import annotations
@@ -40,9 +40,9 @@ class FilterConfig(CheckedSettings):
     """Settings of the route filter, and the one place their defaults and ranges are written.
 
     The defaults are the settings ``experiments.cross_season`` chose on world 1 (docs/route.md, "In the
-    experiment"; its config section ``route`` is these fields plus its own ``block_frames``). Choose other values
-    on world 1 or on the training session, never on test results. A ``PlaceClassifier`` built from a run carries
-    the run's (``clf.route``), and ``Tracker`` uses them.
+    experiment"; its config section ``route`` is `RUN_SETTINGS` plus ``placejax.stages.RouteReportConfig``).
+    Choose other values on world 1 or on the training session, never on test results. A ``PlaceClassifier`` built
+    from a run carries the run's (``clf.route``), and ``Tracker`` uses them.
 
     Attributes:
         temperature: the softmax temperature applied to the classifier's logits before the filter
@@ -108,6 +108,12 @@ class FilterConfig(CheckedSettings):
 
 FIELDS = tuple(f.name for f in dataclasses.fields(FilterConfig))
 """`FilterConfig`'s field names, in order."""
+STRUCTURAL = ("bounded", "unknown", "n_angles", "n_noise")
+"""`FilterConfig`'s fields a run does not choose: ``bounded`` follows from the data, the others are the model's
+structure."""
+RUN_SETTINGS = tuple(f for f in FIELDS if f not in STRUCTURAL)
+"""The settings a run chooses (docs/route.md, "In the experiment"): a run's config section ``route`` holds these
+and ``placejax.stages.RouteReportConfig``'s fields."""
 
 
 def first_problem(values: dict) -> tuple[str, str] | None:

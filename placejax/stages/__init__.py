@@ -15,6 +15,10 @@ Stages, in order:
         1-channel depth net, on :class:`VGGConfig` / :class:`TrainConfig`), their outputs on every session
         (:func:`net_outputs`) and the fusion MLPs (:func:`train_mlp`, :class:`MLPConfig`) with their logits.
     baseline_features: thumbnails for the nearest-neighbour baselines; :func:`pair_ceilings_and_baselines`.
+    evaluate: every method's top-1 on every session pair, the ceilings and baselines, the unseen-place columns and
+        the gains' paired bootstrap intervals (:class:`AblationsConfig`: the extra columns).
+    route_columns: the route filter, its fixed-lag smoother and the sequence matcher along every test session
+        (`placejax.route.FilterConfig`, `placejax.route.MatchConfig`, :class:`RouteReportConfig`).
     write_classifier_index: ``classifiers.json``, what ``placejax.PlaceClassifier.from_run`` reads.
     fit_unseen_detectors: every unseen-place score's detector of a training session (the index's and the
         evaluation's one fit).
@@ -40,7 +44,14 @@ from placejax.stages._baselines import (
     rgb_baseline_features,
     thumbnails,
 )
-from placejax.stages._configs import EvalConfig, MLPConfig, TrainConfig, VGGConfig
+from placejax.stages._configs import (
+    AblationsConfig,
+    EvalConfig,
+    MLPConfig,
+    RouteReportConfig,
+    TrainConfig,
+    VGGConfig,
+)
 from placejax.stages._depth import attach_depth, depth_and_hha, has_true_depth, true_depth
 from placejax.stages._fusion import SeedRun, fused_embedding, fusion_model, train_mlp, train_seed
 from placejax.stages._index import depth_index_entry, fit_unseen_detectors, write_classifier_index
@@ -60,14 +71,31 @@ from placejax.stages._nets import (
     train_nets,
     training_labels,
 )
+from placejax.stages._route import (
+    LAG_COLUMN,
+    ROUTE_COLUMNS,
+    ROUTE_GAINS,
+    SEQ_COLUMN,
+    route_columns,
+    sequence_embedding,
+    session_moved,
+)
+from placejax.stages._scores import METHOD_COLUMNS, evaluate, method_logits, nets_modalities, pool_name, rendered_logits
 from placejax.stages._sessions import fit_grid, open_sessions, require_data
 from placejax.stages._workspace import SessionData, Workspace, peak_rss_mib
 
 __all__ = [
+    "LAG_COLUMN",
+    "METHOD_COLUMNS",
     "MODALITIES",
+    "ROUTE_COLUMNS",
+    "ROUTE_GAINS",
+    "SEQ_COLUMN",
     "THUMB_SIZES",
+    "AblationsConfig",
     "EvalConfig",
     "MLPConfig",
+    "RouteReportConfig",
     "SeedRun",
     "SessionData",
     "TrainConfig",
@@ -79,6 +107,7 @@ __all__ = [
     "conv_features",
     "depth_and_hha",
     "depth_index_entry",
+    "evaluate",
     "features_prepare",
     "fit_grid",
     "fit_unseen_detectors",
@@ -88,19 +117,26 @@ __all__ = [
     "has_true_depth",
     "heading_ceiling",
     "jittered_fc7",
+    "method_logits",
     "modality_images",
     "modality_jitter",
     "nearest_neighbour_labels",
     "net_outputs",
+    "nets_modalities",
     "network_input",
     "open_sessions",
     "pair_ceilings_and_baselines",
     "params_digest",
     "peak_rss_mib",
+    "pool_name",
     "pretrained_vgg",
+    "rendered_logits",
     "require_data",
     "results_only",
     "rgb_baseline_features",
+    "route_columns",
+    "sequence_embedding",
+    "session_moved",
     "thumbnails",
     "train_classifier",
     "train_mlp",

@@ -6,7 +6,7 @@ import dataclasses
 
 from placejax import config as _config
 
-__all__ = ["EvalConfig", "MLPConfig", "TrainConfig", "VGGConfig"]
+__all__ = ["AblationsConfig", "EvalConfig", "MLPConfig", "RouteReportConfig", "TrainConfig", "VGGConfig"]
 
 OPTIMIZERS = ("sgd", "adamw")
 FUSIONS = ("mlp", "pool")
@@ -199,3 +199,46 @@ class EvalConfig:
 
     def __post_init__(self):
         _config.check(self, positive_int=("batch_size",), at_most={"batch_size": MAX_BATCH})
+
+
+@dataclasses.dataclass(frozen=True)
+class AblationsConfig:
+    """Which extra columns the evaluation scores (the ``ablations`` section; :func:`placejax.stages.evaluate`)."""
+
+    depth1: bool = _config.setting(True, "also train a net on the 1-channel depth image (the HHA disparity channel ×3)")
+    average: bool = _config.setting(True, "also report equal-weight averaging of RGB-Net and HHA-Net softmax outputs")
+    rendered: bool = _config.setting(
+        False,
+        "the ceiling: also train HHA-Net and the fusion on HHA of rendered depth (columns hha_net_rendered, "
+        "ours_rendered, average_rendered): how many points the pseudo depth costs",
+    )
+
+    pool_weights: tuple[float, ...] = _config.setting(
+        (),
+        "also report log-linear pools of the two nets, log p = w log p_RGB + (1 - w) log p_HHA, one column per "
+        "weight w in [0, 1] (docs/research-log.md: the weight is chosen on world 1)",
+    )
+
+    def __post_init__(self):
+        object.__setattr__(self, "pool_weights", tuple(self.pool_weights))
+        _config.check(self, boolean=("depth1", "average", "rendered"))
+        w = self.pool_weights
+        if len(w) > 9 or len(set(w)) != len(w) or not all(_config.is_number(v) and 0 <= v <= 1 for v in w):
+            raise _config.ConfigError(
+                f"pool_weights={_config.shown(w)}: expected at most 9 distinct weights, each a number in [0, 1]"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class RouteReportConfig:
+    """How the route columns are reported (:func:`placejax.stages.route_columns`; in a run's ``route`` section
+    beside the filter's settings, ``placejax.route.RUN_SETTINGS``)."""
+
+    block_frames: int = _config.setting(25, "consecutive test frames per block of the route gains' bootstrap")
+    # Chosen on world 1 (docs/research-log.md): the smallest of 5, 10, 20 within 1 point of the best.
+    lag_frames: int = _config.setting(20, "frames of look-ahead of the fixed-lag column ours_route_lag")
+
+    def __post_init__(self):
+        _config.check(
+            self, positive_int=("block_frames",), nonnegative_int=("lag_frames",), at_most={"lag_frames": 10_000}
+        )

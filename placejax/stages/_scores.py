@@ -1,42 +1,45 @@
-"""Stage ``evaluate`` (and ``baselines``): top-1 of every method on every other session, the pose ceilings and
-nearest-neighbour baselines, the unseen-place columns, and the paired bootstrap intervals of the gains."""
+"""Stage ``evaluate``: top-1 of every method on every other session, the pose ceilings and nearest-neighbour
+baselines, the unseen-place columns, and the paired bootstrap intervals of the gains."""
 
 from __future__ import annotations
 
 from typing import Any
 
-import ml_collections
 import numpy as np
 
-from placejax.classify.unknown import FEATURE_SCORES
+from placejax.classify import unknown
 from placejax.evaluation import frame_gains, gain_intervals, log_linear_pool, mean_sd, softmax, top1
-from placejax.stages import (
-    SeedRun,
-    SessionData,
-    Workspace,
-    fit_unseen_detectors,
-    fused_embedding,
-    pair_ceilings_and_baselines,
-)
+from placejax.stages._baselines import pair_ceilings_and_baselines
+from placejax.stages._configs import AblationsConfig, MLPConfig
+from placejax.stages._fusion import SeedRun, fused_embedding
+from placejax.stages._index import fit_unseen_detectors
+from placejax.stages._workspace import SessionData, Workspace
+
+__all__ = ["METHOD_COLUMNS", "evaluate", "method_logits", "nets_modalities", "pool_name", "rendered_logits"]
 
 
 def evaluate(
     ws: Workspace,
-    config: ml_collections.ConfigDict,
     sessions: list[SessionData],
     runs: list[SeedRun],
     thumbs: dict,
     *,
+    mlp: MLPConfig,
+    ablations: AblationsConfig,
+    seed: int,
     rendered_runs: list[SeedRun] | None = None,
 ) -> dict[str, Any]:
-    """Scores every method of every seed's ``runs`` (``placejax.stages.train_seed``) on every ordered session pair.
+    """Scores every method of every seed's ``runs`` (:func:`placejax.stages.train_seed`) on every ordered session
+    pair.
 
     Args:
         ws: the run's workspace (the ``evaluate`` timer).
-        config: the run's config (``seed``, ``n_seeds``, the ablations).
         sessions: every session, labelled.
         runs: one per seed.
-        thumbs: ``placejax.stages.baseline_features``.
+        thumbs: :func:`placejax.stages.baseline_features`.
+        mlp: the fusion's section (with ``fusion="pool"`` the paper's MLP is scored beside the pool, as ``mlp``).
+        ablations: which extra columns to score (``average``, ``pool_weights``).
+        seed: the bootstrap's seed (a run's first seed).
         rendered_runs: with ``ablations.rendered``, one run per seed on HHA of rendered depth: the columns
             ``ours_rendered``, ``hha_net_rendered``, ``average_rendered``.
 
@@ -54,10 +57,10 @@ def evaluate(
         for s in sessions:
             for t in sessions:
                 row: dict[str, Any] = {"train": s.name, "test": t.name, "n_test": len(t)}
-                per_seed = [method_logits(r, s.name, t.name, config) for r in runs]
+                per_seed = [method_logits(r, s.name, t.name, mlp=mlp, ablations=ablations) for r in runs]
                 if rendered_runs:
                     for logits, rr in zip(per_seed, rendered_runs, strict=True):
-                        logits.update(rendered_logits(rr, s.name, t.name, config))
+                        logits.update(rendered_logits(rr, s.name, t.name, mlp=mlp, ablations=ablations))
                 for m in per_seed[0]:
                     accs = [top1(logits[m], t.labels) for logits in per_seed]
                     row[m], row[f"{m}_sd"] = mean_sd(accs)
@@ -72,17 +75,16 @@ def evaluate(
                     }
                 pairs.append(row)
     cross = [p for p in pairs if p["train"] != p["test"]]
-    methods = [k for k in METHODS if k in cross[0]] + sorted(
+    methods = [k for k in METHOD_COLUMNS if k in cross[0]] + sorted(
         k for k in cross[0] if k.startswith("pool_") and not k.endswith(("_sd", "_per_seed"))
     )
-    gains = _gain_intervals(cross, config.seed)
+    gains = _gain_intervals(cross, seed)
     return {
         "pairs": cross,
         "same_session": [p for p in pairs if p["train"] == p["test"]],
         "mean": {m: float(np.mean([p[m] for p in cross])) for m in methods},
         "mean_sd_over_seeds": {
-            m: mean_sd([np.mean([p[f"{m}_per_seed"][k] for p in cross]) for k in range(config.n_seeds)])[1]
-            for m in methods
+            m: mean_sd([np.mean([p[f"{m}_per_seed"][k] for p in cross]) for k in range(len(runs))])[1] for m in methods
         },
         "gains": gains,
         "ceilings_and_baselines": {
@@ -92,7 +94,7 @@ def evaluate(
             **_unknown_summary(cross),
             # Per training session, each feature score's held-out threshold (null: too small a session for it).
             "feature_thresholds": {
-                name: {k: (None if det[k] is None else float(det[k][1])) for k in FEATURE_SCORES}
+                name: {k: (None if det[k] is None else float(det[k][1])) for k in unknown.FEATURE_SCORES}
                 for name, det in detectors.items()
             },
         },
@@ -100,7 +102,7 @@ def evaluate(
     }
 
 
-METHODS = (
+METHOD_COLUMNS = (
     "ours",
     "rgb_net",
     "hha_net",
@@ -116,29 +118,35 @@ METHODS = (
 ``_rendered`` ones: ``ablations.rendered``, on HHA of rendered depth)."""
 
 
-def rendered_logits(run: SeedRun, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
+def rendered_logits(
+    run: SeedRun, train: str, test: str, *, mlp: MLPConfig, ablations: AblationsConfig
+) -> dict[str, np.ndarray]:
     """The ceiling columns of one seed on one pair: the fusion, HHA-Net and their softmax average with HHA-Net
     trained on HHA of rendered depth, and each log-linear pool of the two (``run``: the seed's run on those
     sessions; its RGB-Net is the main one)."""
-    base = method_logits(run, train, test, config)
+    base = method_logits(run, train, test, mlp=mlp, ablations=ablations)
     out = {"ours_rendered": base["ours"], "hha_net_rendered": base["hha_net"]}
     out.update({f"{k}_rendered": v for k, v in base.items() if k in ("average", "mlp") or k.startswith("pool_")})
     return out
 
 
-def method_logits(run: SeedRun, train: str, test: str, config: ml_collections.ConfigDict) -> dict[str, np.ndarray]:
-    """Logits (or averaged probabilities) of every method of one seed's run on one pair."""
+def method_logits(
+    run: SeedRun, train: str, test: str, *, mlp: MLPConfig, ablations: AblationsConfig
+) -> dict[str, np.ndarray]:
+    """Logits (or averaged probabilities) of every method of one seed's run on one pair: ``ours``, each net
+    (``rgb_net``, ``hha_net``, ``depth1_net``), the paper's MLP where a pool is Ours (``mlp``), the softmax average
+    (``ablations.average``) and each log-linear pool of ``ablations.pool_weights`` (:func:`pool_name`)."""
     outputs = run.outputs
     out = {"ours": run.fused[(train, test)]}
     for m in nets_modalities(run.nets, train):
         out[f"{m}_net"] = outputs[(train, m, test)]["logits"]
-    if config.mlp.fusion != "mlp":  # the paper's fusion MLP beside the pool that is Ours
+    if mlp.fusion != "mlp":  # the paper's fusion MLP beside the pool that is Ours
         out["mlp"] = run.mlp_logits[(train, test)]
-    if config.ablations.average:
+    if ablations.average:
         out["average"] = softmax(outputs[(train, "rgb", test)]["logits"]) + softmax(
             outputs[(train, "hha", test)]["logits"]
         )
-    for w in config.ablations.get("pool_weights", ()):
+    for w in ablations.pool_weights:
         out[pool_name(w)] = log_linear_pool(
             outputs[(train, "rgb", test)]["logits"], outputs[(train, "hha", test)]["logits"], w
         )
@@ -192,12 +200,10 @@ def _unknown_columns(fused: dict, outputs: dict, detectors: dict, s: SessionData
 
     Each score's threshold comes from ``s``'s frames only (``target_frr`` of them rejected): the logit scores' on
     its own (memorised) frames, the feature scores' on its frames held out of the reference (``detectors``:
-    ``placejax.stages.fit_unseen_detectors``); test frames in classes ``s`` never visited are the positives. Per score:
+    :func:`fit_unseen_detectors`); test frames in classes ``s`` never visited are the positives. Per score:
     ``unknown_<score>_auroc``, ``unknown_<score>_rejected_seen`` / ``_rejected_unseen``; for the default score
     also ``unknown_rejected_*`` and ``unknown_seen_accuracy_accepted``.
     """
-    from placejax.classify import unknown
-
     out: dict[str, float] = {}
     seen = np.unique(s.labels)
     unseen = ~np.isin(t.labels, seen)
@@ -235,8 +241,6 @@ def _unknown_columns(fused: dict, outputs: dict, detectors: dict, s: SessionData
 
 def _unknown_summary(cross: list[dict]) -> dict:
     """Means of the unseen-place columns over the pairs where each is defined (``n_pairs`` says how many)."""
-    from placejax.classify import unknown
-
     keys = [k for k in cross[0] if k.startswith("unknown_")]
     mean, n = {}, {}
     for k in keys:
