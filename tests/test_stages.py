@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from types import SimpleNamespace
 
+import jax
 import numpy as np
 import pytest
 
@@ -242,3 +243,29 @@ def test_the_scoring_stages_reproduce_a_runs_results_from_the_library(shared_smo
         assert got[key] == results[key], key
     assert got["route"] == results["route"]
     assert {k for k in got["mean"] if k in stages.METHOD_COLUMNS} <= set(stages.METHOD_COLUMNS)
+
+
+def test_a_stage_caller_gets_the_rules_between_sections_as_the_experiment_does(tmp_path):
+    """The rules that tie sections together live in the library: ``stages.train_seed`` refuses what
+    ``experiments.cross_season``'s validation refuses, with the same message, before any work."""
+    from experiments.cross_season import apply_overrides, get_config, validate
+    from placejax import training
+
+    overrides = ["train.jitter_copies=2", "vgg.pretrained=False", "vgg.hha_weights=''", "mlp.batch_size=33"]
+    cfg = get_config("smoke")
+    apply_overrides(cfg, overrides)
+    with pytest.raises(ValueError, match="invalid configuration") as cli:
+        validate(cfg, 2)
+    vgg = stages.VGGConfig(pretrained=False, hha_weights="")
+    train = stages.TrainConfig(jitter_copies=2)
+    mlp = stages.MLPConfig(batch_size=33)
+    ws = stages.Workspace(tmp_path, training.data_mesh(jax.devices()[:2]), progress=False)
+    with pytest.raises(config.ConfigError) as lib:
+        stages.train_seed(ws, [], 3, vgg=vgg, train_cfg=train, mlp=mlp, eval_cfg=stages.EvalConfig(), seed=0)
+    assert lib.value.errors == [
+        "train.jitter_copies needs vgg.pretrained=True (the copies' frozen-trunk features are cached)",
+        "mlp.batch_size=33 must be divisible by the 2 devices of the mesh",
+    ]
+    assert all(e in str(cli.value) for e in lib.value.errors)
+    assert not any(tmp_path.iterdir())
+    assert stages.section_problems(train=train, vgg=dataclasses.replace(vgg, pretrained=True)) == []

@@ -33,7 +33,15 @@ from placejax import config as _config
 from placejax.data import DataConfig, GridConfig
 from placejax.depth import DepthSourceConfig
 from placejax.route import RUN_SETTINGS, FilterConfig, MatchConfig
-from placejax.stages import AblationsConfig, EvalConfig, MLPConfig, RouteReportConfig, TrainConfig, VGGConfig
+from placejax.stages import (
+    AblationsConfig,
+    EvalConfig,
+    MLPConfig,
+    RouteReportConfig,
+    TrainConfig,
+    VGGConfig,
+    section_problems,
+)
 
 __all__ = [
     "PRESETS",
@@ -184,36 +192,10 @@ def validate(c: ml_collections.ConfigDict, n_devices: int | None = None) -> dict
 
 
 def _cross_section_errors(c: ml_collections.ConfigDict, n_devices: int | None) -> list[str]:
-    """What no single section can check: settings that only make sense together. Reads the raw values, so that
+    """What no single section can check (``placejax.stages.section_problems``), read from the raw values, so that
     it also reports what a section that fails on its own would hide."""
-    from placejax.depth.views import validate_shifts
-
-    errors = []
-    size = tuple(c.data.image_size)
-    try:
-        validate_shifts(c.depth.shift_px, width=size[1] if len(size) == 2 else None)
-    except (TypeError, ValueError) as e:
-        errors.append(f"depth.shift_px: {e}")
-    if c.depth.source == "true" and c.data.source == "nclt":
-        errors.append(
-            "depth.source='true' needs true depth: data.source='simcampus' renders it, session folders may have it "
-            "(depth/), NCLT has none"
-        )
-    if c.ablations.rendered and (c.data.source == "nclt" or c.depth.source == "true"):
-        errors.append(
-            "ablations.rendered needs true depth beside a depth network: data.source='simcampus' (or session "
-            "folders with depth/) and depth.source other than 'true' (whose columns already are the rendered ones)"
-        )
-    if c.train.jitter_copies and not c.vgg.pretrained:
-        errors.append("train.jitter_copies needs vgg.pretrained=True (the copies' frozen-trunk features are cached)")
-    if c.mlp.jittered and not c.train.jitter_copies:
-        errors.append("mlp.jittered needs train.jitter_copies > 0 (it trains on the copies' embeddings)")
-    if n_devices:
-        for key in ("train.batch_size", "eval.batch_size", "mlp.batch_size"):
-            v = get(c, key)
-            if isinstance(v, int) and not isinstance(v, bool) and v % n_devices:
-                errors.append(f"{key}={v} must be divisible by the {n_devices} devices of the mesh")
-    return errors
+    names = ("data", "depth", "vgg", "train", "mlp", "eval", "ablations")
+    return section_problems(**{name: c[name] for name in names}, n_devices=n_devices)
 
 
 def help_epilog() -> str:

@@ -5,6 +5,9 @@ sessions, and the config dataclass of its own section; each caches or checkpoint
 directory, so rerunning it resumes or reads back. ``experiments.cross_season`` calls them in order; anyone who wants
 to swap one stage calls the others directly.
 
+Before them, :func:`section_problems` / :func:`check_sections`: the rules between sections (each section checks
+its own fields when built).
+
 Stages, in order:
     require_data: the data a run reads is there (before any work)
     open_sessions, fit_grid: the RGB frames of every session cached at the run's image size
@@ -51,6 +54,8 @@ from placejax.stages._configs import (
     RouteReportConfig,
     TrainConfig,
     VGGConfig,
+    check_sections,
+    section_problems,
 )
 from placejax.stages._depth import attach_depth, depth_and_hha, has_true_depth, true_depth
 from placejax.stages._fusion import SeedRun, fused_embedding, fusion_model, train_mlp, train_seed
@@ -104,6 +109,7 @@ __all__ = [
     "Workspace",
     "attach_depth",
     "baseline_features",
+    "check_sections",
     "conv_features",
     "depth_and_hha",
     "depth_index_entry",
@@ -135,6 +141,7 @@ __all__ = [
     "results_only",
     "rgb_baseline_features",
     "route_columns",
+    "section_problems",
     "sequence_embedding",
     "session_moved",
     "thumbnails",

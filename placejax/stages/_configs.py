@@ -3,10 +3,20 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 from placejax import config as _config
 
-__all__ = ["AblationsConfig", "EvalConfig", "MLPConfig", "RouteReportConfig", "TrainConfig", "VGGConfig"]
+__all__ = [
+    "AblationsConfig",
+    "EvalConfig",
+    "MLPConfig",
+    "RouteReportConfig",
+    "TrainConfig",
+    "VGGConfig",
+    "check_sections",
+    "section_problems",
+]
 
 OPTIMIZERS = ("sgd", "adamw")
 FUSIONS = ("mlp", "pool")
@@ -242,3 +252,63 @@ class RouteReportConfig:
         _config.check(
             self, positive_int=("block_frames",), nonnegative_int=("lag_frames",), at_most={"lag_frames": 10_000}
         )
+
+
+def section_problems(
+    *,
+    data: Any = None,
+    depth: Any = None,
+    vgg: Any = None,
+    train: Any = None,
+    mlp: Any = None,
+    eval: Any = None,
+    ablations: Any = None,
+    n_devices: int | None = None,
+) -> list[str]:
+    """What no single section can check: settings that only make sense together, one message per broken rule,
+    naming the keys as a run's config does (``train.jitter_copies``).
+
+    Each section is its dataclass (``TrainConfig``, ...) or its raw values with attribute access (a run's
+    ``ml_collections`` section, so that a run also hears of what a section that fails on its own would hide);
+    a section left out skips the rules that read it. ``n_devices``: the data mesh's devices, which every global
+    batch must divide over. :func:`placejax.stages.train_seed` applies the rules its sections take part in, so a
+    caller of the stages gets the same errors as ``python -m experiments.cross_season``.
+    """
+    from placejax.depth.views import validate_shifts
+
+    errors = []
+    if depth is not None and data is not None:
+        size = tuple(data.image_size)
+        try:
+            validate_shifts(depth.shift_px, width=size[1] if len(size) == 2 else None)
+        except (TypeError, ValueError) as e:
+            errors.append(f"depth.shift_px: {e}")
+        if depth.source == "true" and data.source == "nclt":
+            errors.append(
+                "depth.source='true' needs true depth: data.source='simcampus' renders it, session folders may have "
+                "it (depth/), NCLT has none"
+            )
+        if ablations is not None and ablations.rendered and (data.source == "nclt" or depth.source == "true"):
+            errors.append(
+                "ablations.rendered needs true depth beside a depth network: data.source='simcampus' (or session "
+                "folders with depth/) and depth.source other than 'true' (whose columns already are the rendered "
+                "ones)"
+            )
+    if train is not None and vgg is not None and train.jitter_copies and not vgg.pretrained:
+        errors.append("train.jitter_copies needs vgg.pretrained=True (the copies' frozen-trunk features are cached)")
+    if mlp is not None and train is not None and mlp.jittered and not train.jitter_copies:
+        errors.append("mlp.jittered needs train.jitter_copies > 0 (it trains on the copies' embeddings)")
+    if n_devices:
+        for name, section in (("train", train), ("eval", eval), ("mlp", mlp)):
+            v = None if section is None else section.batch_size
+            if isinstance(v, int) and not isinstance(v, bool) and v % n_devices:
+                errors.append(f"{name}.batch_size={v} must be divisible by the {n_devices} devices of the mesh")
+    return errors
+
+
+def check_sections(**sections: Any) -> None:
+    """:func:`section_problems` of ``sections`` as one ``placejax.config.ConfigError`` (a ``ValueError``) listing
+    every broken rule; nothing when they hold."""
+    errors = section_problems(**sections)
+    if errors:
+        raise _config.ConfigError(*errors)

@@ -18,7 +18,7 @@ from placejax.data import eval_dataset
 from placejax.data.cache import cache_digest
 from placejax.evaluation import log_linear_pool
 from placejax.models import FusionMLP
-from placejax.stages._configs import EvalConfig, MLPConfig, TrainConfig, VGGConfig
+from placejax.stages._configs import EvalConfig, MLPConfig, TrainConfig, VGGConfig, check_sections
 from placejax.stages._keys import results_only
 from placejax.stages._nets import (
     TrainedNet,
@@ -142,7 +142,14 @@ def train_seed(
     modalities: tuple[str, ...] = ("rgb", "hha"),
 ) -> SeedRun:
     """Nets, their outputs on every session, the fusion MLPs and the run's fusion of one seed (stages
-    ``features``, ``nets``, ``outputs`` and ``mlp``)."""
+    ``features``, ``nets``, ``outputs`` and ``mlp``).
+
+    Raises:
+        placejax.config.ConfigError: the sections break a rule between them (``placejax.stages.section_problems``:
+            jittered copies without a pretrained trunk, a batch that does not divide over the mesh, ...), before
+            any work.
+    """
+    check_sections(vgg=vgg, train=train_cfg, mlp=mlp, eval=eval_cfg, n_devices=ws.mesh.size)
     nets = train_nets(
         ws, sessions, num_classes, vgg=vgg, train_cfg=train_cfg, eval_cfg=eval_cfg, seed=seed, modalities=modalities
     )
