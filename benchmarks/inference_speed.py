@@ -24,6 +24,7 @@ Writes ``benchmarks/results/inference_speed.json``.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import statistics
@@ -38,85 +39,52 @@ from placejax import cli
 from placejax.classify import (
     ClassifierSpec,
     PlaceClassifier,
-    fusion_entry,
+    spec_entries,
     stage_depth,
     stage_fusion,
     stage_hha,
     stage_nets,
 )
 from placejax.data import PlaceGrid
-from placejax.depth import PRESETS
 from placejax.models import cpu_compiler_options
 
-# Everything ``PlaceClassifier`` reads from a run, per size. The built-in size is the default preset's, read from the
-# experiment's config (image size, VGG16 width, depth mapping, MLP width, depth views), so that the benchmark follows
-# it; the depth network's architecture and input size are the default depth preset's.
-_DEPTH = PRESETS["default"]
 SIZES = ("builtin", "paper")
 
 
 @functools.cache
-def _default_preset():
-    from experiments.cross_season.config import get_config
+def _preset(size: str):
+    """``(config, sections)`` of the experiment's preset a size stands for: ``default`` (builtin) or ``paper``."""
+    from experiments.cross_season import get_config, sections
 
-    return get_config("default")
-
-
-def _size(name: str) -> dict:
-    if name == "paper":
-        midas = ("midas", 64, 1.0, 256)
-        return dict(
-            image=256, depth=midas, vgg=(1.0, True), far_m=80.0, metric=False, mlp_hidden=1024, fusion={"kind": "mlp"}
-        )
-    c = _default_preset()
-    h, w = c.data.image_size
-    if h != w:
-        raise SystemExit(f"the default preset's images are {h}×{w}: the built-in size expects square images")
-    return dict(
-        image=int(h),
-        depth=("trained", _DEPTH.features, _DEPTH.encoder_width, _DEPTH.image_size),
-        vgg=(float(c.vgg.width), bool(c.vgg.pretrained)),
-        far_m=float(c.depth.far_m),
-        metric=True,
-        mlp_hidden=int(c.mlp.hidden),
-        fusion=fusion_entry(c.mlp),
-    )
-
-
-def _default_depth_views() -> dict:
-    """The default preset's depth views and sky step (what its classifiers run)."""
-    d = _default_preset().depth
-    return {"far_as_sky_m": d.far_as_sky_m, "flip_average": d.flip_average, "shifts": list(d.shift_px)}
+    c = get_config("paper" if size == "paper" else "default")
+    return c, sections(c)
 
 
 def synthetic_classifier(size: str, seed: int = 0, shifts: tuple[int, ...] | None = None) -> PlaceClassifier:
-    """A classifier of the given size with random weights (He-scaled, so activations stay finite); ``shifts``
-    replaces the default preset's shifted depth views (metric depth only)."""
-    s = _size(size)
-    kind, features, width, net = s["depth"]
-    f = 500.0 * s["image"] / 640
+    """A classifier of the given size with random weights (He-scaled, so activations stay finite), its manifest
+    made from the preset's config sections as a run's is (``placejax.classify.spec_entries``); ``shifts`` replaces
+    the built-in preset's shifted depth views."""
+    c, sections = _preset(size)
+    h, w = (int(v) for v in c.data.image_size)
+    if size == "builtin" and h != w:
+        raise SystemExit(f"the default preset's images are {h}×{w}: the built-in size expects square images")
+    depth = sections["depth"]
+    if shifts is not None and size == "builtin":
+        depth = dataclasses.replace(depth, shift_px=tuple(shifts))
+    f = 500.0 * w / 640
+    n = int(c.grid.n)
     meta = {
         "train_session": "synthetic",
-        "num_classes": 100,
-        "image_size": [s["image"], s["image"]],
-        "intrinsics": [[f, 0.0, (s["image"] - 1) / 2], [0.0, f, (s["image"] - 1) / 2], [0.0, 0.0, 1.0]],
-        "normalise": {"mean": [123.675, 116.28, 103.53], "std": [58.395, 57.12, 57.375]},
-        "depth": {
-            "kind": kind,
-            "features": features,
-            "encoder_width": width,
-            "size": net,
-            "near_m": 1.0,
-            "far_m": s["far_m"],
-            "metric": s["metric"],
-            **(_default_depth_views() if s["metric"] else {}),
-            **({"shifts": list(shifts)} if shifts is not None and s["metric"] else {}),
-        },
-        "vgg": {"width": s["vgg"][0], "pretrained": s["vgg"][1]},
-        "mlp_hidden": s["mlp_hidden"],
-        "fusion": s["fusion"],
-        "grid": PlaceGrid(0.0, 100.0, 0.0, 100.0, 10).to_dict(),
-        "visited_classes": list(range(100)),
+        **spec_entries(
+            image_size=(h, w),
+            intrinsics=[[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]],
+            num_classes=n * n,
+            depth=depth,
+            vgg=sections["vgg"],
+            mlp=sections["mlp"],
+        ),
+        "grid": PlaceGrid(0.0, 10.0 * n, 0.0, 10.0 * n, n).to_dict(),
+        "visited_classes": list(range(n * n)),
         "unknown": {"score": "msp", "threshold": 0.5, "target_frr": 0.05},
         "config": {},
     }

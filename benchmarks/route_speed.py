@@ -77,40 +77,28 @@ def _row(case: str, cfg_name: str, frames: int, compile_s: float | None, times: 
 def builtin_classifier(seed: int = 0, reference: int = 2000):
     """A ``PlaceClassifier`` of the default preset's size with random weights (speed does not depend on them).
 
-    Everything the file of a default run holds, read from the experiment's default config and the default depth
-    network's preset, as ``tests/test_classify_hostile.py``'s ``tiny_meta`` / ``tiny_params`` build a tiny one.
+    Everything the file of a default run holds: its manifest made from the experiment's default config sections
+    as a run's is (``placejax.classify.spec_entries``), with a reference of random embeddings and a random drive.
     """
     import jax.numpy as jnp
 
-    from experiments.cross_season.config import get_config
-    from placejax.classify import ClassifierSpec, PlaceClassifier, fusion_entry, unknown
-    from placejax.depth import PRESETS
+    from experiments.cross_season import get_config, sections
+    from placejax.classify import ClassifierSpec, PlaceClassifier, spec_entries, unknown
 
     c = get_config("default")
-    d = PRESETS[c.depth.trained_preset]
+    sec = sections(c)
     h, w = c.data.image_size
     f = 500.0 * w / 640
     meta = {
         "train_session": "random",
-        "num_classes": c.grid.n**2,
-        "image_size": [h, w],
-        "intrinsics": [[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]],
-        "normalise": {"mean": [123.675, 116.28, 103.53], "std": [58.395, 57.12, 57.375]},
-        "depth": {
-            "kind": "trained",
-            "features": d.features,
-            "encoder_width": d.encoder_width,
-            "size": d.image_size,
-            "near_m": c.depth.near_m,
-            "far_m": c.depth.far_m,
-            "metric": d.target == "log_metric",
-            "far_as_sky_m": c.depth.far_as_sky_m,
-            "flip_average": c.depth.flip_average,
-            "shifts": [int(k) for k in c.depth.shift_px],
-        },
-        "vgg": {"width": c.vgg.width, "pretrained": c.vgg.pretrained},
-        "mlp_hidden": c.mlp.hidden,
-        "fusion": fusion_entry(c.mlp),
+        **spec_entries(
+            image_size=(h, w),
+            intrinsics=[[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]],
+            num_classes=c.grid.n**2,
+            depth=sec["depth"],
+            vgg=sec["vgg"],
+            mlp=sec["mlp"],
+        ),
         "grid": PlaceGrid(0.0, 20.0 * c.grid.n, 0.0, 20.0 * c.grid.n, n=c.grid.n).to_dict(),
         "unknown": {"score": "knn1", "threshold": 0.5, "target_frr": 0.05},
     }
@@ -124,7 +112,7 @@ def builtin_classifier(seed: int = 0, reference: int = 2000):
     ref = unknown.fit_feature_model("knn1", rng.normal(size=(TRACKER_REFERENCE, width)), np.zeros(TRACKER_REFERENCE))
     drive = _drive(reference, width, c.grid.n, seed)
     params = {"depth": depth, "rgb": vgg, "hha": vgg, "mlp": mlp, "unknown": ref, "sequence": drive}
-    meta["sequence"] = route.MatchConfig(**c.sequence).to_dict()
+    meta["sequence"] = sec["sequence"].to_dict()
     return PlaceClassifier(meta, params)
 
 

@@ -66,6 +66,35 @@ def clf(classify_run):
     return PlaceClassifier.from_run(workdir, TRAIN)
 
 
+def test_a_runs_classifier_is_the_spec_of_its_config_sections(clf, classify_run):
+    """``ClassifierSpec.from_sections`` of a run's config sections is the spec of the classifier built from the
+    run: the benchmarks' synthetic classifiers, made the same way from a preset, are the classifier a run of it
+    gives."""
+    from placejax.classify import ClassifierSpec
+
+    cfg, _, _ = classify_run
+    s = sections(cfg)
+    spec = ClassifierSpec.from_sections(
+        image_size=clf.spec.image_size,
+        intrinsics=clf.spec.intrinsics,
+        num_classes=clf.spec.vgg.num_classes,
+        depth=s["depth"],
+        vgg=s["vgg"],
+        mlp=s["mlp"],
+    )
+    assert spec == clf.spec
+    assert tuple(cfg.data.image_size) == spec.image_size
+    with pytest.raises(ValueError, match="cannot run this depth source"):
+        ClassifierSpec.from_sections(
+            image_size=spec.image_size,
+            intrinsics=spec.intrinsics,
+            num_classes=4,
+            depth=dataclasses.replace(s["depth"], source="true"),
+            vgg=s["vgg"],
+            mlp=s["mlp"],
+        )
+
+
 def _sessions_with_depth(cfg, workdir: Path):
     """The run's sessions through the library's stages (cached): ``(workspace, sessions, grid)``."""
     from placejax.depth import depth_source

@@ -30,6 +30,7 @@ from placejax.classify._classifier import PlaceClassifier, Prediction
 from placejax.classify._forward import (
     ClassifierSpec,
     forward,
+    spec_entries,
     stage_depth,
     stage_fusion,
     stage_hha,
@@ -49,6 +50,7 @@ __all__ = [
     "forward",
     "fusion_entry",
     "run_layout",
+    "spec_entries",
     "stage_depth",
     "stage_fusion",
     "stage_hha",

@@ -12,6 +12,7 @@ import json
 import os
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import jax
@@ -19,11 +20,9 @@ import numpy as np
 
 from placejax import route
 from placejax.classify import run_layout, unknown
-from placejax.classify._forward import _plain
-from placejax.classify._schema import fusion_entry
+from placejax.classify._forward import _plain, spec_entries
 from placejax.data import PlaceGrid
 from placejax.depth import SOURCE_NAMES, DepthSource, DepthSourceConfig, depth_source
-from placejax.hha import REFERENCE_HEIGHT
 
 
 def restore_params(ckdir: Path) -> dict:
@@ -59,10 +58,7 @@ def run_meta_and_params(
     files = run_layout.locate_run(workdir, train_session)
     cfg = files.config
     source = run_depth_source(files)
-    depth_vars, depth_meta = source.variables, source.classifier
-    height = _run_depth_config(files).height_rule()
-    if height != REFERENCE_HEIGHT:
-        depth_meta = {**depth_meta, "hha_height": dataclasses.asdict(height)}
+    depth_vars = source.variables
     params = {
         "depth": jax.tree_util.tree_map(np.asarray, dict(depth_vars)),
         "rgb": restore(files.rgb_checkpoint),
@@ -88,16 +84,19 @@ def run_meta_and_params(
     sequence = sequence_drive(training, cfg)
     if sequence is not None:
         params["sequence"] = sequence[1]
+    spec = spec_entries(
+        image_size=files.image_size,
+        intrinsics=files.intrinsics,
+        num_classes=PlaceGrid.from_dict(files.grid).num_classes,
+        depth=_run_depth_config(files),
+        vgg=SimpleNamespace(width=vgg["width"], pretrained=vgg["pretrained"]),
+        mlp=cfg["mlp"],
+        depth_entry=source.classifier,
+    )
     meta = {
         "train_session": train_session,
-        "num_classes": PlaceGrid.from_dict(files.grid).num_classes,
-        "image_size": list(files.image_size),
-        "intrinsics": files.intrinsics,
-        "normalise": files.normalise,
-        "depth": depth_meta,
-        "vgg": {"width": vgg["width"], "pretrained": vgg["pretrained"]},
-        "mlp_hidden": cfg["mlp"]["hidden"],
-        "fusion": fusion_entry(cfg["mlp"]),
+        **spec,
+        "normalise": files.normalise,  # as the run recorded it
         "grid": files.grid,
         "visited_classes": files.visited_classes,
         "unknown": {

@@ -15,9 +15,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import hha as _hha
-from placejax.depth import depth_from_log, far_to_sky, network_on_images, network_size
+from placejax.classify._schema import fusion_entry
+from placejax.depth import (
+    DepthSourceConfig,
+    classifier_entry,
+    depth_from_log,
+    far_to_sky,
+    network_on_images,
+    network_size,
+)
 from placejax.depth.views import average_views
 from placejax.models import (
+    IMAGENET_MEAN_255,
+    IMAGENET_STD_255,
     VGG16,
     DepthAnythingV2,
     FusionMLP,
@@ -82,6 +92,33 @@ class ClassifierSpec:
     pool_weight: float | None = None  # None: the fusion MLP; w: the log-linear pool with weight w on RGB-Net
 
     @classmethod
+    def from_sections(
+        cls,
+        *,
+        image_size: tuple[int, int],
+        intrinsics: Any,
+        num_classes: int,
+        depth: DepthSourceConfig,
+        vgg: Any,
+        mlp: Any,
+        depth_entry: dict[str, Any] | None = None,
+    ) -> ClassifierSpec:
+        """The spec of the classifier a run with these config sections trains (:func:`spec_entries`, then
+        :meth:`from_meta`): what a run's classifier files, the benchmarks' synthetic classifiers and the tests'
+        tiny ones are built from."""
+        return cls.from_meta(
+            spec_entries(
+                image_size=image_size,
+                intrinsics=intrinsics,
+                num_classes=num_classes,
+                depth=depth,
+                vgg=vgg,
+                mlp=mlp,
+                depth_entry=depth_entry,
+            )
+        )
+
+    @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> ClassifierSpec:
         """The spec a classifier file's manifest describes (``PlaceClassifier.meta``: ``image_size``, ``depth``,
         ``intrinsics``, ``vgg``, ``num_classes``, ``mlp_hidden``, ``normalise``, ``fusion``); e.g. to build parameters
@@ -123,6 +160,53 @@ class ClassifierSpec:
             height_rule=_hha.HeightRule(**d["hha_height"]) if "hha_height" in d else _hha.REFERENCE_HEIGHT,
             pool_weight=float(meta["fusion"]["pool_weight"]) if meta.get("fusion", {}).get("kind") == "pool" else None,
         )
+
+
+def spec_entries(
+    *,
+    image_size: tuple[int, int],
+    intrinsics: Any,
+    num_classes: int,
+    depth: DepthSourceConfig,
+    vgg: Any,
+    mlp: Any,
+    depth_entry: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The entries of a classifier manifest that :meth:`ClassifierSpec.from_meta` reads (``image_size``,
+    ``intrinsics``, ``num_classes``, ``normalise``, ``depth``, ``vgg``, ``mlp_hidden``, ``fusion``), from a run's
+    config sections: every manifest's one source of them.
+
+    Args:
+        image_size: ``(H, W)`` of the images, pixels.
+        intrinsics: ``(3, 3)`` pinhole matrix of the training session's images.
+        num_classes: place classes.
+        depth: the ``depth`` section; its HHA height rule goes into ``depth.hha_height`` where it is not the
+            reference's.
+        vgg: the ``vgg`` section (``placejax.stages.VGGConfig`` or anything with its ``width`` and ``pretrained``).
+        mlp: the ``mlp`` section (``placejax.stages.MLPConfig``, or its values as a mapping).
+        depth_entry: the built depth source's ``classifier`` (with where its weights came from); default
+            ``placejax.depth.classifier_entry(depth)``.
+
+    Raises:
+        ValueError: a depth source no classifier can run (``true``).
+    """
+    entry = depth_entry if depth_entry is not None else classifier_entry(depth)
+    if entry is None:
+        raise ValueError(f"depth.source={depth.source!r}: a classifier cannot run this depth source")
+    height = depth.height_rule()
+    if height != _hha.REFERENCE_HEIGHT:
+        entry = {**entry, "hha_height": dataclasses.asdict(height)}
+    fields = mlp if isinstance(mlp, dict) else dataclasses.asdict(mlp)
+    return {
+        "num_classes": int(num_classes),
+        "image_size": [int(v) for v in image_size],
+        "intrinsics": np.asarray(intrinsics, np.float64).tolist(),
+        "normalise": {"mean": IMAGENET_MEAN_255.tolist(), "std": IMAGENET_STD_255.tolist()},
+        "depth": entry,
+        "vgg": {"width": vgg.width, "pretrained": vgg.pretrained},
+        "mlp_hidden": fields["hidden"],
+        "fusion": fusion_entry(fields),
+    }
 
 
 # ---------------------------------------------------------------------------------------------------- stages

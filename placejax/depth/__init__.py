@@ -26,7 +26,14 @@ from placejax.depth._lifecycle import (
     shipped_network,
     write_report,
 )
-from placejax.depth._sources import SOURCE_NAMES, DepthSource, DepthSourceConfig, depth_source, register_source
+from placejax.depth._sources import (
+    SOURCE_NAMES,
+    DepthSource,
+    DepthSourceConfig,
+    classifier_entry,
+    depth_source,
+    register_source,
+)
 from placejax.depth._train import DepthObjective, TrainedDepth, load_trained, train_network
 from placejax.depth.losses import LOG_DEPTH_UNIT_M, depth_from_log, far_to_sky, log_depth
 
@@ -41,6 +48,7 @@ __all__ = [
     "DepthTrainConfig",
     "TrainedDepth",
     "apply",
+    "classifier_entry",
     "depth_from_log",
     "depth_source",
     "ensure_trained",

@@ -242,14 +242,7 @@ def _midas(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource:
     }
     run = _batched(lambda x: predict(variables, x, model=model), cfg.batch_size)
     weights = str(Path(cfg.midas_weights).resolve()) if cfg.midas_weights else spec
-    manifest = {
-        "kind": "midas",
-        "features": cfg.midas_features,
-        "encoder_width": cfg.midas_encoder_width,
-        "size": 256,
-        "source": {"weights": weights},
-        **cfg.metric_mapping,
-    }
+    manifest = {**classifier_entry(cfg), "source": {"weights": weights}}
     return DepthSource("midas", key, lambda x: _to_metric(cfg, run(x)), variables, manifest, f"MiDaS v2.1 small {spec}")
 
 
@@ -283,23 +276,12 @@ def _dav2(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource:
         **({} if metric_out else cfg.metric_mapping),
     }
     manifest = {
-        "kind": "depth_anything_v2",
-        "embed_dim": model.embed_dim,
-        "depth": model.depth,
-        "num_heads": model.num_heads,
-        "layers": [int(v) for v in model.layers],
-        "features": model.features,
-        "out_channels": [int(v) for v in model.out_channels],
-        "pos_grid": model.pos_grid,
-        "head": model.head,
-        "max_depth": float(model.max_depth),
-        "short_side": int(cfg.dav2_short_side),
+        **classifier_entry(cfg),
         "source": {
             "weights": str(Path(cfg.dav2_weights).resolve()) if cfg.dav2_weights else spec,
             "registry": name,
             "depth_source": cfg.source,
         },
-        **cfg.metric_mapping,
     }
     return DepthSource(cfg.source, key, predict, variables, manifest, f"Depth Anything V2 Small {spec}")
 
@@ -351,18 +333,7 @@ def _trained(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource
             return _to_metric(cfg, trained.predict(np.asarray(x)))
 
         how = dict(cfg.metric_mapping)
-    manifest = {
-        "kind": "trained",
-        "features": trained.config.features,
-        "encoder_width": trained.config.encoder_width,
-        "size": trained.config.image_size,
-        "metric": trained.metric,
-        "far_as_sky_m": float(cfg.far_as_sky_m) if trained.metric else 0.0,
-        "flip_average": bool(cfg.flip_average) and trained.metric,
-        "shifts": [int(k) for k in shifts] if trained.metric else [],
-        "source": {**origin, "fingerprint": trained.fingerprint},
-        **cfg.metric_mapping,
-    }
+    manifest = {**classifier_entry(cfg, trained.config), "source": {**origin, "fingerprint": trained.fingerprint}}
     key = {"source": "trained", "fingerprint": trained.fingerprint, **how}
     return DepthSource(
         "trained",
@@ -372,3 +343,62 @@ def _trained(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource
         manifest,
         f"placejax depth network {cfg.trained_preset} ({trained.fingerprint})",
     )
+
+
+def classifier_entry(cfg: DepthSourceConfig, network: Any = None) -> dict[str, Any] | None:
+    """The depth part of a ``PlaceClassifier`` manifest for ``cfg``'s source, from the config alone (no weights are
+    read): the network's architecture and input size, the metric mapping, for a metric network its views and sky
+    step, and ``source`` (where the weights come from) empty — the built source (:func:`depth_source`) fills it in.
+    ``None`` for a source no classifier can run (``true``, or a registered source this function does not know).
+
+    ``network``: a trained network's ``DepthTrainConfig`` (default: its preset's, ``cfg.trained_preset``).
+    """
+    if cfg.source == "midas":
+        return {
+            "kind": "midas",
+            "features": cfg.midas_features,
+            "encoder_width": cfg.midas_encoder_width,
+            "size": 256,
+            "source": {},
+            **cfg.metric_mapping,
+        }
+    if cfg.source in ("depth_anything_v2", "depth_anything_v2_metric"):
+        from placejax.models import DepthAnythingV2
+        from placejax.weights import REGISTRY
+
+        metric_out = cfg.source == "depth_anything_v2_metric"
+        name = "depth_anything_v2_metric_vkitti_vits" if metric_out else "depth_anything_v2_vits"
+        model = DepthAnythingV2.from_encoder(**REGISTRY[name].model_kwargs)
+        return {
+            "kind": "depth_anything_v2",
+            "embed_dim": model.embed_dim,
+            "depth": model.depth,
+            "num_heads": model.num_heads,
+            "layers": [int(v) for v in model.layers],
+            "features": model.features,
+            "out_channels": [int(v) for v in model.out_channels],
+            "pos_grid": model.pos_grid,
+            "head": model.head,
+            "max_depth": float(model.max_depth),
+            "short_side": int(cfg.dav2_short_side),
+            "source": {},
+            **cfg.metric_mapping,
+        }
+    if cfg.source == "trained":
+        from placejax.depth._config import PRESETS
+
+        net = network if network is not None else PRESETS[cfg.trained_preset]
+        metric = net.metric
+        return {
+            "kind": "trained",
+            "features": net.features,
+            "encoder_width": net.encoder_width,
+            "size": net.image_size,
+            "metric": metric,
+            "far_as_sky_m": float(cfg.far_as_sky_m) if metric else 0.0,
+            "flip_average": bool(cfg.flip_average) and metric,
+            "shifts": [int(k) for k in cfg.shift_px] if metric else [],
+            "source": {},
+            **cfg.metric_mapping,
+        }
+    return None
