@@ -22,12 +22,13 @@ from placejax import route
 from placejax.classify import run_layout, unknown
 from placejax.classify._forward import _plain, spec_entries
 from placejax.data import PlaceGrid
-from placejax.depth import SOURCE_NAMES, DepthSource, DepthSourceConfig, depth_source
+from placejax.depth import SOURCE_NAMES, DepthSource, DepthSourceConfig, DepthTrainConfig, depth_source
+from placejax.pretrain import modality_weights, pretrained_vgg16
+from placejax.training import Checkpointer
 
 
 def restore_params(ckdir: Path) -> dict:
     """The ``params`` of the latest orbax checkpoint written by ``placejax.training.Checkpointer``."""
-    from placejax.training import Checkpointer
 
     if not Path(ckdir).is_dir():
         raise FileNotFoundError(f"no checkpoint under {ckdir} (the run did not finish training it)")
@@ -177,8 +178,6 @@ def run_depth_source(files: run_layout.RunFiles) -> DepthSource:
     source = depth_source(DepthSourceConfig(**section), progress=False, train=False)
     recorded = d.get("key")
     if recorded is None and "config" in d:  # an index from before the registry: the trained network's recipe
-        from placejax.depth import DepthTrainConfig
-
         recorded_fp = DepthTrainConfig(**d["config"]).fingerprint()
         if source.key.get("fingerprint") != recorded_fp:
             raise ValueError(
@@ -200,7 +199,6 @@ def _vgg_section(section: dict) -> dict:
 
 
 def _pretrained_trunk(vgg: dict, modality: str) -> dict:
-    from placejax.pretrain import modality_weights, pretrained_vgg16
 
     weights = modality_weights(modality, weights=vgg["weights"], hha_weights=vgg["hha_weights"])
     params = pretrained_vgg16(weights, vgg["width"])

@@ -28,6 +28,7 @@ from placejax.classify._forward import stage_depth as stage_depth
 from placejax.classify._forward import stage_fusion as stage_fusion
 from placejax.classify._forward import stage_mlp as stage_mlp
 from placejax.classify._forward import stage_nets as stage_nets
+from placejax.classify._schema import check_manifest
 from placejax.data import PlaceGrid
 from placejax.data.camera import resize_image
 
@@ -278,7 +279,6 @@ class PlaceClassifier:
             ArtefactError: not a classifier file, corrupt, over a budget, another format version, a manifest
                 field that breaks the schema, or parameters that do not fit; the message names the file.
         """
-        from placejax.classify._schema import check_manifest
 
         manifest, flat = _artefact.read_artefact(path, max_bytes=max_bytes, validate=check_manifest)
         meta = {k: v for k, v in manifest.items() if k not in ("format", "version", "arrays", "versions")}

@@ -14,7 +14,13 @@ import itertools
 import math
 from typing import Any
 
+from placejax.classify import unknown
 from placejax.classify._artefact import ArtefactError
+from placejax.data import PlaceGrid
+from placejax.depth import network_size
+from placejax.hha import HeightRule
+from placejax.models import DAV2_PATCH, dav2_input_size
+from placejax.route import MATCH_FIELDS, FilterConfig, first_match_problem, first_problem
 
 MAX_IMAGE_SIDE = 4096
 """Largest ``image_size`` side a classifier file may declare, pixels (the networks' input; photographs of any
@@ -151,8 +157,6 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
         ArtefactError: the first field that is missing, unknown, of the wrong type, out of range or not finite,
             named with the file.
     """
-    from placejax.classify import unknown
-    from placejax.data import PlaceGrid
 
     c = _Checker(source)
     c.obj(m, "(top level)", _TOP - _OPTIONAL_TOP, _OPTIONAL_TOP)
@@ -223,7 +227,6 @@ def check_manifest(m: dict[str, Any], source: str) -> None:
 
 def _check_route(c: _Checker, r: Any) -> None:
     """``route``: every field of ``placejax.route.FilterConfig``, checked by FilterConfig's own checks."""
-    from placejax.route import FilterConfig, first_problem
 
     c.obj(r, "route", {f.name for f in dataclasses.fields(FilterConfig)})
     bad = first_problem(r)
@@ -252,7 +255,6 @@ def _check_fusion(c: _Checker, f: Any) -> None:
 
 def _check_sequence(c: _Checker, r: Any) -> None:
     """``sequence``: every field of ``placejax.route.MatchConfig``, each checked by MatchConfig's own rules."""
-    from placejax.route import MATCH_FIELDS, first_match_problem
 
     c.obj(r, "sequence", set(MATCH_FIELDS))
     bad = first_match_problem(r)
@@ -271,7 +273,6 @@ def _check_height(c: _Checker, d: dict) -> None:
     """``depth.hha_height``, where present: a ``placejax.hha.HeightRule``'s fields, checked by the rule itself."""
     if "hha_height" not in d:
         return
-    from placejax.hha import HeightRule
 
     rule = c.obj(d["hha_height"], "depth.hha_height", set(), _HEIGHT_OPTIONAL)
     for key, value in rule.items():
@@ -287,7 +288,6 @@ def _check_height(c: _Checker, d: dict) -> None:
 
 def _check_dav2(c: _Checker, d: dict, image_size: tuple[int, int]) -> None:
     """``depth`` of kind ``"depth_anything_v2"``: the architecture, head, input short side and the mapping."""
-    from placejax.models import DAV2_PATCH, dav2_input_size
 
     c.obj(d, "depth", _DAV2_REQUIRED, {"source", "hha_height"})
     dim = c.integer(d["embed_dim"], "depth.embed_dim", 1, MAX_DAV2_EMBED)
@@ -323,7 +323,6 @@ def _check_dav2(c: _Checker, d: dict, image_size: tuple[int, int]) -> None:
 
 def _check_depth(c: _Checker, d_raw: Any, image_size: tuple[int, int]) -> None:
     """``depth`` of kind ``"trained"`` or ``"midas"`` (``MidasSmall``-shaped networks)."""
-    from placejax.depth import network_size
 
     d = c.obj(d_raw, "depth", _DEPTH_REQUIRED, _DEPTH_OPTIONAL)
     if d["kind"] not in ("trained", "midas"):

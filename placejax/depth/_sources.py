@@ -21,10 +21,21 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
 from placejax import config as _config
+from placejax import hha
+from placejax.depth import _lifecycle
+from placejax.depth._config import PRESETS
+from placejax.depth._inference import predict as predict_network
+from placejax.depth._train import load_trained
+from placejax.depth.losses import far_to_sky
+from placejax.depth.views import validate_shifts
 from placejax.hha import HeightRule
+from placejax.models import DepthAnythingV2, MidasSmall, cpu_compiler_options, dav2_apply
+from placejax.training import map_batches
+from placejax.weights import REGISTRY, convert_depth_anything_v2, convert_midas_small, identity, resolve
 
 __all__ = ["SOURCE_NAMES", "DepthSource", "DepthSourceConfig", "depth_source", "register_source"]
 
@@ -100,8 +111,6 @@ class DepthSourceConfig:
                 "hha_cm_per_level": 100.0,
             },
         )
-        from placejax.depth._config import PRESETS
-        from placejax.depth.views import validate_shifts
 
         errors = []
         try:
@@ -202,19 +211,16 @@ def depth_source(cfg: DepthSourceConfig, *, progress: bool = True, train: bool =
 
 
 def _to_metric(cfg: DepthSourceConfig, inv: np.ndarray) -> np.ndarray:
-    from placejax import hha
 
     return np.asarray(hha.inverse_depth_to_metric(inv, **cfg.metric_mapping), np.float32)
 
 
 def _batched(fn: Callable[[np.ndarray], np.ndarray], batch_size: int) -> Callable[[np.ndarray], np.ndarray]:
-    from placejax.training import map_batches
 
     return lambda x: map_batches(fn, np.asarray(x), batch_size)
 
 
 def _weights_identity(path: str, registry_name: str) -> dict:
-    from placejax.weights import identity
 
     return identity(path, default=f"registry:{registry_name}")
 
@@ -226,9 +232,6 @@ def _true(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource:
 
 @register_source("midas")
 def _midas(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource:
-    from placejax.depth._inference import predict
-    from placejax.models import MidasSmall
-    from placejax.weights import convert_midas_small, resolve
 
     model = MidasSmall(features=cfg.midas_features, encoder_width=cfg.midas_encoder_width)
     # midas_weights: a torch.save file, an .npz record, or empty for the registry's official weights.
@@ -240,17 +243,13 @@ def _midas(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource:
         "model": [cfg.midas_features, cfg.midas_encoder_width],
         **cfg.metric_mapping,
     }
-    run = _batched(lambda x: predict(variables, x, model=model), cfg.batch_size)
+    run = _batched(lambda x: predict_network(variables, x, model=model), cfg.batch_size)
     weights = str(Path(cfg.midas_weights).resolve()) if cfg.midas_weights else spec
     manifest = {**classifier_entry(cfg), "source": {"weights": weights}}
     return DepthSource("midas", key, lambda x: _to_metric(cfg, run(x)), variables, manifest, f"MiDaS v2.1 small {spec}")
 
 
 def _dav2(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource:
-    import jax
-
-    from placejax.models import DepthAnythingV2, cpu_compiler_options, dav2_apply
-    from placejax.weights import REGISTRY, convert_depth_anything_v2, resolve
 
     metric_out = cfg.source == "depth_anything_v2_metric"
     name = "depth_anything_v2_metric_vkitti_vits" if metric_out else "depth_anything_v2_vits"
@@ -294,10 +293,6 @@ register_source("depth_anything_v2_metric")(_dav2)
 def _trained(cfg: DepthSourceConfig, progress: bool, train: bool) -> DepthSource:
     # The placejax-trained depth network: shipped with the package (default preset), or trained once per machine
     # into the cache, then reused.
-    from placejax.depth import _lifecycle
-    from placejax.depth._config import PRESETS
-    from placejax.depth._train import load_trained
-    from placejax.depth.losses import far_to_sky
 
     cache = Path(cfg.trained_cache) if cfg.trained_cache else None
     trained = _lifecycle.shipped_network(cfg.trained_preset)
@@ -363,9 +358,6 @@ def classifier_entry(cfg: DepthSourceConfig, network: Any = None) -> dict[str, A
             **cfg.metric_mapping,
         }
     if cfg.source in ("depth_anything_v2", "depth_anything_v2_metric"):
-        from placejax.models import DepthAnythingV2
-        from placejax.weights import REGISTRY
-
         metric_out = cfg.source == "depth_anything_v2_metric"
         name = "depth_anything_v2_metric_vkitti_vits" if metric_out else "depth_anything_v2_vits"
         model = DepthAnythingV2.from_encoder(**REGISTRY[name].model_kwargs)
@@ -385,8 +377,6 @@ def classifier_entry(cfg: DepthSourceConfig, network: Any = None) -> dict[str, A
             **cfg.metric_mapping,
         }
     if cfg.source == "trained":
-        from placejax.depth._config import PRESETS
-
         net = network if network is not None else PRESETS[cfg.trained_preset]
         metric = net.metric
         return {

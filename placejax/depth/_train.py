@@ -22,8 +22,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax import training
+from placejax.data import FrameSource, simcampus, train_dataset
 from placejax.data.simcampus import intrinsics as simcampus_intrinsics
 from placejax.depth._config import DepthTrainConfig
+from placejax.depth._inference import predict
 from placejax.depth.losses import depth_from_log, log_depth, log_metric_loss, midas_loss, normal_loss
 from placejax.depth.views import average_views
 from placejax.models import IMAGENET_MEAN, IMAGENET_STD, MidasSmall
@@ -188,7 +190,6 @@ def _optimizer(cfg: DepthTrainConfig):
 
 def training_frames(cfg: DepthTrainConfig, progress: bool = True) -> dict[str, np.ndarray]:
     """The rendered depth-training frames (deterministic given the config)."""
-    from placejax.data import simcampus
 
     s = cfg.image_size
     return simcampus.depth_training_frames(
@@ -217,7 +218,6 @@ def _prepare(batch: dict) -> dict[str, np.ndarray]:
 def training_source(cfg: DepthTrainConfig, frames: dict[str, np.ndarray]):
     """The grain source of the rendered training frames: one element per frame, or with ``cfg.paired`` one per
     pair of looks (``image`` and ``image_b`` over the pair's one depth)."""
-    from placejax.data import FrameSource
 
     if not cfg.paired:
         return FrameSource(frames["rgb"], extras={k: frames[k] for k in ("depth", "sky", "objects")})
@@ -253,7 +253,6 @@ def train_network(
     Returns:
         The final train state (replicated on the mesh).
     """
-    from placejax.data import train_dataset
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -350,7 +349,6 @@ class TrainedDepth:
         return np.asarray(depth_from_log(out), np.float32)
 
     def _raw(self, images: np.ndarray) -> np.ndarray:
-        from placejax.depth._inference import predict
 
         return predict(self.variables, images, model=self.model, size=self.config.image_size, square=True)
 

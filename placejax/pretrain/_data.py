@@ -26,6 +26,7 @@ import numpy as np
 from placejax import hha
 from placejax import progress as _progress
 from placejax.data import simcampus
+from placejax.depth import PRESETS, ensure_trained, far_to_sky
 
 # Place-pretraining world seeds: far from the evaluation campuses (small seeds) and from the depth network's
 # training worlds (7_000_000 + ...), so neither network has seen the other's worlds.
@@ -129,7 +130,6 @@ def perturb_depth(depth_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     distance); blurred in log depth (σ uniform in 0-1.5 px at 64 px width); then everything from a threshold
     uniform in 40-70 m on set to the sky's 1000 m (``placejax.depth.far_to_sky``, as the experiment does).
     """
-    from placejax.depth import far_to_sky
 
     depth_m = np.asarray(depth_m, np.float32)
     n, h, w = depth_m.shape
@@ -149,7 +149,6 @@ def perturb_depth(depth_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def check_hha_depth(hha_depth: str) -> None:
     """ValueError unless ``hha_depth`` is ``"perturbed"`` or ``"trained:<a placejax.depth preset>"``."""
-    from placejax.depth import PRESETS
 
     if hha_depth == HHA_DEPTH_PERTURBED:
         return
@@ -180,7 +179,6 @@ def network_depth(
     check_hha_depth(hha_depth)
     if hha_depth == HHA_DEPTH_PERTURBED:
         return None
-    from placejax.depth import ensure_trained, far_to_sky
 
     net = ensure_trained(hha_depth.removeprefix(HHA_DEPTH_TRAINED), progress=progress)
 

@@ -20,9 +20,12 @@ from flax import traverse_util
 
 from placejax import io
 from placejax import weights as _weights
+from placejax.models import VGG16
 from placejax.pretrain import _evaluate
+from placejax.pretrain._data import network_depth
 from placejax.pretrain._train import PRESETS, PretrainConfig, load_trained, train
 from placejax.training import CheckpointError
+from placejax.weights import convert_vgg16
 
 # The trunk shipped with the package (its README records command, seed, config and held-out metrics).
 SHIPPED = "simcampus_places_w0125_s64"
@@ -110,8 +113,6 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
     Returns:
         ``{"trunk": ..., "classifier": ...}`` (no ``"classifier"`` for a shipped or ``.npz`` trunk).
     """
-    from placejax.models import VGG16
-    from placejax.weights import convert_vgg16
 
     spec = weights or _IMAGENET
     if spec.startswith(_weights.REGISTRY_PREFIX):
@@ -163,7 +164,6 @@ def modality_weights(modality: str, *, weights: str, hha_weights: str = "") -> s
 def heldout_report(trunk_params, cfg: PretrainConfig, *, n_worlds: int = 2) -> dict:
     """Cross-look recall@1 of the trunk and of the baselines on ``n_worlds`` held-out validation worlds (HHA trunks:
     their views made from the depth the trunk was pretrained on, ``cfg.hha_depth``)."""
-    from placejax.pretrain._data import network_depth
 
     s = cfg.image_size
     depth_fn = None

@@ -27,8 +27,10 @@ import optax
 
 from placejax import config as _config
 from placejax import training
-from placejax.data import simcampus
+from placejax.data import FrameSource, simcampus, train_dataset
+from placejax.depth import PRESETS as DEPTH_PRESETS
 from placejax.models import VGG16, he_init, imagenet_normalise
+from placejax.pretrain import _data
 from placejax.pretrain._data import (
     HHA_DEPTH_PERTURBED,
     HHA_DEPTH_TRAINED,
@@ -36,6 +38,7 @@ from placejax.pretrain._data import (
     NETWORK_SHIFTS,
     NETWORK_SKY_FROM_M,
     check_hha_depth,
+    place_frames,
 )
 
 # Bumped whenever the recipe changes in a way the config does not show.
@@ -151,7 +154,6 @@ class PretrainConfig:
         (``hha_depth="trained:<preset>"``), None on perturbed depth: what an exported trunk records."""
         if self.hha_depth == HHA_DEPTH_PERTURBED:
             return None
-        from placejax.depth import PRESETS as DEPTH_PRESETS
 
         preset = self.hha_depth.removeprefix(HHA_DEPTH_TRAINED)
         return f"{preset}-{DEPTH_PRESETS[preset].fingerprint()}"
@@ -163,8 +165,6 @@ class PretrainConfig:
         network's recipe (so that a change of it makes a new run, not a stale cache hit)."""
         fields = _config.results_fields(self)
         if self.hha_depth != HHA_DEPTH_PERTURBED:
-            from placejax.depth import PRESETS as DEPTH_PRESETS
-
             fields["hha_depth_network"] = DEPTH_PRESETS[self.hha_depth.removeprefix(HHA_DEPTH_TRAINED)].fingerprint()
         fields["recipe_version"] = _RECIPE_VERSION
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
@@ -195,7 +195,6 @@ shipped trunk's."""
 
 def training_frames(cfg: PretrainConfig, progress: bool = True) -> dict[str, np.ndarray]:
     """The rendered, place-labelled pretraining frames; labels renumbered densely ``0..C−1``."""
-    from placejax.pretrain._data import place_frames
 
     s = cfg.image_size
     f = place_frames(
@@ -219,7 +218,6 @@ def training_frames(cfg: PretrainConfig, progress: bool = True) -> dict[str, np.
 
 def num_classes(cfg: PretrainConfig) -> int:
     """Occupied place classes of the pretraining set (computed from the poses alone, no rendering)."""
-    from placejax.pretrain import _data
 
     seeds = _data.place_world_seeds(cfg.seed, cfg.n_worlds, (cfg.world_seed,))
     labels = []
@@ -341,7 +339,6 @@ def train(
     Returns:
         The final train state.
     """
-    from placejax.data import FrameSource, train_dataset
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)

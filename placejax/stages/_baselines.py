@@ -21,6 +21,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from placejax.depth import DepthSourceConfig, depth_source
+from placejax.stages._depth import depth_and_hha, has_true_depth
 from placejax.stages._workspace import SessionData
 
 __all__ = [
@@ -141,8 +143,6 @@ def baseline_features(ws, sessions: list[SessionData], depth_batch_size: int) ->
         sessions: every session, after the depth stages (``SessionData.hha``).
         depth_batch_size: images per call when the true-depth HHA caches are built.
     """
-    from placejax.depth import DepthSourceConfig, depth_source
-    from placejax.stages._depth import depth_and_hha, has_true_depth
 
     feats = rgb_baseline_features(sessions)
     feats["nn_hha"] = {s.name: thumbnails(s.hha.data, THUMB_SIZES["nn_hha"]) for s in sessions}

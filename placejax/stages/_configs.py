@@ -6,6 +6,8 @@ import dataclasses
 from typing import Any
 
 from placejax import config as _config
+from placejax.data import ViewJitter
+from placejax.depth.views import validate_shifts
 
 __all__ = [
     "AblationsConfig",
@@ -119,7 +121,6 @@ class TrainConfig:
                 "jitter_colour": 0.99,  # a contrast or saturation factor U(1 - c, 1 + c) stays above 0
             },
         )
-        from placejax.data import ViewJitter
 
         for name, build in (
             ("jitter_shift", lambda: ViewJitter(shift=self.jitter_shift)),
@@ -274,7 +275,6 @@ def section_problems(
     batch must divide over. :func:`placejax.stages.train_seed` applies the rules its sections take part in, so a
     caller of the stages gets the same errors as ``python -m experiments.cross_season``.
     """
-    from placejax.depth.views import validate_shifts
 
     errors = []
     if depth is not None and data is not None:

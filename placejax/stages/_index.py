@@ -3,15 +3,17 @@ rebuild the classifier of every training session (layout: ``placejax.classify.ru
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from placejax import io
+from placejax.classify import unknown
 from placejax.classify.run_layout import NETS_DIR, UNKNOWN_DIR, write_run_index
 from placejax.data import PlaceGrid
-from placejax.depth import DepthSource
+from placejax.depth import PRESETS, DepthSource
 from placejax.models import IMAGENET_MEAN_255, IMAGENET_STD_255
 from placejax.stages._fusion import SeedRun, fused_embedding
 from placejax.stages._workspace import SessionData, Workspace
@@ -26,10 +28,6 @@ def depth_index_entry(source: DepthSource, depth_section: dict[str, Any]) -> dic
     if source.classifier is not None:
         entry["classifier"] = source.classifier
     if source.name == "trained":
-        import dataclasses
-
-        from placejax.depth import PRESETS
-
         entry.update(source.classifier["source"])
         entry.pop("fingerprint", None)
         entry["config"] = dataclasses.asdict(PRESETS[depth_section["trained_preset"]])
@@ -44,7 +42,6 @@ def fit_unseen_detectors(run: SeedRun, s: SessionData) -> dict[str, tuple[Any, f
     of the reference (``unknown.fit_feature_detector``); ``None`` where ``s`` is too small for the score. Both the
     evaluation's unseen-place columns and the classifier index come from this one fit.
     """
-    from placejax.classify import unknown
 
     out: dict[str, tuple[Any, float] | None] = {}
     for score in unknown.SCORES:
@@ -79,7 +76,6 @@ def write_classifier_index(
         detectors: session → :func:`fit_unseen_detectors` of it (as the evaluation fitted them); fitted here
             where missing.
     """
-    from placejax.classify import unknown
 
     index_sessions = {}
     for s in sessions:

@@ -15,10 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from placejax.classify.run_layout import NETS_DIR, cache_name
-from placejax.data import build_array_cache, eval_dataset, train_dataset
+from placejax.data import ViewJitter, build_array_cache, eval_dataset, jittered_copies, train_dataset
 from placejax.data.cache import cache_digest
 from placejax.models import VGG16, cpu_compiler_options, he_init, imagenet_normalise
-from placejax.pretrain import modality_weights
+from placejax.pretrain import modality_weights, pretrained_vgg16
 from placejax.stages._configs import EvalConfig, TrainConfig, VGGConfig
 from placejax.stages._keys import params_digest, results_only
 from placejax.stages._workspace import SessionData, Workspace
@@ -83,7 +83,6 @@ def pretrained_vgg(vgg: VGGConfig, weights: str) -> dict:
     (``placejax.pretrain.pretrained_vgg16``): a torchvision-layout file, ``shipped:<name>`` (a trunk pretrained on
     other SimCampus worlds; fc6/fc7 then start from He init and are trained), or empty for the registry's
     ImageNet weights."""
-    from placejax.pretrain import pretrained_vgg16
 
     try:
         return pretrained_vgg16(weights, vgg.width)
@@ -129,7 +128,6 @@ def modality_jitter(train_cfg: TrainConfig, modality: str):
     """The ``train.jitter_*`` settings as a :class:`placejax.data.ViewJitter` for one modality: shift and zoom for
     every modality, colour (brightness, contrast, saturation) for RGB only — an HHA pixel's channels are
     measurements, not colours."""
-    from placejax.data import ViewJitter
 
     t = train_cfg
     colour = t.jitter_colour if modality == "rgb" else 0.0
@@ -171,7 +169,6 @@ def conv_features(
         def compute(a, b, images=images, run=run, n=n):
             if view_jitter is None:
                 return run(np.asarray(images[a:b]))
-            from placejax.data import jittered_copies
 
             # Rows a..b of the copy-major (copies · N) array, copy by copy.
             parts = []
