@@ -91,11 +91,11 @@ def test_ensure_trained_reuses_the_cached_run(pretrain_run, monkeypatch):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [pretrain.SHIPPED, pretrain.SHIPPED_HHA, pretrain.SHIPPED_HHA_PREDICTED])
+@pytest.mark.parametrize("name", [pretrain.SHIPPED_RGB, pretrain.SHIPPED_HHA, pretrain.SHIPPED_HHA_PREDICTED])
 def test_shipped_trunk_loads_into_vgg16_and_reaches_its_recorded_recall(name):
     params, meta = weights.resolve(f"shipped:{name}")
     cfg = pretrain.PretrainConfig(**meta["config"])
-    assert cfg.modality == ("rgb" if name == pretrain.SHIPPED else "hha")
+    assert cfg.modality == ("rgb" if name == pretrain.SHIPPED_RGB else "hha")
     s = cfg.image_size
     assert_spatial_map(s, cfg.width)
     template = VGG16(num_classes=100, width=cfg.width).init(jax.random.key(0), jnp.zeros((1, s, s, 3)))["params"]
@@ -144,7 +144,7 @@ def test_pretrained_vgg16_refuses_weights_of_other_networks():
         pretrain.pretrained_vgg16("registry:midas_v21_small_256")
     with pytest.raises(ValueError, match="simcampus_depth_default_128' is not a pretrained VGG16 trunk"):
         pretrain.pretrained_vgg16("shipped:simcampus_depth_default_128", width=0.125)
-    assert set(pretrain.pretrained_vgg16(f"shipped:{pretrain.SHIPPED}", width=0.125)) == {"trunk"}
+    assert set(pretrain.pretrained_vgg16(f"shipped:{pretrain.SHIPPED_RGB}", width=0.125)) == {"trunk"}
 
 
 def test_cli_overrides_are_typed_and_cache_folder_follows_the_config(tmp_path):

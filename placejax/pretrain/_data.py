@@ -32,7 +32,7 @@ from placejax.depth import PRESETS, ensure_trained, far_to_sky
 # training worlds (7_000_000 + ...), so neither network has seen the other's worlds.
 PLACE_WORLD_SEED_BASE = 8_000_000
 
-MODALITIES = ("rgb", "hha")
+TRUNK_MODALITIES = ("rgb", "hha")
 
 # perturb_depth: the depth network's range (it predicts at most 80 m), the spread of its errors (objects off by a
 # median factor of 1.3-1.45 on a world it never saw, see docs/research-log.md), log-depth blur and the sky
@@ -255,8 +255,8 @@ def place_frames(
         >>> f["image"].shape, f["image2"].shape, f["label"].shape
         ((2, 16, 16, 3), (2, 16, 16, 3), (2,))
     """
-    if modality not in MODALITIES:
-        raise ValueError(f"modality must be one of {MODALITIES}, got {modality!r}")
+    if modality not in TRUNK_MODALITIES:
+        raise ValueError(f"modality must be one of {TRUNK_MODALITIES}, got {modality!r}")
     seeds = place_world_seeds(seed, n_worlds, exclude_world_seeds)
     depth_fn = None
     if modality == "hha":

@@ -23,12 +23,12 @@ from placejax import weights as _weights
 from placejax.models import VGG16
 from placejax.pretrain import _evaluate
 from placejax.pretrain._data import network_depth
-from placejax.pretrain._train import PRESETS, PretrainConfig, load_trained, train
+from placejax.pretrain._train import PRESETS, PretrainConfig, load_trained, train_trunk
 from placejax.training import CheckpointError
 from placejax.weights import convert_vgg16
 
 # The trunk shipped with the package (its README records command, seed, config and held-out metrics).
-SHIPPED = "simcampus_places_w0125_s64"
+SHIPPED_RGB = "simcampus_places_w0125_s64"
 """Name of the RGB trunk shipped in ``placejax/pretrain/weights/`` (``shipped:NAME`` in a weights spec)."""
 # The HHA net's trunk, pretrained on HHA images (``modality="hha"``).
 SHIPPED_HHA = "simcampus_places_hha_w0125_s64"
@@ -63,23 +63,23 @@ def export_params(params: dict[str, Any], heads: tuple[str, ...] = ()) -> dict[s
     return {k: np.asarray(v, np.float32) for k, v in flat.items()}
 
 
-def save_npz(params: dict[str, Any], path: str | Path, meta: dict, heads: tuple[str, ...] = ()) -> None:
+def save_trunk(params: dict[str, Any], path: str | Path, meta: dict, heads: tuple[str, ...] = ()) -> None:
     """Writes :func:`export_params` plus ``meta`` (JSON under the key ``"meta"``) as a compressed npz."""
     io.write_npz(path, export_params(params, heads), compressed=True, meta=meta)
 
 
-def read_npz(source) -> _weights.WeightsRecord:
-    """``(params, meta)`` of a file written by :func:`save_npz` (``placejax.weights.read_record``): ``params``
+def read_trunk(source) -> _weights.WeightsRecord:
+    """``(params, meta)`` of a file written by :func:`save_trunk` (``placejax.weights.read_record``): ``params``
     ``{"trunk": ...[, "classifier": {...}]}`` ready to drop into ``VGG16(width=meta["config"]["width"])``'s tree."""
     return _weights.read_record(source, what="placejax pretrained-trunk file")
 
 
-def shipped_file(name: str = SHIPPED):
+def shipped_file(name: str = SHIPPED_RGB):
     """The packaged file of the shipped trunk ``name`` (``placejax.weights.shipped_file``)."""
     return _weights.shipped_file(name)
 
 
-def load_shipped(name: str = SHIPPED) -> _weights.WeightsRecord:
+def load_shipped(name: str = SHIPPED_RGB) -> _weights.WeightsRecord:
     """The trunk shipped in ``placejax/pretrain/weights/<name>.npz`` and its record (config, seed,
     command, held-out metrics): ``(params, meta)``, a ``placejax.weights.WeightsRecord`` as
     ``placejax.weights.resolve("shipped:NAME")`` returns.
@@ -105,7 +105,7 @@ def pretrained_vgg16(weights: str = "", width: float = 1.0) -> dict[str, Any]:
         weights: a weights spec (``placejax.weights.resolve``): ``""`` or ``"registry:vgg16_imagenet"`` for the
             registry's ImageNet weights (``placejax.weights.load("vgg16_imagenet")``, width 1.0),
             ``"shipped:<name>"`` for a trunk shipped with placejax (:func:`load_shipped`; trunk only), the path
-            of a ``.npz`` file written by :func:`save_npz` (``experiments.pretrain_trunk --export``; its trunk
+            of a ``.npz`` file written by :func:`save_trunk` (``experiments.pretrain_trunk --export``; its trunk
             only, as a shipped one), or the path of a torchvision-layout ``torch.save`` file (read by the safe
             reader).
         width: the VGG16 channel multiplier the weights must have.
@@ -224,7 +224,7 @@ def ensure_trained(
         try:
             params = load_trained(workdir, config)
         except (FileNotFoundError, CheckpointError):  # not trained yet, interrupted or damaged: finish (or heal) it
-            train(config, workdir, progress=progress)
+            train_trunk(config, workdir, progress=progress)
             params = load_trained(workdir, config)
         if report_path.exists():
             return params, json.loads(report_path.read_text())

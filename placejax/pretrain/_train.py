@@ -34,9 +34,9 @@ from placejax.pretrain import _data
 from placejax.pretrain._data import (
     HHA_DEPTH_PERTURBED,
     HHA_DEPTH_TRAINED,
-    MODALITIES,
     NETWORK_SHIFTS,
     NETWORK_SKY_FROM_M,
+    TRUNK_MODALITIES,
     check_hha_depth,
     place_frames,
 )
@@ -124,7 +124,7 @@ class PretrainConfig:
             positive=("learning_rate", "width", "temperature", "hha_sky_from_m"),
             nonnegative=("weight_decay", "place_weight", "pair_weight"),
             unit_interval=("dropout",),
-            choices={"modality": MODALITIES},
+            choices={"modality": TRUNK_MODALITIES},
             string=("hha_depth",),
         )
         check_hha_depth(self.hha_depth)
@@ -319,7 +319,7 @@ def _checkpoint_dir(workdir: Path) -> Path:
     return Path(workdir).absolute() / "checkpoints"
 
 
-def train(
+def train_trunk(
     cfg: PretrainConfig,
     workdir: str | os.PathLike,
     *,
