@@ -235,4 +235,5 @@ def ensure_trained(
             "heldout": heldout_report(params["trunk"], config),
         }
         io.write_json(report_path, report)
+        report = json.loads(report_path.read_text())  # as a later call reads it (tuples as lists)
     return params, report
