@@ -92,31 +92,12 @@ class ClassifierSpec:
     pool_weight: float | None = None  # None: the fusion MLP; w: the log-linear pool with weight w on RGB-Net
 
     @classmethod
-    def from_sections(
-        cls,
-        *,
-        image_size: tuple[int, int],
-        intrinsics: Any,
-        num_classes: int,
-        depth: DepthSourceConfig,
-        vgg: Any,
-        mlp: Any,
-        depth_entry: dict[str, Any] | None = None,
-    ) -> ClassifierSpec:
-        """The spec of the classifier a run with these config sections trains (:func:`spec_entries`, then
-        :meth:`from_meta`): what a run's classifier files, the benchmarks' synthetic classifiers and the tests'
-        tiny ones are built from."""
-        return cls.from_meta(
-            spec_entries(
-                image_size=image_size,
-                intrinsics=intrinsics,
-                num_classes=num_classes,
-                depth=depth,
-                vgg=vgg,
-                mlp=mlp,
-                depth_entry=depth_entry,
-            )
-        )
+    def from_sections(cls, **sections: Any) -> ClassifierSpec:
+        """The spec of the classifier a run with these config sections trains: :meth:`from_meta` of
+        :func:`spec_entries` (same keywords: ``image_size``, ``intrinsics``, ``num_classes``, ``depth``, ``vgg``,
+        ``mlp``, ``depth_entry``), what a run's classifier files and the benchmarks' synthetic classifiers are built
+        from."""
+        return cls.from_meta(spec_entries(**sections))
 
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> ClassifierSpec:
