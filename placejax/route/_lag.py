@@ -15,7 +15,7 @@ import numpy as np
 
 from placejax.data.grid import PlaceGrid
 from placejax.route import _motion
-from placejax.route._chunks import padded_chunks
+from placejax.route._chunks import CHUNK, padded_chunks
 from placejax.route._config import FilterConfig
 from placejax.route._filter import (
     _DEFAULT,
@@ -34,10 +34,10 @@ MAX_LAG = 10_000
 """Most frames of look-ahead `smooth` and `FixedLagFilter` take."""
 
 
-def _back(st: _Static, p: dict, w, moved) -> jax.Array:
-    """``M(moved) @ w``: the backward message through one transition (``w`` = emission ⊙ later message)."""
+def _back(st: _Static, p: dict, w, t, moved) -> jax.Array:
+    """``M(moved) @ w``: the backward message through one transition (``w`` = emission ⊙ later message; ``t``: the
+    cells' transition matrix for ``moved``, `_transitions`)."""
     k = st.n * st.n
-    t = _motion.cell_transitions(_kernel(st, p, moved), _motion.gather_index(st.n))
     wk = w[:k]
     bk = (1.0 - p["mix"]) * (t @ wk) + p["mix"] * wk.mean()
     if not st.unknown:
@@ -47,20 +47,29 @@ def _back(st: _Static, p: dict, w, moved) -> jax.Array:
     return jnp.concatenate([(1.0 - enter) * bk + enter * wu, (leave * wk.mean() + (1.0 - leave) * wu)[None]])
 
 
+def _transitions(st: _Static, p: dict, moved) -> jax.Array:
+    """The cells' ``(K, K)`` transition matrix for a move of ``moved`` metres."""
+    return _motion.cell_transitions(_kernel(st, p, moved), _motion.gather_index(st.n))
+
+
 @functools.lru_cache(maxsize=32)
 def _window_fn(st: _Static, lag: int):
-    """One compiled program smoothing up to ``CHUNK`` frames, each from its forward belief and a window of the
-    ``lag`` frames after it: `smooth` runs a session through it chunk by chunk and `FixedLagFilter` one frame at a
-    time (a chunk holding one window), so their answers are bit-identical."""
+    """One compiled program smoothing up to ``CHUNK`` consecutive frames, each from its forward belief and a window
+    of the ``lag`` frames after it: `smooth` runs a session through it chunk by chunk and `FixedLagFilter` one frame
+    at a time (a chunk holding one window), so their answers are bit-identical. The windows of consecutive frames
+    overlap, so each frame's transition matrix is computed once per chunk (``span``), not once per window."""
 
-    def run(p, alphas, probs, moved, ok, counts, n):
-        # alphas (C, S); probs (C, lag, K), moved (C, lag), ok (C, lag): frames t + 1 … t + lag of each window;
-        # counts (C,): how many of them exist (fewer at a session's end); ok False: a rejected frame (no evidence).
+    def run(p, alphas, probs, span, ok, counts, n):
+        # alphas (C, S); probs (C, lag, K), ok (C, lag): frames t + 1 … t + lag of each window (ok False: a
+        # rejected frame, no evidence); span (C + lag - 1,): metres moved before each of the chunk's frames, window
+        # c's frame i at span[c + i]; counts (C,): how many frames each window has (fewer at a session's end).
+        trans = jax.vmap(lambda m: _transitions(st, p, m))(span)
+
         def one(c, out):
             def back(j, beta):
                 i = lag - 1 - j
                 e = jnp.where(ok[c, i], _emission(st, p, probs[c, i]), 1.0)
-                nb = _back(st, p, e * beta, moved[c, i])
+                nb = _back(st, p, e * beta, trans[c + i], span[c + i])
                 return jnp.where(i < counts[c], nb / nb.sum(), beta)
 
             beta = jax.lax.fori_loop(0, lag, back, jnp.ones(alphas.shape[1], jnp.float32))
@@ -72,11 +81,18 @@ def _window_fn(st: _Static, lag: int):
     return jax.jit(run)
 
 
-def _smooth_windows(st, p, lag: int, alphas, probs, moved, ok, counts) -> np.ndarray:
-    """Smoothed beliefs of ``len(alphas)`` frames from their windows, ``CHUNK`` per call of `_window_fn`."""
+def _smooth_windows(st, p, lag: int, alphas, probs, span, ok, counts) -> np.ndarray:
+    """Smoothed beliefs of ``len(alphas)`` consecutive frames from their windows, ``CHUNK`` per call of
+    `_window_fn` (``span``: ``len(alphas) + lag - 1`` metres moved, window ``t``'s frame ``i`` at ``span[t + i]``)."""
     fn = _window_fn(st, lag)
-    arrays = (np.asarray(alphas, np.float32), probs.astype(np.float32), moved.astype(np.float32), ok, counts)
-    outs = [np.asarray(fn(p, *chunk, np.int32(n)))[:n] for n, chunk in padded_chunks(*arrays)]
+    span = np.asarray(span, np.float32)
+    arrays = (np.asarray(alphas, np.float32), probs.astype(np.float32), ok, counts)
+    outs = []
+    for lo, (n, (a, pr, o, c)) in zip(range(0, len(alphas), CHUNK), padded_chunks(*arrays), strict=True):
+        sp = np.zeros(CHUNK + lag - 1, np.float32)
+        part = span[lo : lo + CHUNK + lag - 1]
+        sp[: len(part)] = part
+        outs.append(np.asarray(fn(p, a, pr, sp, o, c, np.int32(n)))[:n])
     return np.concatenate(outs)
 
 
@@ -108,7 +124,9 @@ def smooth(
     idx = np.arange(n)[:, None] + 1 + np.arange(lag)[None, :]  # frames t + 1 … t + lag
     inside = idx < n
     idx = np.minimum(idx, n - 1)
-    windows = (probs[idx] * inside[..., None], moved[idx] * inside, inside, inside.sum(axis=1).astype(np.int32))
+    span = np.zeros(n + lag - 1, np.float32)  # metres moved before frames 1 … n - 1, then nothing
+    span[: n - 1] = moved[1:]
+    windows = (probs[idx] * inside[..., None], span, inside, inside.sum(axis=1).astype(np.int32))
     return jnp.asarray(_smooth_windows(st, p, lag, np.asarray(alphas), *windows))
 
 
@@ -194,10 +212,10 @@ class FixedLagFilter:
             return self._alphas[j]
         k = self.filter.grid.num_classes
         probs = np.zeros((1, self.lag, k), np.float32)
-        moved = np.zeros((1, self.lag), np.float32)
+        moved = np.zeros(self.lag, np.float32)
         ok = np.zeros((1, self.lag), bool)
         for i in range(count):
-            probs[0, i], moved[0, i], ok[0, i] = self._probs[j + 1 + i], self._moved[j + 1 + i], self._ok[j + 1 + i]
+            probs[0, i], moved[i], ok[0, i] = self._probs[j + 1 + i], self._moved[j + 1 + i], self._ok[j + 1 + i]
         f = self.filter
         return _smooth_windows(
             f._st, f._p, self.lag, self._alphas[j][None], probs, moved, ok, np.array([count], np.int32)
