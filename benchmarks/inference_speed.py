@@ -3,11 +3,13 @@
     python -m benchmarks.inference_speed [--repeats 3] [--batch 8] [--no-torch] [--only builtin|paper]
         [--baseline-shift-px 2 4]
 
-Two model sizes, both with random weights of the exact architectures (speed does not depend on the values):
+Two model sizes, both with random weights of the exact architectures (speed does not depend on the values), each
+classifier's manifest made from its preset's config sections as a run's is (``placejax.classify.spec_entries``):
     builtin: the default SimCampus preset — its images (96×96), the placejax metric depth network (the default depth
         preset's: MidasSmall features 16, encoder ×0.35, run at 128×128) over the preset's views (the image and its
         mirror: two passes; ten with the copies shifted by ±2 and ±4 px of ``depth.shift_px=(2, 4)``, an earlier
-        default), VGG16 at 1/8 width, fusion MLP 2·512 → 1024 → 100.
+        default), VGG16 at 1/8 width, the preset's fusion (the log-linear pool of the two nets; its fusion MLP,
+        2·512 → 1024 → 100, is a file's parameters but not run).
     paper: the paper's setting — 256×256 images, MiDaS v2.1 small (official size, run at 256×256), ImageNet
         VGG16 at full width (conv features rounded to float16 as the experiment caches them), MLP 8192 → 1024 → 100.
 

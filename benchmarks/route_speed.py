@@ -17,10 +17,11 @@ Target: < 1 ms per frame for 100 cells. ``FixedLagFilter.step``: the streaming f
 over ``--frames`` test frames and ``SequenceMatcher.step`` one frame at a time.
 
 ``Tracker.step``: a ``PlaceClassifier`` of the built-in size with random weights (the default preset's: 96×96
-images, the default depth network over its ten views, VGG16 at 1/8 width with float16 trunk features, the fusion
-MLP, 100 classes, the ``knn1`` unseen-place score against 1000 reference embeddings) followed by the filter, one
-uint8 image per call, ``--tracker-steps`` steps per timed run, for each method it offers (the filter; the filter with
-a lag of ``--lag`` frames; the sequence matcher against a random training drive of ``--reference`` frames). Its
+images, the default depth network over the preset's views, VGG16 at 1/8 width with float16 trunk features, the
+preset's fusion, 100 classes, the ``knn1`` unseen-place score against 1000 reference embeddings) followed by the
+filter, one uint8 image per call, ``--tracker-steps`` steps per timed run, for each method it offers (the filter;
+the filter with a lag of ``--lag`` frames; the sequence matcher against a random training drive of ``--reference``
+frames). Its
 ``first call s`` is the median over
 ``--first-repeats`` first steps, each after every compilation cache was cleared (what a robot's first frame
 costs: the classifier's and the filter's compilation). ``PlaceClassifier.logits (1 image)``: the classifier
