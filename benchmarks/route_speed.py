@@ -21,11 +21,10 @@ images, the default depth network over the preset's views, VGG16 at 1/8 width wi
 preset's fusion, 100 classes, the ``knn1`` unseen-place score against 1000 reference embeddings) followed by the
 filter, one uint8 image per call, ``--tracker-steps`` steps per timed run, for each method it offers (the filter;
 the filter with a lag of ``--lag`` frames; the sequence matcher against a random training drive of ``--reference``
-frames). Its
-``first call s`` is the median over
-``--first-repeats`` first steps, each after every compilation cache was cleared (what a robot's first frame
-costs: the classifier's and the filter's compilation). ``PlaceClassifier.logits (1 image)``: the classifier
-alone, for the share of the step it takes, its runs alternated with the Tracker's (both see the same load).
+frames). Its ``first call s`` is the median over ``--first-repeats`` first steps, each after every compilation cache
+was cleared (what a robot's first frame costs: the classifier's and the filter's compilation).
+``PlaceClassifier.logits (1 image)``: the classifier alone, for the share of the step it takes, its runs alternated
+with the Tracker's (both see the same load).
 """
 
 from __future__ import annotations
