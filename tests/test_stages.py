@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 from types import SimpleNamespace
 
-import jax
 import numpy as np
 import pytest
 
@@ -190,82 +189,3 @@ def test_hha_caches_are_keyed_by_the_camera_the_height_rule_and_the_encoder_vers
     np.testing.assert_array_equal(np.asarray(other_rule.data), np.asarray(hha.encode(ramp, k, height=rule)))
     monkeypatch.setattr(hha, "ENCODER_VERSION", hha.ENCODER_VERSION + 1)
     assert build(k).path not in (first.path, other_camera.path)
-
-
-def test_the_scoring_stages_reproduce_a_runs_results_from_the_library(shared_smoke_run, tmp_path_factory):
-    """``stages.evaluate`` and ``stages.route_columns``, called on the stages of a finished run (every cache and
-    checkpoint read back), give the run's ``results.json`` exactly: the experiment adds only its driver and the
-    report."""
-    import json
-
-    from helpers import copy_of_smoke_run, smoke_config
-
-    from experiments.cross_season import sections
-    from placejax import training
-
-    workdir, results = copy_of_smoke_run(shared_smoke_run, tmp_path_factory, "library_scores")
-    cfg = smoke_config()
-    c = sections(cfg)
-    ws = stages.Workspace(workdir, training.data_mesh(cfg.devices or None), progress=False)
-    sessions = stages.open_sessions(ws, c["data"])
-    grid = stages.fit_grid(ws, sessions, c["grid"])
-    source = depth.depth_source(c["depth"], progress=False)
-    height = c["depth"].height_rule()
-    stages.attach_depth(sessions, stages.depth_and_hha(ws, sessions, source, c["depth"].batch_size, height))
-    modalities = ("rgb", "hha", "depth1") if c["ablations"].depth1 else ("rgb", "hha")
-    of_a_seed = {"vgg": c["vgg"], "mlp": c["mlp"], "train_cfg": c["train"], "eval_cfg": c["eval"]}
-    runs = [
-        stages.train_seed(ws, sessions, grid.num_classes, seed=cfg.seed + k, modalities=modalities, **of_a_seed)
-        for k in range(cfg.n_seeds)
-    ]
-    thumbs = stages.baseline_features(ws, sessions, c["depth"].batch_size)
-    scores = stages.evaluate(ws, sessions, runs, thumbs, mlp=c["mlp"], ablations=c["ablations"], seed=cfg.seed)
-    detectors = scores.pop("_detectors")
-    assert set(detectors) == {s.name for s in sessions}
-    scores["route"], traces = stages.route_columns(
-        ws,
-        sessions,
-        runs,
-        grid,
-        scores["pairs"],
-        data=c["data"],
-        settings=c["route"],
-        report=c["route_report"],
-        sequence=c["sequence"],
-        mlp=c["mlp"],
-        ablations=c["ablations"],
-        seed=cfg.seed,
-    )
-    assert set(traces) == {(p["train"], p["test"]) for p in scores["pairs"]}
-    assert set(scores["route"]["mean"]) == set(stages.ROUTE_COLUMNS)
-    got = json.loads(json.dumps(scores))
-    for key in ("pairs", "same_session", "mean", "mean_sd_over_seeds", "gains", "ceilings_and_baselines", "unknown"):
-        assert got[key] == results[key], key
-    assert got["route"] == results["route"]
-    assert {k for k in got["mean"] if k in stages.METHOD_COLUMNS} <= set(stages.METHOD_COLUMNS)
-
-
-def test_a_stage_caller_gets_the_rules_between_sections_as_the_experiment_does(tmp_path):
-    """The rules that tie sections together live in the library: ``stages.train_seed`` refuses what
-    ``experiments.cross_season``'s validation refuses, with the same message, before any work."""
-    from experiments.cross_season import apply_overrides, get_config, validate
-    from placejax import training
-
-    overrides = ["train.jitter_copies=2", "vgg.pretrained=False", "vgg.hha_weights=''", "mlp.batch_size=33"]
-    cfg = get_config("smoke")
-    apply_overrides(cfg, overrides)
-    with pytest.raises(ValueError, match="invalid configuration") as cli:
-        validate(cfg, 2)
-    vgg = stages.VGGConfig(pretrained=False, hha_weights="")
-    train = stages.TrainConfig(jitter_copies=2)
-    mlp = stages.MLPConfig(batch_size=33)
-    ws = stages.Workspace(tmp_path, training.data_mesh(jax.devices()[:2]), progress=False)
-    with pytest.raises(config.ConfigError) as lib:
-        stages.train_seed(ws, [], 3, vgg=vgg, train_cfg=train, mlp=mlp, eval_cfg=stages.EvalConfig(), seed=0)
-    assert lib.value.errors == [
-        "train.jitter_copies needs vgg.pretrained=True (the copies' frozen-trunk features are cached)",
-        "mlp.batch_size=33 must be divisible by the 2 devices of the mesh",
-    ]
-    assert all(e in str(cli.value) for e in lib.value.errors)
-    assert not any(tmp_path.iterdir())
-    assert stages.section_problems(train=train, vgg=dataclasses.replace(vgg, pretrained=True)) == []
