@@ -187,9 +187,10 @@ def _smallest_eigenvector(a: jax.Array, y: jax.Array) -> jax.Array:
     the vector of its eigenspace nearest the current estimate ``y``.
 
     A scene of head-on walls gives A ≈ diag(0, 0, k): every direction of the image plane is an answer, and which
-    one an eigensolver returns is decided by rounding (float32 here, float64 in the reference: its answer for a
-    flat wall is the image's down axis, ours was its x axis). The nearest to ``y`` keeps what the data do not
-    contradict, and ``y`` itself is then a fixed point.
+    one an eigensolver returns is decided by rounding and by the machine's LAPACK kernels (for a flat wall the
+    float64 reference gives the image's down axis on a Xeon and its x axis on an EPYC; float32 LAPACK gave the x
+    axis). The nearest to ``y`` keeps what the data do not contradict, on every machine, and ``y`` itself is then a
+    fixed point.
     """
     w, vecs = jnp.linalg.eigh(a, symmetrize_input=False)  # a is symmetric by construction; w ascends
     tied = w <= w[0] + _TIE_RTOL * jnp.max(jnp.abs(w))
