@@ -63,20 +63,26 @@ def _window_fn(st: _Static, lag: int):
         # alphas (C, S); probs (C, lag, K), ok (C, lag): frames t + 1 … t + lag of each window (ok False: a
         # rejected frame, no evidence); span (C + lag - 1,): metres moved before each of the chunk's frames, window
         # c's frame i at span[c + i]; counts (C,): how many frames each window has (fewer at a session's end).
-        trans = jax.vmap(lambda m: _transitions(st, p, m))(span)
+        # The transition matrices of the lag frames window c reaches, in a ring: each window adds one.
+        k = st.n * st.n
+        ring = jnp.zeros((lag, k, k), jnp.float32)
+        ring = jax.lax.fori_loop(0, lag - 1, lambda j, r: r.at[j].set(_transitions(st, p, span[j])), ring)
 
-        def one(c, out):
+        def one(c, carry):
+            ring, out = carry
+            ring = ring.at[(c + lag - 1) % lag].set(_transitions(st, p, span[c + lag - 1]))
+
             def back(j, beta):
                 i = lag - 1 - j
                 e = jnp.where(ok[c, i], _emission(st, p, probs[c, i]), 1.0)
-                nb = _back(st, p, e * beta, trans[c + i], span[c + i])
+                nb = _back(st, p, e * beta, ring[(c + i) % lag], span[c + i])
                 return jnp.where(i < counts[c], nb / nb.sum(), beta)
 
             beta = jax.lax.fori_loop(0, lag, back, jnp.ones(alphas.shape[1], jnp.float32))
             s = alphas[c] * beta
-            return out.at[c].set(s / s.sum())
+            return ring, out.at[c].set(s / s.sum())
 
-        return jax.lax.fori_loop(0, n, one, jnp.zeros_like(alphas))
+        return jax.lax.fori_loop(0, n, one, (ring, jnp.zeros_like(alphas)))[1]
 
     return jax.jit(run)
 
