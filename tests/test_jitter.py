@@ -1,10 +1,9 @@
-"""Jittered copies of training frames (placejax.data.jitter) and the experiment's train.jitter_* settings."""
+"""Jittered copies of training frames (placejax.data.jitter); the experiment's train.jitter_* settings:
+test_experiment_config."""
 
 import numpy as np
 import pytest
 
-from experiments.cross_season import apply_overrides, get_config, leaf_keys, sections, validate
-from experiments.overrides import get
 from placejax.data import ViewJitter, jittered_copies, jittered_view
 
 
@@ -65,62 +64,3 @@ def test_bad_settings_and_images_are_refused():
         jittered_view(np.zeros((4, 4, 3), np.float32), ViewJitter(), np.random.default_rng(0))
     with pytest.raises(ValueError, match="copies"):
         jittered_copies(_images(), ViewJitter(), copies=0, seed=0)
-
-
-def test_experiment_settings():
-    from placejax.stages import modality_jitter, results_only
-
-    c = get_config("default")
-    apply_overrides(c, ["train.jitter_copies=0"])
-    # Without copies the magnitudes do not enter the nets' keys (runs keep the keys they had before the copies).
-    assert not any(k.startswith("jitter_") for k in results_only(sections(c)["train"]))
-    apply_overrides(c, ["train.jitter_copies=2"])
-    train = sections(c)["train"]
-    assert results_only(train)["jitter_shift"] == c.train.jitter_shift
-    # Colour for RGB only: an HHA pixel's channels are measurements.
-    assert modality_jitter(train, "rgb").colour
-    assert not modality_jitter(train, "hha").colour
-    assert modality_jitter(train, "hha").geometric
-    validate(c)
-    apply_overrides(c, ["vgg.pretrained=False", "vgg.hha_weights=''"])
-    with pytest.raises(ValueError, match=r"jitter_copies needs vgg\.pretrained"):
-        validate(c)
-    c = get_config("default")
-    apply_overrides(c, ["train.jitter_shift=0.7"])
-    with pytest.raises(ValueError, match=r"train\.jitter_shift=0\.7"):
-        validate(c)
-
-
-def test_large_is_the_default_with_three_times_the_steps():
-    """``--preset large`` differs from the default in the heads' epochs (docs/lookup-gap.md) and the ceiling
-    columns on rendered depth, which change no other column."""
-    default, large, paper = get_config("default"), get_config("large"), get_config("paper")
-    validate(default)
-    validate(large)
-    differ = {k for k in leaf_keys(default) if get(default, k) != get(large, k)}
-    assert differ == {"preset", "train.epochs", "ablations.rendered"}
-    assert large.ablations.rendered
-    assert not default.ablations.rendered
-    assert large.train.epochs == 3 * default.train.epochs
-    assert default.train.jitter_copies == 2
-    assert default.mlp.input_dropout == 0.5
-    # The paper's recipe has neither.
-    assert paper.train.jitter_copies == 0
-    assert paper.mlp.input_dropout == 0.0
-
-
-def test_fusion_head_settings_are_checked():
-    c = get_config("smoke")
-    assert (c.mlp.input_dropout, c.mlp.modality_dropout, c.mlp.jittered) == (0.0, 0.0, False)
-    for bad, message in (
-        ("mlp.modality_dropout=0.6", r"mlp.modality_dropout=0.6: expected a number in \[0, 0.5\]"),
-        ("mlp.input_dropout=1.0", r"mlp.input_dropout=1.0: expected a number in \[0, 1\)"),
-        ("mlp.input_dropout=-0.1", r"mlp.input_dropout=-0.1: expected a number in \[0, 1\)"),
-        ("mlp.jittered=True", r"mlp.jittered needs train.jitter_copies > 0"),
-    ):
-        c = get_config("smoke")
-        apply_overrides(c, [bad])
-        with pytest.raises(ValueError, match=message):
-            validate(c)
-    apply_overrides(c, ["train.jitter_copies=2"])
-    validate(c)

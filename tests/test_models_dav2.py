@@ -384,21 +384,3 @@ def test_place_classifier_from_a_dav2_run(refs, source, tmp_path, monkeypatch):
         bad["depth"][field] = value
         with pytest.raises(ArtefactError, match=message):
             check_manifest(bad, "dav2.placejax")
-
-
-def test_paper_dav2_preset_is_the_paper_with_metric_dav2():
-    """``--preset paper_dav2`` resolves and validates; it differs from ``paper`` only in its depth network (and that
-    network's batch), and ``paper`` itself keeps MiDaS."""
-    from experiments.cross_season import config as xconfig
-
-    c, paper = xconfig.get_config("paper_dav2"), xconfig.get_config("paper")
-    xconfig.validate(c)
-    xconfig.validate(paper)
-    changed = {k for k in xconfig.leaf_keys(c) if xconfig.get(c, k) != xconfig.get(paper, k)}
-    assert changed == {"preset", "depth.source", "depth.batch_size"}
-    assert c.depth.source == "depth_anything_v2_metric"
-    assert c.depth.dav2_short_side == 518
-    assert paper.depth.source == "midas"
-    assert "paper_dav2" in xconfig.PRESETS
-    xconfig.apply_overrides(c, ["depth.source=depth_anything_v2"])  # the relative variant, as documented
-    xconfig.validate(c)

@@ -455,16 +455,6 @@ def test_filter_config_refuses_each_bad_setting_by_name(field, value):
         route.FilterConfig().replace(**{field: value})
 
 
-def test_the_experiments_filter_config_is_filter_configs():
-    from experiments.cross_season import get_config, sections
-
-    cfg = get_config("default")
-    assert sections(cfg)["route"] == route.FilterConfig()
-    cfg.route.temperature = 2.0
-    assert sections(cfg)["route"] == route.FilterConfig(temperature=2.0)
-    assert sections(cfg)["route"].replace(bounded=True).bounded
-
-
 # ---------------------------------------------------------------------------------------------------- fail closed
 
 
