@@ -182,3 +182,50 @@ else:
     assert ("placejax.route._lag", None) in found  # function-level imports count
     assert ("placejax.models", "vgg") in found  # the else branch of a program block counts
     assert not any(m.startswith(("placejax.stages", "placejax.data.export")) for m, _ in found)
+
+
+# Test modules that exercise the experiments (their commands, configs, reports) or still build their fixture run with
+# python -m experiments.cross_season; every other test module tests the library alone.
+EXPERIMENT_TESTS = frozenset(
+    {
+        "conftest.py",  # the shared smoke run
+        "helpers.py",
+        "test_classify.py",  # its classifier comes from an experiment run
+        "test_classify_hostile.py",
+        "test_cli.py",
+        "test_cross_season.py",
+        "test_depth_training.py",  # also experiments.train_depth's overrides
+        "test_experiment_config.py",
+        "test_first_hour.py",
+        "test_folder.py",
+        "test_height_channel.py",
+        "test_hha_diagnose.py",
+        "test_models_dav2.py",  # a DAV2 run's classifier
+        "test_pretrain.py",  # also experiments.pretrain_trunk's overrides
+        "test_readme.py",
+        "test_run_output.py",
+        "test_scripts.py",
+        "test_tracker.py",  # its classifier comes from an experiment run
+        "test_unseen_diagnose.py",
+    }
+)
+
+
+def test_library_tests_import_nothing_from_the_experiments():
+    """The library's own test modules stand on the library: none imports ``experiments`` (at any level)."""
+    tests = Path(__file__).resolve().parent
+    offenders = {}
+    for path in sorted(tests.glob("*.py")):
+        if path.name in EXPERIMENT_TESTS or path.name == "test_layering.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            bad = [n for n in names if n == "experiments" or n.startswith("experiments.")]
+            if bad:
+                offenders.setdefault(path.name, []).extend(bad)
+    assert not offenders, f"library test modules importing the experiments: {offenders}"
+    assert len(list(tests.glob("test_*.py"))) - len(EXPERIMENT_TESTS) >= 25  # the library's modules are most
