@@ -50,7 +50,7 @@ def test_without_evidence_the_belief_travels_the_distance_along_the_drive():
     )
     out = route.match_forward(queries, np.r_[0.0, np.full(5, 2.0)], ref, cfg)
     np.testing.assert_array_equal(out.frame, [5, 7, 9, 11, 13, 15])
-    # After the robot has moved 2 m, the belief is the motion model's Gaussian around 5 + 2 m (frames head along +x).
+    # Once the robot has moved 2 m, the belief is the motion model's Gaussian around 5 + 2 m (frames head along +x).
     m = route.SequenceMatcher(ref, cfg)
     m.step(queries[0], 0.0)
     m.step(queries[1], 2.0)

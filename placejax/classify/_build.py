@@ -12,7 +12,6 @@ import json
 import os
 from collections.abc import Callable
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import jax
@@ -90,7 +89,7 @@ def run_meta_and_params(
         intrinsics=files.intrinsics,
         num_classes=PlaceGrid.from_dict(files.grid).num_classes,
         depth=_run_depth_config(files),
-        vgg=SimpleNamespace(width=vgg["width"], pretrained=vgg["pretrained"]),
+        vgg=vgg,
         mlp=cfg["mlp"],
         depth_entry=source.classifier,
     )

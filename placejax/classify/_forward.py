@@ -163,7 +163,7 @@ def spec_entries(
         num_classes: place classes.
         depth: the ``depth`` section; its HHA height rule goes into ``depth.hha_height`` where it is not the
             reference's.
-        vgg: the ``vgg`` section (``placejax.stages.VGGConfig`` or anything with its ``width`` and ``pretrained``).
+        vgg: the ``vgg`` section (``placejax.stages.VGGConfig``, or its values as a mapping: a run's record).
         mlp: the ``mlp`` section (``placejax.stages.MLPConfig``, or its values as a mapping).
         depth_entry: the built depth source's ``classifier`` (with where its weights came from); default
             ``placejax.depth.classifier_entry(depth)``.
@@ -177,16 +177,16 @@ def spec_entries(
     height = depth.height_rule()
     if height != _hha.REFERENCE_HEIGHT:
         entry = {**entry, "hha_height": dataclasses.asdict(height)}
-    fields = mlp if isinstance(mlp, dict) else dataclasses.asdict(mlp)
+    vgg, mlp = (section if isinstance(section, dict) else dataclasses.asdict(section) for section in (vgg, mlp))
     return {
         "num_classes": int(num_classes),
         "image_size": [int(v) for v in image_size],
         "intrinsics": np.asarray(intrinsics, np.float64).tolist(),
         "normalise": {"mean": IMAGENET_MEAN_255.tolist(), "std": IMAGENET_STD_255.tolist()},
         "depth": entry,
-        "vgg": {"width": vgg.width, "pretrained": vgg.pretrained},
-        "mlp_hidden": fields["hidden"],
-        "fusion": fusion_entry(fields),
+        "vgg": {"width": vgg["width"], "pretrained": vgg["pretrained"]},
+        "mlp_hidden": mlp["hidden"],
+        "fusion": fusion_entry(mlp),
     }
 
 
